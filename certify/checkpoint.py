@@ -1,0 +1,206 @@
+"""Data-only checkpoints: save and load with a format name and version.
+
+A checkpoint is `torch.save` of a dict of tensors and plain containers, loaded with
+`weights_only=True`, so loading never runs code. Everything is validated on load; any
+problem raises `CheckpointError` with one line naming it (exit code 2 on the CLI).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import os
+import pickle
+import tempfile
+import zipfile
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from certify.errors import CertifyError, CheckpointError
+from certify.network import GainNetwork
+from certify.problem import Problem
+from certify.system import System, validate_metric
+
+FORMAT_NAME = "certify-checkpoint"
+FORMAT_VERSION = 1
+_REQUIRED = ("format", "format_version", "system_spec", "lam", "P", "architecture",
+             "state_dict")
+
+
+def versions() -> dict[str, str]:
+    """Versions of certify and the libraries whose numbers it depends on."""
+    out = {}
+    for pkg in ("certify", "torch", "numpy", "scipy", "sympy", "cvxpy", "clarabel"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = "not installed"
+    return out
+
+
+def sha256_file(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write `data` to `path` through a temporary file and a rename (never half-written)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+@dataclass
+class Checkpoint:
+    """A loaded checkpoint: the problem plus its provenance."""
+
+    problem: Problem
+    path: str
+    sha256: str
+    training: dict[str, Any] = field(default_factory=dict)
+    versions: dict[str, str] = field(default_factory=dict)
+    created: str = ""
+
+
+def _to_plain(obj: Any) -> Any:
+    """Training records to types that `weights_only=True` accepts."""
+    if isinstance(obj, dict):
+        return {str(k): _to_plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_to_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return torch.as_tensor(obj)
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    if obj is None or isinstance(obj, (str, int, float, bool, torch.Tensor)):
+        return obj
+    return str(obj)
+
+
+def save(path: str | Path, *, system: System, network: GainNetwork, lam: float,
+         P: Any = None, training: dict[str, Any] | None = None) -> str:
+    """Write a checkpoint atomically; returns its sha256."""
+    P_arr = validate_metric(system.P if P is None else P, system.n, "checkpoint")
+    if not lam > 0:
+        raise CertifyError(f"checkpoint: lam must be > 0; got {lam}")
+    state = {k: v.detach().to(torch.float64).clone() for k, v in network.state_dict().items()}
+    payload = {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "system_name": system.name,
+        "system_spec": system.source,
+        "lam": float(lam),
+        "P": torch.as_tensor(P_arr, dtype=torch.float64),
+        "architecture": network.architecture(),
+        "state_dict": state,
+        "training": _to_plain(training or {}),
+        "versions": versions(),
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+    import io
+
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    atomic_write_bytes(path, buf.getvalue())
+    return hashlib.sha256(buf.getvalue()).hexdigest()
+
+
+def _read(path: Path) -> dict[str, Any]:
+    if not path.exists():
+        raise CheckpointError(f"checkpoint {path} not found")
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} is not a file")
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        raise CheckpointError(f"checkpoint {path} is not a data-only certify checkpoint "
+                              f"(refused to unpickle: {first[:160]})") from None
+    except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError, KeyError,
+            AttributeError, TypeError, IndexError) as exc:
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CheckpointError(f"checkpoint {path} is not a readable checkpoint ({msg[:160]})"
+                              ) from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT_NAME:
+        raise CheckpointError(f"checkpoint {path} is not a certify checkpoint "
+                              f"(format name missing or not '{FORMAT_NAME}')")
+    return data
+
+
+def load(path: str | Path) -> Checkpoint:
+    """Load and validate a checkpoint (never runs code); returns a `Checkpoint`."""
+    path = Path(path)
+    data = _read(path)
+    version = data.get("format_version")
+    if version != FORMAT_VERSION:
+        raise CheckpointError(f"checkpoint {path} has format version {version!r}; this "
+                              f"certify reads version {FORMAT_VERSION}")
+    missing = [k for k in _REQUIRED if k not in data]
+    if missing:
+        raise CheckpointError(f"checkpoint {path} lacks field(s) {', '.join(missing)}")
+    spec = data["system_spec"]
+    if not isinstance(spec, str):
+        raise CheckpointError(f"checkpoint {path}: embedded system spec is not text")
+    try:
+        system = System.from_text(spec, origin=f"checkpoint {path.name}: embedded spec")
+    except CertifyError as exc:
+        raise CheckpointError(str(exc)) from None
+    arch = data["architecture"]
+    try:
+        if arch.get("activation", "tanh") != "tanh":
+            raise ValueError(f"activation {arch.get('activation')!r} is not supported")
+        if (arch["n"], arch["p"]) != (system.n, system.p):
+            raise ValueError(f"network is for n={arch['n']}, p={arch['p']} but the system has "
+                             f"n={system.n}, p={system.p}")
+        net = GainNetwork.from_architecture(arch).double()
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CheckpointError(f"checkpoint {path}: bad architecture ({exc})") from None
+    state = data["state_dict"]
+    if not isinstance(state, dict):
+        raise CheckpointError(f"checkpoint {path}: state_dict is not a dict")
+    expected = net.state_dict()
+    if set(state) != set(expected):
+        extra = sorted(set(state) - set(expected))
+        lacking = sorted(set(expected) - set(state))
+        raise CheckpointError(f"checkpoint {path}: weights do not match the architecture "
+                              f"(missing {lacking or 'none'}, unexpected {extra or 'none'})")
+    for key, ref in expected.items():
+        value = state[key]
+        if not isinstance(value, torch.Tensor) or tuple(value.shape) != tuple(ref.shape):
+            got = list(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+            raise CheckpointError(f"checkpoint {path}: weight '{key}' has shape {got}, the "
+                                  f"architecture needs {list(ref.shape)}")
+        if not torch.all(torch.isfinite(value)):
+            raise CheckpointError(f"checkpoint {path}: weight '{key}' contains NaN or Inf")
+    net.load_state_dict({k: v.to(torch.float64) for k, v in state.items()})
+    try:
+        P = validate_metric(torch.as_tensor(data["P"]).numpy(), system.n, f"checkpoint {path}")
+    except CertifyError as exc:
+        raise CheckpointError(str(exc)) from None
+    lam = data["lam"]
+    if isinstance(lam, bool) or not isinstance(lam, (int, float)) or not np.isfinite(lam) \
+            or lam <= 0:
+        raise CheckpointError(f"checkpoint {path}: lam must be a finite number > 0; got {lam!r}")
+    training = data.get("training") or {}
+    return Checkpoint(problem=Problem(system=system, network=net, lam=float(lam), P=P),
+                      path=str(path), sha256=sha256_file(path),
+                      training=training if isinstance(training, dict) else {},
+                      versions=dict(data.get("versions") or {}),
+                      created=str(data.get("created", "")))

@@ -1,0 +1,210 @@
+"""Whitelist expression parser: text -> sympy, without `eval`.
+
+Only numbers, declared names, `+ - * / **`, unary minus/plus and the functions of
+`FUNCTIONS` are accepted; anything else is refused with a message naming the offending
+piece. The same table drives point evaluation (torch) and interval enclosures
+(`certify.intervals`), so whatever parses can also be evaluated and enclosed.
+"""
+
+from __future__ import annotations
+
+import ast
+import math
+from collections.abc import Callable, Mapping
+from typing import Any, Protocol
+
+import sympy
+import torch
+
+from certify.errors import SpecError
+
+#: Whitelisted functions: name -> (sympy function, torch point function).
+FUNCTIONS: dict[str, tuple[Any, Callable[[torch.Tensor], torch.Tensor]]] = {
+    "sin": (sympy.sin, torch.sin),
+    "cos": (sympy.cos, torch.cos),
+    "tan": (sympy.tan, torch.tan),
+    "exp": (sympy.exp, torch.exp),
+    "log": (sympy.log, torch.log),
+    "sqrt": (sympy.sqrt, torch.sqrt),
+    "tanh": (sympy.tanh, torch.tanh),
+    "abs": (sympy.Abs, torch.abs),
+}
+
+#: Named constants accepted in expressions.
+CONSTANTS: dict[str, Any] = {"pi": sympy.pi}
+
+_SYMPY_TO_NAME = {
+    sympy.sin: "sin", sympy.cos: "cos", sympy.tan: "tan", sympy.exp: "exp",
+    sympy.log: "log", sympy.tanh: "tanh", sympy.Abs: "abs",
+}
+
+
+def _describe(node: ast.AST) -> str:
+    try:
+        return f"'{ast.unparse(node)}'"
+    except Exception:  # pragma: no cover - unparse handles every parsed node
+        return type(node).__name__
+
+
+def parse_expression(text: str, names: Mapping[str, sympy.Symbol], where: str = "") -> sympy.Expr:
+    """Parse `text` into a sympy expression over the declared `names`.
+
+    Raises `SpecError` naming the offending construct (prefixed by `where`, e.g.
+    ``"spec vdp.toml: f[1]"``) for anything outside the whitelist.
+    """
+    prefix = f"{where}: " if where else ""
+    if not isinstance(text, str):
+        raise SpecError(f"{prefix}expression must be a string; got {type(text).__name__}")
+    if not text.strip():
+        raise SpecError(f"{prefix}expression is empty")
+    try:
+        tree = ast.parse(text.strip(), mode="eval")
+    except SyntaxError as exc:
+        raise SpecError(f"{prefix}cannot parse {text!r}: {exc.msg}") from None
+
+    def build(node: ast.AST) -> sympy.Expr:
+        if isinstance(node, ast.Expression):
+            return build(node.body)
+        if isinstance(node, ast.Constant):
+            value = node.value
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise SpecError(f"{prefix}constant {_describe(node)} is not a real number")
+            if isinstance(value, float) and not math.isfinite(value):
+                raise SpecError(f"{prefix}constant {_describe(node)} is not finite")
+            return sympy.Integer(value) if isinstance(value, int) else sympy.Float(repr(value))
+        if isinstance(node, ast.Name):
+            if node.id in names:
+                return names[node.id]
+            if node.id in CONSTANTS:
+                return CONSTANTS[node.id]
+            raise SpecError(f"{prefix}uses unknown name '{node.id}'")
+        if isinstance(node, ast.UnaryOp):
+            operand = build(node.operand)
+            if isinstance(node.op, ast.USub):
+                return -operand
+            if isinstance(node.op, ast.UAdd):
+                return operand
+            raise SpecError(f"{prefix}operator in {_describe(node)} is not allowed")
+        if isinstance(node, ast.BinOp):
+            left, right = build(node.left), build(node.right)
+            op = node.op
+            if isinstance(op, ast.Add):
+                return left + right
+            if isinstance(op, ast.Sub):
+                return left - right
+            if isinstance(op, ast.Mult):
+                return left * right
+            if isinstance(op, ast.Div):
+                return left / right
+            if isinstance(op, ast.Pow):
+                return left**right
+            raise SpecError(f"{prefix}operator in {_describe(node)} is not allowed "
+                            "(use + - * / **)")
+        if isinstance(node, ast.Call):
+            if not isinstance(node.func, ast.Name):
+                raise SpecError(f"{prefix}call {_describe(node)} is not allowed "
+                                f"(allowed functions: {', '.join(sorted(FUNCTIONS))})")
+            fname = node.func.id
+            if fname not in FUNCTIONS:
+                raise SpecError(f"{prefix}unknown function '{fname}' in {_describe(node)} "
+                                f"(allowed: {', '.join(sorted(FUNCTIONS))})")
+            if node.keywords or len(node.args) != 1:
+                raise SpecError(f"{prefix}function '{fname}' takes exactly one argument "
+                                f"in {_describe(node)}")
+            return FUNCTIONS[fname][0](build(node.args[0]))
+        kinds = {
+            ast.Attribute: "attribute access", ast.Subscript: "subscript",
+            ast.Lambda: "lambda", ast.Compare: "comparison", ast.BoolOp: "boolean operator",
+            ast.IfExp: "conditional", ast.List: "list", ast.Tuple: "tuple", ast.Dict: "dict",
+            ast.JoinedStr: "string", ast.NamedExpr: "assignment",
+        }
+        kind = next((v for k, v in kinds.items() if isinstance(node, k)), type(node).__name__)
+        raise SpecError(f"{prefix}{kind} {_describe(node)} is not allowed")
+
+    expr = build(tree)
+    bad = expr.atoms(sympy.I, sympy.zoo, sympy.nan, sympy.oo)
+    if bad:
+        raise SpecError(f"{prefix}{text!r} simplifies to a non-real value")
+    return expr
+
+
+class Algebra(Protocol):
+    """Arithmetic on some value type (tensors, intervals) used by `evaluate`."""
+
+    def const(self, value: float, like: Any) -> Any: ...
+    def add(self, a: Any, b: Any) -> Any: ...
+    def mul(self, a: Any, b: Any) -> Any: ...
+    def pow_int(self, a: Any, k: int) -> Any: ...
+    def pow_real(self, a: Any, e: float) -> Any: ...
+    def func(self, name: str, a: Any) -> Any: ...
+
+
+def function_name(expr: sympy.Expr) -> str:
+    """Whitelist name of a sympy function node (or raise naming it)."""
+    name = _SYMPY_TO_NAME.get(expr.func)
+    if name is None:
+        raise SpecError(f"no evaluation rule for function {expr.func}")
+    return name
+
+
+def evaluate(expr: sympy.Expr, env: Mapping[sympy.Symbol, Any], algebra: Algebra, like: Any) -> Any:
+    """Evaluate a sympy tree bottom-up with the operations of `algebra`.
+
+    `env` maps each symbol to a value of the algebra; constants are broadcast `like` it.
+    """
+    if expr.is_Symbol:
+        return env[expr]
+    if expr.is_Number or expr.is_NumberSymbol:
+        return algebra.const(float(expr), like)
+    if expr.is_Add:
+        args = [evaluate(a, env, algebra, like) for a in expr.args]
+        out = args[0]
+        for a in args[1:]:
+            out = algebra.add(out, a)
+        return out
+    if expr.is_Mul:
+        args = [evaluate(a, env, algebra, like) for a in expr.args]
+        out = args[0]
+        for a in args[1:]:
+            out = algebra.mul(out, a)
+        return out
+    if expr.is_Pow:
+        base, exponent = expr.args
+        b = evaluate(base, env, algebra, like)
+        if exponent.is_Integer:
+            return algebra.pow_int(b, int(exponent))
+        if exponent.is_Number:
+            return algebra.pow_real(b, float(exponent))
+        # general a**b = exp(b * log(a))
+        e = evaluate(exponent, env, algebra, like)
+        return algebra.func("exp", algebra.mul(e, algebra.func("log", b)))
+    if isinstance(expr, sympy.Function) and len(expr.args) == 1:
+        return algebra.func(function_name(expr), evaluate(expr.args[0], env, algebra, like))
+    raise SpecError(f"cannot evaluate expression node {expr.func.__name__}: {expr}")
+
+
+class TorchAlgebra:
+    """Point evaluation on batched float tensors."""
+
+    def const(self, value: float, like: torch.Tensor) -> torch.Tensor:
+        return torch.full_like(like, value)
+
+    def add(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return a + b
+
+    def mul(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return a * b
+
+    def pow_int(self, a: torch.Tensor, k: int) -> torch.Tensor:
+        if k >= 0:
+            return a**k
+        return 1.0 / a ** (-k)
+
+    def pow_real(self, a: torch.Tensor, e: float) -> torch.Tensor:
+        return a**e
+
+    def func(self, name: str, a: torch.Tensor) -> torch.Tensor:
+        return FUNCTIONS[name][1](a)
+
+
+TORCH = TorchAlgebra()

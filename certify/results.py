@@ -1,0 +1,271 @@
+"""Outcome vocabulary and the result record of every check.
+
+Logic-free dataclasses: each check fills one; the certificate gathers them. Numbers are
+plain floats/lists so that every result round-trips through JSON unchanged. A bound that
+was not computed is `None`, never a made-up value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any
+
+
+class Status(str, enum.Enum):
+    """How a check ended. Only PROVED counts as a pass; UNKNOWN is never a pass."""
+
+    PROVED = "PROVED"
+    VIOLATED = "VIOLATED"
+    UNKNOWN = "UNKNOWN"
+    SKIPPED = "SKIPPED"
+    ERROR = "ERROR"
+
+
+@dataclass
+class Counterexample:
+    """A point (xhat, y) and the value of the checked quantity there (float64)."""
+
+    xhat: list[float]
+    y: list[float]
+    value: float
+
+
+@dataclass
+class ProofStats:
+    """What the branch-and-bound prover did: effort, speed, and how soundness was kept."""
+
+    boxes_processed: int = 0
+    boxes_per_second: float = 0.0
+    seconds: float = 0.0
+    proved_volume_fraction: float = 0.0
+    max_depth: int = 0
+    budget_exhausted: bool = False
+    rounding: str = ""
+    # (seconds since start, proved volume fraction) samples, for the report.
+    volume_history: list[list[float]] = field(default_factory=list)
+
+
+@dataclass
+class MpdiResult:
+    """MPDI D(xhat, y) <= 0 over X x Y: falsification (lower) and proof (upper) sides."""
+
+    status: Status
+    message: str
+    lower: float  # largest lam_max(D) found by grid + adversarial search
+    upper: float | None  # sound upper bound on max lam_max(D) (None: no proof attempted)
+    worst: Counterexample | None = None
+    counterexamples: list[Counterexample] = field(default_factory=list)
+    violating_fraction: float = 0.0
+    grid_points: int = 0
+    adversarial_starts: int = 0
+    proof: ProofStats | None = None
+    seconds: float = 0.0
+
+
+@dataclass
+class RateResult:
+    """Certified contraction rate: lam_cert lies in [proved_lower, sampled_upper]."""
+
+    status: Status
+    message: str
+    lam_design: float
+    sampled_upper: float  # min over sampled points of the pointwise rate (>= lam_cert)
+    proved_lower: float | None  # proved by bisection on lam with the D <= 0 prover
+    worst: Counterexample | None = None
+    seconds: float = 0.0
+
+
+@dataclass
+class ResidualResult:
+    """Boundary-condition residual eps_bar = sup_X ||k(x, h(x))||."""
+
+    status: Status
+    message: str
+    sampled: float  # sampled + adversarial lower value
+    upper: float | None  # sound upper bound (interval B&B over X)
+    structural: bool = False  # zero by construction of the architecture
+    worst: list[float] | None = None
+    seconds: float = 0.0
+
+
+@dataclass
+class LipschitzResult:
+    """Lipschitz constant of k in y, uniformly in xhat: several bounds side by side."""
+
+    status: Status
+    message: str
+    lipsdp: float | None  # verified LipSDP bound (None: not verified / failed)
+    lipsdp_raw: float | None  # the solver's value before the re-check
+    lipsdp_verified: bool
+    lipsdp_lmi_max_eig: float | None  # largest eigenvalue of the rebuilt LMI (<= 0 to verify)
+    naive: float  # product of spectral norms
+    sampled: float  # lower bound: max ||dk/dy||_2 found
+    local_upper: float | None  # sup ||dk/dy||_2 over X x Y by the interval prover
+    value: float | None  # the bound used downstream (smallest sound one)
+    which: str = ""  # "lipsdp" | "local" | "naive" | "structural"
+    solver: dict[str, Any] = field(default_factory=dict)
+    seconds: float = 0.0
+    # the same constants for P^(1/2) k (the sharper ISS variant)
+    lipsdp_P: float | None = None
+
+
+@dataclass
+class NecessaryResult:
+    """Network-independent pre-flight: q(xhat) <= 0 on the output manifold (METHOD 3.5)."""
+
+    status: Status
+    message: str
+    q_max: float  # largest q found (sampled + local search)
+    q_upper: float | None  # sound upper bound over the manifold
+    witness: list[float] | None  # xhat where q_max is attained
+    witness_y: list[float] | None
+    rate_cap: float | None  # lam_cert <= rate_cap for any gain with exact BC
+    residual_price: float | None  # eps_bar lower bound if D <= 0 everywhere (linear h)
+    explanation: str = ""
+    seconds: float = 0.0
+
+
+@dataclass
+class MetricResult:
+    """A constant metric P found by SDP (or the reason none exists)."""
+
+    status: Status
+    message: str
+    P: list[list[float]] | None
+    condition_number: float | None
+    margin: float
+    lam: float
+    K: list[list[float]] | None = None  # joint output-injection gain (LMI observer)
+    solver: dict[str, Any] = field(default_factory=dict)
+    witness: list[float] | None = None
+    seconds: float = 0.0
+
+
+@dataclass
+class BoundResult:
+    """One error bound ||e(t)|| <= a e^(-r t) ||e0|| + b, with its validity conditions."""
+
+    name: str
+    applicable: bool
+    reason: str  # why (not) applicable
+    rate: float | None  # exponential rate r in the bound
+    gain: float | None  # multiplier on ||e(0)|| (or on W(0))
+    bias: float | None  # ultimate bound b at vbar
+    bias_per_unit_noise: float | None  # d b / d vbar
+    formula: str = ""
+
+
+@dataclass
+class BoundsResult:
+    """Theorem 3 as stated and the ISS ("tight") bound, at noise level vbar."""
+
+    status: Status
+    message: str
+    vbar: float
+    lam_cert: float | None
+    eps_bar: float | None
+    L: float | None
+    theorem3: BoundResult | None
+    iss: BoundResult | None
+    iss_metric: BoundResult | None  # the sharper P^(1/2)-weighted variant
+    validity: list[str] = field(default_factory=list)
+    kappa_P: float = 1.0
+
+
+@dataclass
+class SimulationRun:
+    """One simulated trajectory of plant + observer."""
+
+    label: str
+    x0: list[float]
+    xhat0: list[float]
+    noise: str  # "bounded" | "gaussian"
+    within_conditions: bool  # whether the theorem's conditions can apply at all
+    exit_time: float | None  # first time a validity condition failed (None: never)
+    exit_reason: str
+    max_ratio: float | None  # max over valid times of error / bound (> 1 is a breach)
+    breach: bool
+    mse: float
+    final_error: float
+    t: list[float] = field(default_factory=list)
+    error: list[float] = field(default_factory=list)
+    bound: list[float] = field(default_factory=list)
+    x: list[list[float]] = field(default_factory=list)
+    xhat: list[list[float]] = field(default_factory=list)
+
+
+@dataclass
+class SimulationResult:
+    """Simulation check: the observed error against the proved bound."""
+
+    status: Status
+    message: str
+    runs: list[SimulationRun] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+RESULT_TYPES: dict[str, type] = {
+    "mpdi": MpdiResult,
+    "rate": RateResult,
+    "residual": ResidualResult,
+    "lipschitz": LipschitzResult,
+    "necessary": NecessaryResult,
+    "metric": MetricResult,
+    "bounds": BoundsResult,
+    "simulation": SimulationResult,
+}
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Dataclasses, enums and containers to plain JSON types (NaN/Inf kept as strings)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, enum.Enum):
+        return obj.value
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, float):
+        if obj != obj:
+            return "NaN"
+        if obj in (float("inf"), float("-inf")):
+            return "Infinity" if obj > 0 else "-Infinity"
+        return obj
+    if hasattr(obj, "item") and callable(obj.item):  # numpy / torch scalars
+        return to_jsonable(obj.item())
+    return obj
+
+
+_SPECIAL = {"NaN": float("nan"), "Infinity": float("inf"), "-Infinity": float("-inf")}
+
+
+def from_jsonable(cls: Any, data: Any) -> Any:
+    """Inverse of `to_jsonable` for the annotated type `cls`."""
+    if data is None:
+        return None
+    origin = typing.get_origin(cls)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(cls) if a is not type(None)]
+        return from_jsonable(args[0], data) if len(args) == 1 else data
+    if origin is list:
+        (inner,) = typing.get_args(cls) or (Any,)
+        return [from_jsonable(inner, v) for v in data]
+    if origin is dict:
+        args = typing.get_args(cls)
+        inner = args[1] if len(args) == 2 else Any
+        return {k: from_jsonable(inner, v) for k, v in data.items()}
+    if isinstance(cls, type) and issubclass(cls, enum.Enum):
+        return cls(data)
+    if dataclasses.is_dataclass(cls):
+        hints = typing.get_type_hints(cls)
+        kwargs = {f.name: from_jsonable(hints[f.name], data[f.name])
+                  for f in dataclasses.fields(cls) if f.name in data}
+        return cls(**kwargs)
+    if cls is float:
+        return _SPECIAL.get(data, data) if isinstance(data, str) else float(data)
+    return data

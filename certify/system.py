@@ -1,0 +1,227 @@
+"""System specs: TOML -> a validated `System` with sympy, Jacobians and batched torch maps.
+
+A spec names the states and outputs, gives `f` and `h` as expression strings (parsed by
+the whitelist parser of `certify.expr`), the boxes X and Y, and the design settings. The
+built-ins live in `certify/systems/*.toml`; users pass a path to their own file.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+import sys
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import sympy
+import torch
+
+from certify.errors import SpecError
+from certify.expr import TORCH, evaluate, parse_expression
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+_IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def builtin_names() -> list[str]:
+    """Names of the systems shipped with the package."""
+    folder = resources.files("certify") / "systems"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def builtin_text(name: str) -> str:
+    return (resources.files("certify") / "systems" / f"{name}.toml").read_text()
+
+
+def _box(value: Any, dim: int, what: str, where: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise SpecError(f"{where}: box {what} must be a list of [lo, hi] pairs") from None
+    if arr.shape != (dim, 2):
+        raise SpecError(f"{where}: box {what} must have {dim} rows of [lo, hi]; got shape "
+                        f"{list(arr.shape)}")
+    if not np.all(np.isfinite(arr)):
+        raise SpecError(f"{where}: box {what} has a non-finite bound")
+    bad = np.nonzero(arr[:, 0] >= arr[:, 1])[0]
+    if bad.size:
+        i = int(bad[0])
+        raise SpecError(f"{where}: box {what} row {i} is empty or inverted "
+                        f"([{arr[i, 0]:g}, {arr[i, 1]:g}]; need lo < hi)")
+    return arr
+
+
+def validate_metric(P: Any, n: int, where: str) -> np.ndarray:
+    """Check that P is a symmetric positive definite n x n matrix; return it as float64."""
+    try:
+        arr = np.asarray(P, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise SpecError(f"{where}: metric P must be an n x n matrix of numbers") from None
+    if arr.shape != (n, n):
+        raise SpecError(f"{where}: metric P must be {n}x{n}; got shape {list(arr.shape)}")
+    if not np.all(np.isfinite(arr)):
+        raise SpecError(f"{where}: metric P has a non-finite entry")
+    if not np.allclose(arr, arr.T, rtol=0, atol=1e-12 * max(1.0, np.abs(arr).max())):
+        raise SpecError(f"{where}: metric P must be symmetric")
+    arr = (arr + arr.T) / 2
+    if np.linalg.eigvalsh(arr).min() <= 0:
+        raise SpecError(f"{where}: metric P must be positive definite")
+    return arr
+
+
+@dataclass(eq=False)
+class System:
+    """A validated system spec. Build with `System.from_text` or `load_system`."""
+
+    name: str
+    description: str
+    states: list[str]
+    outputs: list[str]
+    f_text: list[str]
+    h_text: list[str]
+    X: np.ndarray  # [n, 2]
+    Y: np.ndarray  # [p, 2]
+    lam: float
+    P: np.ndarray  # [n, n]
+    training: dict[str, dict[str, Any]] = field(default_factory=dict)
+    simulation: dict[str, Any] = field(default_factory=dict)
+    source: str = ""
+
+    # ----- construction -------------------------------------------------------------
+    @classmethod
+    def from_text(cls, text: str, origin: str = "spec") -> System:
+        """Parse and validate TOML spec text; errors name `origin` and the field."""
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise SpecError(f"{origin}: not valid TOML ({exc})") from None
+        where = origin
+
+        def need(key: str, kind: type | tuple[type, ...]) -> Any:
+            if key not in data:
+                raise SpecError(f"{where}: missing field '{key}'")
+            if not isinstance(data[key], kind):
+                raise SpecError(f"{where}: field '{key}' has the wrong type")
+            return data[key]
+
+        name = need("name", str)
+        states = need("states", list)
+        outputs = need("outputs", list)
+        for what, names in (("states", states), ("outputs", outputs)):
+            if not names:
+                raise SpecError(f"{where}: '{what}' must not be empty")
+            for s in names:
+                if not isinstance(s, str) or not _IDENT.match(s):
+                    raise SpecError(f"{where}: {what} entry {s!r} is not a valid name")
+        if len(set(states) | set(outputs)) != len(states) + len(outputs):
+            raise SpecError(f"{where}: state and output names must be distinct")
+        f_text = need("f", list)
+        h_text = need("h", list)
+        if len(f_text) != len(states):
+            raise SpecError(f"{where}: f has {len(f_text)} entries for {len(states)} states")
+        if len(h_text) != len(outputs):
+            raise SpecError(f"{where}: h has {len(h_text)} entries for {len(outputs)} outputs")
+        box = data.get("box")
+        if not isinstance(box, dict) or "X" not in box or "Y" not in box:
+            raise SpecError(f"{where}: missing [box] table with X and Y")
+        X = _box(box["X"], len(states), "X", where)
+        Y = _box(box["Y"], len(outputs), "Y", where)
+        design = data.get("design", {})
+        lam = design.get("lam", 1.0)
+        if isinstance(lam, bool) or not isinstance(lam, (int, float)) or not lam > 0:
+            raise SpecError(f"{where}: design lam must be a number > 0; got {lam!r}")
+        P = validate_metric(design.get("P", np.eye(len(states)).tolist()), len(states),
+                            f"{where}: design")
+        system = cls(
+            name=name, description=str(data.get("description", "")), states=list(states),
+            outputs=list(outputs), f_text=[str(e) for e in f_text],
+            h_text=[str(e) for e in h_text], X=X, Y=Y, lam=float(lam), P=P,
+            training=dict(data.get("training", {})), simulation=dict(data.get("simulation", {})),
+            source=text,
+        )
+        system._parse(where)
+        return system
+
+    def _parse(self, where: str) -> None:
+        syms = {s: sympy.Symbol(s, real=True) for s in self.states}
+        self.symbols = [syms[s] for s in self.states]
+        self.f_expr = [parse_expression(t, syms, f"{where}: f[{i}]")
+                       for i, t in enumerate(self.f_text)]
+        self.h_expr = [parse_expression(t, syms, f"{where}: h[{i}]")
+                       for i, t in enumerate(self.h_text)]
+        x = sympy.Matrix(self.symbols)
+        self.jf_expr = sympy.Matrix(self.f_expr).jacobian(x)  # n x n
+        self.jh_expr = sympy.Matrix(self.h_expr).jacobian(x)  # p x n
+
+    # ----- sizes ------------------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        return len(self.states)
+
+    @property
+    def p(self) -> int:
+        return len(self.outputs)
+
+    @functools.cached_property
+    def h_is_linear(self) -> bool:
+        """True when h(x) = C x + d (then ker dh is constant)."""
+        return all(sympy.diff(e, s).is_constant() for e in self.jh_expr for s in self.symbols)
+
+    # ----- batched point evaluation ------------------------------------------------------
+    def _eval_list(self, exprs: list[sympy.Expr], x: torch.Tensor) -> torch.Tensor:
+        if x.ndim != 2 or x.shape[1] != self.n:
+            raise ValueError(f"expected states of shape [batch, {self.n}]; got {list(x.shape)}")
+        env = {s: x[:, i] for i, s in enumerate(self.symbols)}
+        like = x[:, 0]
+        return torch.stack([evaluate(e, env, TORCH, like) for e in exprs], dim=-1)
+
+    def f(self, x: torch.Tensor) -> torch.Tensor:
+        """f(x) for x of shape [B, n] -> [B, n]."""
+        return self._eval_list(self.f_expr, x)
+
+    def h(self, x: torch.Tensor) -> torch.Tensor:
+        """h(x) for x of shape [B, n] -> [B, p]."""
+        return self._eval_list(self.h_expr, x)
+
+    def jac_f(self, x: torch.Tensor) -> torch.Tensor:
+        """Symbolic Jacobian df/dx at x [B, n] -> [B, n, n]."""
+        return self._eval_list(list(self.jf_expr), x).reshape(-1, self.n, self.n)
+
+    def jac_h(self, x: torch.Tensor) -> torch.Tensor:
+        """Symbolic Jacobian dh/dx at x [B, n] -> [B, p, n]."""
+        return self._eval_list(list(self.jh_expr), x).reshape(-1, self.p, self.n)
+
+    # ----- presentation ------------------------------------------------------------------
+    def summary(self) -> dict[str, Any]:
+        """Plain-data description for certificates and reports."""
+        return {
+            "name": self.name, "description": self.description, "states": self.states,
+            "outputs": self.outputs, "f": self.f_text, "h": self.h_text,
+            "X": self.X.tolist(), "Y": self.Y.tolist(), "lam": self.lam, "P": self.P.tolist(),
+            "jacobian_f": [[str(e) for e in row] for row in self.jf_expr.tolist()],
+        }
+
+
+def load_system(name_or_path: str | Path) -> System:
+    """A built-in system by name, or a spec file by path."""
+    key = str(name_or_path)
+    if key in builtin_names():
+        return System.from_text(builtin_text(key), origin=f"built-in system {key}")
+    path = Path(key)
+    if path.suffix == ".toml" or path.exists():
+        if not path.is_file():
+            raise SpecError(f"spec file {key} not found")
+        try:
+            text = path.read_text()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise SpecError(f"spec {key}: cannot read ({exc})") from None
+        return System.from_text(text, origin=f"spec {path.name}")
+    raise SpecError(f"unknown system '{key}' (built-ins: {', '.join(builtin_names())}; "
+                    "or give the path of a .toml spec)")
