@@ -1,0 +1,102 @@
+"""Verification settings: one frozen dataclass, its constraints declared beside it.
+
+Values enter from flags, `[tool.certify]` (see `certify.config`) or the Python API and are
+validated once, here, with one error shape:
+``[tool.certify] max_boxes must be an int >= 1; got -3``.
+Checks never mutate settings; the certificate echoes them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+from certify.errors import SettingsError
+
+CHECK_NAMES = ("mpdi", "rate", "residual", "lipschitz", "necessary", "bounds", "simulation")
+
+
+@dataclass(frozen=True)
+class VerifySettings:
+    """How `certify run` checks a checkpoint (what is checked lives in `Problem`)."""
+
+    grid_points: int = 1_000_000  # dense grid size over X x Y (at least this many points)
+    adversarial_starts: int = 64  # multi-start gradient ascent on lam_max(D)
+    adversarial_steps: int = 100
+    top_counterexamples: int = 5
+    proof_seconds: float = 60.0  # branch-and-bound budget for the MPDI proof
+    max_boxes: int = 2_000_000  # branch-and-bound budget in sub-boxes
+    rate_bisection_steps: int = 6  # bisection steps for the proved lam_cert
+    residual_seconds: float = 10.0
+    lipschitz_seconds: float = 10.0
+    noise: float = 0.15  # vbar: bound on ||v(t)||_2 of the measurement noise
+    sim_time: float = 10.0
+    sim_dt: float = 1e-3
+    sim_initial_conditions: int = 6
+    seed: int = 0
+    required: tuple[str, ...] = ("mpdi",)  # checks whose failure means exit 1
+    allow_unknown: bool = False  # treat an UNKNOWN required check as a pass (exit 0)
+    skip: tuple[str, ...] = ()  # checks not run at all
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        validate(self, source="settings")
+
+
+_INT_MIN = {
+    "grid_points": 1, "adversarial_starts": 0, "adversarial_steps": 0, "top_counterexamples": 0,
+    "max_boxes": 1, "rate_bisection_steps": 0, "sim_initial_conditions": 1, "seed": 0,
+}
+_POS_FLOAT = {"proof_seconds", "residual_seconds", "lipschitz_seconds", "sim_time", "sim_dt"}
+_NONNEG_FLOAT = {"noise"}
+
+
+def _fail(source: str, name: str, need: str, value: Any) -> SettingsError:
+    return SettingsError(f"{source} {name} must be {need}; got {value!r}")
+
+
+def validate(s: VerifySettings, source: str = "settings") -> None:
+    """Check every field against its constraint; raise one `SettingsError` line."""
+    for name, lo in _INT_MIN.items():
+        v = getattr(s, name)
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+            raise _fail(source, name, f"an int >= {lo}", v)
+    for name in _POS_FLOAT | _NONNEG_FLOAT:
+        v = getattr(s, name)
+        ok = not isinstance(v, bool) and isinstance(v, (int, float)) and v == v and v < float("inf")
+        if not ok or (v <= 0 if name in _POS_FLOAT else v < 0):
+            raise _fail(source, name, "a number > 0" if name in _POS_FLOAT else "a number >= 0", v)
+    for name in ("required", "skip"):
+        v = getattr(s, name)
+        if not isinstance(v, tuple) or any(c not in CHECK_NAMES for c in v):
+            raise _fail(source, name, f"a list of check names from {list(CHECK_NAMES)}", v)
+    if not isinstance(s.allow_unknown, bool):
+        raise _fail(source, "allow_unknown", "true or false", s.allow_unknown)
+    if s.device not in ("cpu", "cuda"):
+        raise _fail(source, "device", "'cpu' or 'cuda'", s.device)
+
+
+FIELD_NAMES = tuple(f.name for f in dataclasses.fields(VerifySettings) if f.init)
+
+
+def make_settings(values: dict[str, Any], source: str = "settings") -> VerifySettings:
+    """Build settings from a mapping, refusing unknown keys with the list of known ones."""
+    unknown = sorted(set(values) - set(FIELD_NAMES))
+    if unknown:
+        raise SettingsError(f"{source}: unknown setting(s) {', '.join(unknown)} "
+                            f"(known: {', '.join(FIELD_NAMES)})")
+    clean = dict(values)
+    for key in ("required", "skip"):
+        if key in clean and isinstance(clean[key], (list, str)):
+            v = clean[key]
+            clean[key] = tuple(x.strip() for x in v.split(",") if x.strip()) \
+                if isinstance(v, str) else tuple(v)
+    for key in _POS_FLOAT | _NONNEG_FLOAT:
+        if isinstance(clean.get(key), int) and not isinstance(clean.get(key), bool):
+            clean[key] = float(clean[key])
+    try:
+        settings = VerifySettings(**clean)
+    except SettingsError as exc:
+        raise SettingsError(str(exc).replace("settings ", f"{source} ", 1)) from None
+    return settings
