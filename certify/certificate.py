@@ -111,3 +111,38 @@ def decide_verdict(checks: dict[str, Any], required: list[str],
 def exit_code(certificate: Certificate) -> int:
     """0 certified, 1 not certified, 3 inconclusive (2 is for bad input, raised earlier)."""
     return EXIT_CODES[certificate.verdict]
+
+
+def _num(value: Any, digits: int = 4) -> str:
+    if value is None:
+        return "—"
+    if isinstance(value, float) and value != value:
+        return "NaN"
+    return f"{value:.{digits}g}" if isinstance(value, (int, float)) else str(value)
+
+
+def summary_rows(certificate: Certificate) -> list[dict[str, str]]:
+    """One row per check: name, status, sampled side, proved side, what it means."""
+    rows = []
+    labels = {
+        "necessary": ("pre-flight q on manifold", "q_max", "q_upper"),
+        "mpdi": ("MPDI max lam_max(D)", "lower", "upper"),
+        "rate": ("certified rate lam_cert", "sampled_upper", "proved_lower"),
+        "residual": ("BC residual eps_bar", "sampled", "upper"),
+        "lipschitz": ("Lipschitz L in y", "sampled", "value"),
+    }
+    for name, result in certificate.checks.items():
+        label, lo_key, hi_key = labels.get(name, (name, None, None))
+        sampled = _num(getattr(result, lo_key, None)) if lo_key else ""
+        proved = _num(getattr(result, hi_key, None)) if hi_key else ""
+        if name == "bounds" and getattr(result, "iss", None) is not None:
+            sampled, proved = "", _num(result.iss.bias) if result.iss.applicable else "—"
+            label = f"ISS error bound at vbar={result.vbar:g}"
+        if name == "simulation":
+            ratios = [r.max_ratio for r in result.runs if r.max_ratio is not None]
+            sampled = _num(max(ratios)) if ratios else "—"
+            label = "simulation error/bound"
+        rows.append({"check": name, "label": label, "status": result.status.value,
+                     "sampled": sampled, "proved": proved, "message": result.message,
+                     "required": "yes" if name in certificate.required else ""})
+    return rows

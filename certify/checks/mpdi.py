@@ -1,0 +1,122 @@
+"""MPDI check: is D(xhat, y) <= 0 on all of X x Y? (METHOD §3.1)
+
+Lower side: dense grid + adversarial search for the largest lam_max(D) (any positive value is a
+counterexample). Upper side: the branch-and-bound prover of `certify.prover`, run only when no
+counterexample was found. PROVED comes only from the prover.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from certify.falsify import SearchOutcome, maximize_over_box
+from certify.kernels import mpdi_lam_max
+from certify.problem import Problem
+from certify.progress import NullProgress, Progress
+from certify.results import Counterexample, MpdiResult, Status
+from certify.settings import VerifySettings
+
+
+def joint_box(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper corners of X x Y as [n + p] arrays."""
+    box = np.vstack([problem.system.X, problem.system.Y])
+    return box[:, 0].copy(), box[:, 1].copy()
+
+
+def mpdi_score(problem: Problem, lam: float | None = None):
+    """z = (xhat, y) [B, n+p] -> lam_max(D) [B] (float64, differentiable)."""
+    n = problem.n
+    P = problem.P_t
+    lam = problem.lam if lam is None else lam
+
+    def score(z: torch.Tensor) -> torch.Tensor:
+        return mpdi_lam_max(problem.system, problem.network, P, lam, z[:, :n], z[:, n:])
+
+    return score
+
+
+def counterexamples_from(search: SearchOutcome, n: int, above: float | None = None
+                         ) -> list[Counterexample]:
+    """Top distinct points of a search as Counterexamples (only those > `above`, if given)."""
+    out = []
+    for point, value in zip(search.top_points, search.top_values):
+        if above is not None and not value > above:
+            continue
+        out.append(Counterexample(xhat=point[:n].tolist(), y=point[n:].tolist(),
+                                  value=float(value)))
+    return out
+
+
+def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | None = None,
+                 progress: Progress | None = None) -> SearchOutcome:
+    lo, hi = joint_box(problem)
+    return maximize_over_box(mpdi_score(problem, lam), lo, hi, grid_points=settings.grid_points,
+                             starts=settings.adversarial_starts, steps=settings.adversarial_steps,
+                             top_k=settings.top_counterexamples, seed=settings.seed,
+                             progress=progress, task="MPDI grid")
+
+
+def check_mpdi(problem: Problem, settings: VerifySettings, *,
+               progress: Progress | None = None,
+               figures: dict[str, Any] | None = None) -> MpdiResult:
+    """Decide D <= 0 over X x Y at the problem's lam and P."""
+    from certify.prover import prove_mpdi
+
+    progress = progress or NullProgress()
+    t0 = time.perf_counter()
+    n = problem.n
+    search = falsify_mpdi(problem, settings, progress=progress)
+    worst = counterexamples_from(search, n)[:1]
+    common = dict(lower=search.best_value, worst=worst[0] if worst else None,
+                  violating_fraction=search.above_fraction, grid_points=search.grid_points,
+                  adversarial_starts=search.starts)
+    if search.nonfinite:
+        return MpdiResult(status=Status.UNKNOWN, upper=None, seconds=time.perf_counter() - t0,
+                          message=f"lam_max(D) is NaN/Inf at {search.nonfinite} grid points: "
+                                  "nothing can be proved", **common)
+    if search.best_value > 0:
+        cex = counterexamples_from(search, n, above=0.0)
+        return MpdiResult(
+            status=Status.VIOLATED, upper=None, counterexamples=cex,
+            seconds=time.perf_counter() - t0,
+            message=(f"D is not negative semidefinite: lam_max(D) = {search.best_value:.4g} > 0 "
+                     f"at xhat={_fmt(cex[0].xhat)}, y={_fmt(cex[0].y)}; "
+                     f"{100 * search.above_fraction:.3g}% of {search.grid_points} grid points "
+                     "violate it"), **common)
+    seeds = torch.as_tensor(search.top_points, dtype=torch.float64)
+    outcome = prove_mpdi(problem, seconds=settings.proof_seconds, max_boxes=settings.max_boxes,
+                         progress=progress, seeds=seeds)
+    if figures is not None and getattr(outcome, "boxes", None):
+        figures["proof_boxes"] = outcome.boxes
+        figures["proof_history"] = outcome.stats.volume_history
+    lower = max(search.best_value, outcome.lower if outcome.lower is not None else -np.inf)
+    common["lower"] = lower
+    if outcome.status == Status.VIOLATED and outcome.counterexample is not None:
+        cex = outcome.counterexample
+        common["worst"] = cex
+        common["lower"] = max(lower, cex.value)
+        return MpdiResult(status=Status.VIOLATED, upper=outcome.upper, counterexamples=[cex],
+                          proof=outcome.stats, seconds=time.perf_counter() - t0,
+                          message=(f"prover found lam_max(D) = {cex.value:.4g} > 0 at "
+                                   f"xhat={_fmt(cex.xhat)}, y={_fmt(cex.y)}"), **common)
+    if outcome.status == Status.PROVED and outcome.upper is not None and outcome.upper <= 0:
+        return MpdiResult(status=Status.PROVED, upper=outcome.upper, proof=outcome.stats,
+                          seconds=time.perf_counter() - t0,
+                          message=(f"proved D <= 0 on all of X x Y: max lam_max(D) in "
+                                   f"[{common['lower']:.4g}, {outcome.upper:.4g}]"), **common)
+    best = "none" if outcome.upper is None else f"{outcome.upper:.4g}"
+    return MpdiResult(
+        status=Status.UNKNOWN, upper=outcome.upper, proof=outcome.stats,
+        seconds=time.perf_counter() - t0,
+        message=(f"proof budget spent (proof_seconds={settings.proof_seconds:g}, max_boxes="
+                 f"{settings.max_boxes}); no counterexample (largest lam_max(D) found "
+                 f"{common['lower']:.4g}), best proved upper bound {best}; raise proof_seconds "
+                 "or max_boxes"), **common)
+
+
+def _fmt(values: list[float]) -> str:
+    return "(" + ", ".join(f"{v:.4g}" for v in values) + ")"

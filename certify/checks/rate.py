@@ -1,0 +1,66 @@
+"""Certified contraction rate lam_cert (METHOD §3.2).
+
+lam_cert = -max over X x Y of lam_max(He{P J_cl}, P) / 2. Sampling gives an upper bound on
+lam_cert (a point where the rate is low); the prover gives a proved lower bound.
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+from certify.checks.mpdi import counterexamples_from, joint_box
+from certify.falsify import maximize_over_box
+from certify.kernels import pointwise_rate
+from certify.problem import Problem
+from certify.progress import NullProgress, Progress
+from certify.results import RateResult, Status
+from certify.settings import VerifySettings
+
+
+def check_rate(problem: Problem, settings: VerifySettings, *,
+               progress: Progress | None = None, prove: bool = True) -> RateResult:
+    """Bracket lam_cert: sampled upper value and, when `prove`, a proved lower bound."""
+    progress = progress or NullProgress()
+    t0 = time.perf_counter()
+    n, P = problem.n, problem.P_t
+
+    def neg_rate(z: torch.Tensor) -> torch.Tensor:
+        return -pointwise_rate(problem.system, problem.network, P, z[:, :n], z[:, n:])
+
+    lo, hi = joint_box(problem)
+    grid = max(1000, settings.grid_points // 4)
+    search = maximize_over_box(neg_rate, lo, hi, grid_points=grid,
+                               starts=settings.adversarial_starts,
+                               steps=settings.adversarial_steps, top_k=1, seed=settings.seed,
+                               progress=progress, task="rate grid")
+    sampled_upper = -search.best_value
+    worst = counterexamples_from(search, n)[:1]
+    worst_cex = worst[0] if worst else None
+    if worst_cex is not None:
+        worst_cex.value = sampled_upper  # the pointwise rate at that point
+    proved_lower = None
+    if prove and search.nonfinite == 0:
+        from certify.prover import prove_rate
+
+        outcome = prove_rate(problem, seconds=settings.proof_seconds, max_boxes=settings.max_boxes,
+                             progress=progress)
+        proved_lower = outcome.lower
+    seconds = time.perf_counter() - t0
+    if search.nonfinite:
+        return RateResult(Status.UNKNOWN, "the rate is NaN/Inf at some grid points",
+                          problem.lam, sampled_upper, None, worst_cex, seconds)
+    if sampled_upper <= 0:
+        status, msg = Status.VIOLATED, (
+            f"no contraction: at xhat={worst_cex.xhat}, y={worst_cex.y} the pointwise rate is "
+            f"{sampled_upper:.4g} <= 0, so lam_cert <= {sampled_upper:.4g} and no error bound exists")
+    elif proved_lower is not None and proved_lower > 0:
+        status, msg = Status.PROVED, (
+            f"lam_cert in [{proved_lower:.4g}, {sampled_upper:.4g}] (design lam {problem.lam:g}; "
+            "the error contracts at rate 2 lam_cert in the P-norm)")
+    else:
+        lower = "not proved" if proved_lower is None else f"proved lower bound {proved_lower:.4g}"
+        status, msg = Status.UNKNOWN, (
+            f"lam_cert <= {sampled_upper:.4g} (sampled); {lower}")
+    return RateResult(status, msg, problem.lam, sampled_upper, proved_lower, worst_cex, seconds)

@@ -1,0 +1,54 @@
+"""Boundary-condition residual eps_bar = sup_{x in X} ||k(x, h(x))|| (METHOD §3.3)."""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+from certify.falsify import maximize_over_box
+from certify.kernels import gain_terms
+from certify.problem import Problem
+from certify.progress import NullProgress, Progress
+from certify.results import ResidualResult, Status
+from certify.settings import VerifySettings
+
+
+def residual_norm(problem: Problem, x: torch.Tensor) -> torch.Tensor:
+    """||k(x, h(x))||_2 for x [B, n] -> [B]."""
+    system = problem.system
+    k = gain_terms(system, problem.network, x, system.h(x), with_dy=False).k
+    return torch.linalg.vector_norm(k, dim=1)
+
+
+def check_residual(problem: Problem, settings: VerifySettings, *,
+                   progress: Progress | None = None) -> ResidualResult:
+    """Sampled + adversarial value of eps_bar and a sound upper bound."""
+    progress = progress or NullProgress()
+    t0 = time.perf_counter()
+    if problem.structural:
+        return ResidualResult(Status.PROVED, "eps_bar = 0 exactly: the architecture "
+                              "k = G(xhat, y)(y - h(xhat)) satisfies the boundary condition by "
+                              "construction", 0.0, 0.0, structural=True,
+                              seconds=time.perf_counter() - t0)
+    X = problem.system.X
+    search = maximize_over_box(lambda x: residual_norm(problem, x), X[:, 0], X[:, 1],
+                               grid_points=max(1000, settings.grid_points // 10),
+                               starts=settings.adversarial_starts // 2 or 1,
+                               steps=settings.adversarial_steps, top_k=1, seed=settings.seed,
+                               progress=progress, task="residual grid")
+    if search.nonfinite:
+        return ResidualResult(Status.UNKNOWN, "k(x, h(x)) is NaN/Inf at some grid points",
+                              float("nan"), None, seconds=time.perf_counter() - t0)
+    from certify.prover import bound_residual
+
+    upper, _, _ = bound_residual(problem, seconds=settings.residual_seconds,
+                                 max_boxes=settings.max_boxes)
+    sampled = max(search.best_value, 0.0)
+    worst = search.best_point.tolist()
+    if upper is None or upper != upper:
+        return ResidualResult(Status.UNKNOWN, f"eps_bar >= {sampled:.4g} (sampled); no sound "
+                              f"upper bound within residual_seconds={settings.residual_seconds:g}",
+                              sampled, None, worst=worst, seconds=time.perf_counter() - t0)
+    return ResidualResult(Status.PROVED, f"eps_bar in [{sampled:.4g}, {upper:.4g}]", sampled,
+                          float(upper), worst=worst, seconds=time.perf_counter() - t0)

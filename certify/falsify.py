@@ -1,0 +1,182 @@
+"""The lower side of every check: dense grid + multi-start projected gradient ascent.
+
+`maximize_over_box` looks for the largest value of a batched scalar function over a box. Every
+number it returns is the function's float64 value at a concrete point, so it is a valid lower
+bound on the supremum (never a proof of anything about the whole box).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from certify.progress import NullProgress, Progress
+
+ScoreFn = Callable[[torch.Tensor], torch.Tensor]  # [B, d] float64 -> [B]
+
+
+@dataclass
+class SearchOutcome:
+    """Best points found; values are float64 evaluations at those points."""
+
+    best_value: float
+    best_point: np.ndarray  # [d]
+    top_points: np.ndarray  # [k, d], distinct, best first
+    top_values: np.ndarray  # [k]
+    grid_points: int
+    grid_shape: list[int]
+    above_threshold: int  # grid points with value > threshold
+    starts: int
+    grid_best_value: float
+    nonfinite: int = 0  # grid points where the function was NaN/Inf
+    history: list[float] = field(default_factory=list)
+
+    @property
+    def above_fraction(self) -> float:
+        return self.above_threshold / max(1, self.grid_points)
+
+
+def grid_shape(lo: np.ndarray, hi: np.ndarray, min_points: int) -> list[int]:
+    """Per-dimension resolution, proportional to the box widths, with product >= min_points."""
+    d = len(lo)
+    widths = np.maximum(hi - lo, 1e-300)
+    scale = (min_points / np.prod(widths)) ** (1.0 / d)
+    counts = np.maximum(2, np.ceil(widths * scale)).astype(int)
+    while np.prod(counts) < min_points:  # rounding can leave it short
+        counts[np.argmin(counts / widths)] += 1
+    return counts.tolist()
+
+
+def grid_chunk(lo: torch.Tensor, hi: torch.Tensor, shape: list[int], start: int,
+               stop: int) -> torch.Tensor:
+    """Points start..stop-1 of the tensor-product grid (row-major), shape [stop-start, d]."""
+    idx = torch.arange(start, stop, dtype=torch.int64)
+    cols = []
+    for j in reversed(range(len(shape))):
+        m = shape[j]
+        k = idx % m
+        idx = idx // m
+        cols.append(lo[j] + (hi[j] - lo[j]) * k.to(lo.dtype) / (m - 1))
+    return torch.stack(cols[::-1], dim=1)
+
+
+def _distinct_top(points: torch.Tensor, values: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+                  k: int, min_sep: float = 0.05) -> tuple[torch.Tensor, torch.Tensor]:
+    """Up to k best points pairwise at least `min_sep` apart in box-scaled sup-norm."""
+    order = torch.argsort(values, descending=True)
+    pts, vals = points[order], values[order]
+    scaled = (pts - lo) / (hi - lo)
+    keep: list[int] = []
+    for i in range(len(pts)):  # over a short candidate list, not over samples
+        if len(keep) >= k:
+            break
+        if not keep or torch.min(torch.max(torch.abs(scaled[keep] - scaled[i]), dim=1).values) \
+                > min_sep:
+            keep.append(i)
+    return pts[keep], vals[keep]
+
+
+def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_points: int,
+                      starts: int = 32, steps: int = 100, top_k: int = 5, seed: int = 0,
+                      threshold: float = 0.0, chunk: int = 8192,
+                      progress: Progress | None = None, task: str = "search") -> SearchOutcome:
+    """Largest value of `fn` over the box [lo, hi]: grid, then projected gradient ascent.
+
+    Ascent starts from the best distinct grid points and from seeded random points; steps are
+    normalised (sign-free Adam-like) and projected back to the box.
+    """
+    progress = progress or NullProgress()
+    lo_t = torch.as_tensor(lo, dtype=torch.float64)
+    hi_t = torch.as_tensor(hi, dtype=torch.float64)
+    shape = grid_shape(np.asarray(lo, float), np.asarray(hi, float), grid_points)
+    total = int(np.prod(shape))
+    keep = max(4 * starts, 4 * top_k, 16)
+    cand_pts = torch.empty(0, len(shape), dtype=torch.float64)
+    cand_vals = torch.empty(0, dtype=torch.float64)
+    above = 0
+    nonfinite = 0
+    progress.start(task, total=total)
+    with torch.no_grad():
+        for start in range(0, total, chunk):
+            stop = min(total, start + chunk)
+            pts = grid_chunk(lo_t, hi_t, shape, start, stop)
+            vals = fn(pts)
+            bad = ~torch.isfinite(vals)
+            if bool(bad.any()):
+                nonfinite += int(bad.sum())
+                vals = torch.where(bad, torch.full_like(vals, math.inf), vals)
+            above += int((vals > threshold).sum())
+            m = min(keep, len(vals))
+            tv, ti = torch.topk(vals, m)
+            cand_pts = torch.cat([cand_pts, pts[ti]])
+            cand_vals = torch.cat([cand_vals, tv])
+            if len(cand_vals) > 4 * keep:
+                tv, ti = torch.topk(cand_vals, keep)
+                cand_pts, cand_vals = cand_pts[ti], tv
+            progress.update(task, advance=stop - start)
+    grid_best = float(cand_vals.max()) if len(cand_vals) else -math.inf
+    gen = torch.Generator().manual_seed(seed)
+    seeds, _ = _distinct_top(cand_pts, cand_vals, lo_t, hi_t, max(1, starts // 2), 0.02)
+    n_rand = max(0, starts - len(seeds))
+    rand = lo_t + (hi_t - lo_t) * torch.rand(n_rand, len(shape), generator=gen,
+                                             dtype=torch.float64)
+    x = torch.cat([seeds, rand]) if starts > 0 else seeds[:0]
+    history: list[float] = []
+    if len(x) and steps > 0:
+        x, v = _ascent(fn, x, lo_t, hi_t, steps, history)
+        cand_pts = torch.cat([cand_pts, x])
+        cand_vals = torch.cat([cand_vals, v])
+    finite = torch.isfinite(cand_vals) | (cand_vals == math.inf)
+    cand_pts, cand_vals = cand_pts[finite], cand_vals[finite]
+    top_p, top_v = _distinct_top(cand_pts, cand_vals, lo_t, hi_t, max(1, top_k))
+    progress.finish(task)
+    return SearchOutcome(
+        best_value=float(top_v[0]) if len(top_v) else -math.inf,
+        best_point=top_p[0].numpy() if len(top_p) else (np.asarray(lo) + np.asarray(hi)) / 2,
+        top_points=top_p.numpy(), top_values=top_v.numpy(), grid_points=total,
+        grid_shape=shape, above_threshold=above, starts=len(x), grid_best_value=grid_best,
+        nonfinite=nonfinite, history=history,
+    )
+
+
+def _ascent(fn: ScoreFn, x0: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, steps: int,
+            history: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched projected Adam ascent; returns the best point seen per start and its value."""
+    width = hi - lo
+    x = x0.clone().requires_grad_(True)
+    m = torch.zeros_like(x0)
+    v = torch.zeros_like(x0)
+    best_x = x0.clone()
+    with torch.no_grad():
+        best_v = fn(x0)
+    best_v = torch.where(torch.isfinite(best_v), best_v, torch.full_like(best_v, -math.inf))
+    lr0 = 0.02
+    for it in range(1, steps + 1):
+        val = fn(x)
+        finite = torch.isfinite(val)
+        (grad,) = torch.autograd.grad(torch.where(finite, val, 0.0).sum(), x)
+        with torch.no_grad():
+            improved = finite & (val > best_v)
+            best_v = torch.where(improved, val, best_v)
+            best_x[improved] = x[improved]
+            g = torch.nan_to_num(grad * width, nan=0.0, posinf=0.0, neginf=0.0)
+            m.mul_(0.9).add_(0.1 * g)
+            v.mul_(0.999).add_(0.001 * g * g)
+            mhat = m / (1 - 0.9**it)
+            vhat = v / (1 - 0.999**it)
+            lr = lr0 * (1.0 - 0.9 * it / steps)
+            x += lr * width * mhat / (vhat.sqrt() + 1e-12)
+            x.copy_(torch.maximum(torch.minimum(x, hi), lo))
+        if it % 10 == 0:
+            history.append(float(best_v.max()))
+    with torch.no_grad():
+        val = fn(x.detach())
+        val = torch.where(torch.isfinite(val), val, torch.full_like(val, -math.inf))
+        improved = val > best_v
+        best_x[improved] = x.detach()[improved]
+        best_v = torch.where(improved, val, best_v)
+    return best_x.detach(), best_v
