@@ -1,0 +1,37 @@
+"""Developer sessions: `nox -s tests` (the CI command) and `nox -s lint`."""
+
+from __future__ import annotations
+
+import nox
+
+nox.options.sessions = ["tests"]
+nox.options.reuse_existing_virtualenvs = True
+
+# The pinned CPU build of PyTorch goes in first: an unpinned `torch` would pull a
+# multi-gigabyte CUDA build. The project's own requirement stays a normal range.
+TORCH_PIN = "torch==2.13.0"
+
+
+@nox.session
+def tests(session: nox.Session) -> None:
+    """Install the pinned CPU torch, then the project with test extras; run pytest."""
+    session.install(TORCH_PIN)
+    session.install("-e", ".[test]")
+    args = session.posargs or ["-n", "2", "--dist", "loadfile", "-q", "--durations=15"]
+    session.run("pytest", *args, env={"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
+
+
+@nox.session
+def lint(session: nox.Session) -> None:
+    """ruff over the code."""
+    session.install("ruff>=0.4")
+    session.run("ruff", "check", "certify", "training", "reports", "tests", "bench", "noxfile.py")
+
+
+@nox.session
+def bench(session: nox.Session) -> None:
+    """Run the benchmarks (each prints JSON lines)."""
+    session.install(TORCH_PIN)
+    session.install("-e", ".")
+    for script in ("bench/train.py", "bench/verify.py", "bench/prove.py", "bench/lipsdp.py"):
+        session.run("python", script)
