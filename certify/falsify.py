@@ -64,6 +64,21 @@ def grid_chunk(lo: torch.Tensor, hi: torch.Tensor, shape: list[int], start: int,
     return torch.stack(cols[::-1], dim=1)
 
 
+def screen_tolerance(fn: ScoreFn, screen: ScoreFn, lo: torch.Tensor, hi: torch.Tensor,
+                     seed: int, samples: int = 4096) -> float:
+    """8x the largest |screen - fn| seen on random points (plus a floor): the re-check band."""
+    gen = torch.Generator().manual_seed(seed + 7919)
+    pts = lo + (hi - lo) * torch.rand(samples, len(lo), generator=gen, dtype=torch.float64)
+    exact = fn(pts)
+    approx = screen(pts).to(torch.float64)
+    ok = torch.isfinite(exact) & torch.isfinite(approx)
+    if not bool(ok.any()):
+        return math.inf
+    err = torch.abs(exact - approx)[ok].max().item()
+    scale = torch.abs(exact[ok]).max().item()
+    return 8.0 * err + 1e-6 * (1.0 + scale)
+
+
 def _distinct_top(points: torch.Tensor, values: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
                   k: int, min_sep: float = 0.05) -> tuple[torch.Tensor, torch.Tensor]:
     """Up to k best points pairwise at least `min_sep` apart in box-scaled sup-norm."""
@@ -83,11 +98,17 @@ def _distinct_top(points: torch.Tensor, values: torch.Tensor, lo: torch.Tensor, 
 def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_points: int,
                       starts: int = 32, steps: int = 100, top_k: int = 5, seed: int = 0,
                       threshold: float = 0.0, chunk: int = 8192,
+                      screen: ScoreFn | None = None,
                       progress: Progress | None = None, task: str = "search") -> SearchOutcome:
     """Largest value of `fn` over the box [lo, hi]: grid, then projected gradient ascent.
 
     Ascent starts from the best distinct grid points and from seeded random points; steps are
-    normalised (sign-free Adam-like) and projected back to the box.
+    normalised (Adam-like) and projected back to the box.
+
+    `screen`, if given, is a cheaper approximation of `fn` (e.g. float32) used to sweep the
+    grid: its error is measured on a calibration sample, every grid point within 8x that error
+    of `threshold` (and every top candidate) is re-evaluated with `fn` in float64, so the
+    returned values and the count above `threshold` are float64 results, as without it.
     """
     progress = progress or NullProgress()
     lo_t = torch.as_tensor(lo, dtype=torch.float64)
@@ -100,18 +121,34 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
     above = 0
     nonfinite = 0
     progress.start(task, total=total)
+    tol = 0.0
     with torch.no_grad():
+        if screen is not None:
+            tol = screen_tolerance(fn, screen, lo_t, hi_t, seed)
         for start in range(0, total, chunk):
             stop = min(total, start + chunk)
             pts = grid_chunk(lo_t, hi_t, shape, start, stop)
-            vals = fn(pts)
-            bad = ~torch.isfinite(vals)
-            if bool(bad.any()):
-                nonfinite += int(bad.sum())
-                vals = torch.where(bad, torch.full_like(vals, math.inf), vals)
-            above += int((vals > threshold).sum())
-            m = min(keep, len(vals))
-            tv, ti = torch.topk(vals, m)
+            if screen is None:
+                vals = fn(pts)
+                bad = ~torch.isfinite(vals)
+                if bool(bad.any()):
+                    nonfinite += int(bad.sum())
+                    vals = torch.where(bad, torch.full_like(vals, math.inf), vals)
+                above += int((vals > threshold).sum())
+                tv, ti = torch.topk(vals, min(keep, len(vals)))
+            else:
+                approx = screen(pts).to(torch.float64)
+                approx = torch.where(torch.isfinite(approx), approx,
+                                     torch.full_like(approx, math.inf))
+                near = approx > threshold - tol
+                if bool(near.any()):
+                    exact = fn(pts[near])
+                    bad = ~torch.isfinite(exact)
+                    nonfinite += int(bad.sum())
+                    above += int((exact > threshold).sum() + bad.sum())
+                _, ti = torch.topk(approx, min(keep, len(approx)))
+                tv = fn(pts[ti])
+                tv = torch.where(torch.isfinite(tv), tv, torch.full_like(tv, math.inf))
             cand_pts = torch.cat([cand_pts, pts[ti]])
             cand_vals = torch.cat([cand_vals, tv])
             if len(cand_vals) > 4 * keep:

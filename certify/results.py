@@ -174,6 +174,7 @@ class BoundsResult:
     iss_metric: BoundResult | None  # the sharper P^(1/2)-weighted variant
     validity: list[str] = field(default_factory=list)
     kappa_P: float = 1.0
+    L_is_local: bool = False  # L holds only for y in Y: condition (d) applies
 
 
 @dataclass
@@ -196,6 +197,8 @@ class SimulationRun:
     bound: list[float] = field(default_factory=list)
     x: list[list[float]] = field(default_factory=list)
     xhat: list[list[float]] = field(default_factory=list)
+    # allowance for the integrator's error in the comparison (estimated by step doubling)
+    tolerance: float = 0.0
 
 
 @dataclass

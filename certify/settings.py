@@ -22,6 +22,7 @@ class VerifySettings:
     """How `certify run` checks a checkpoint (what is checked lives in `Problem`)."""
 
     grid_points: int = 1_000_000  # dense grid size over X x Y (at least this many points)
+    float32_screen: bool = True  # sweep the grid in float32, re-check candidates in float64
     adversarial_starts: int = 64  # multi-start gradient ascent on lam_max(D)
     adversarial_steps: int = 100
     top_counterexamples: int = 5
@@ -71,8 +72,9 @@ def validate(s: VerifySettings, source: str = "settings") -> None:
         v = getattr(s, name)
         if not isinstance(v, tuple) or any(c not in CHECK_NAMES for c in v):
             raise _fail(source, name, f"a list of check names from {list(CHECK_NAMES)}", v)
-    if not isinstance(s.allow_unknown, bool):
-        raise _fail(source, "allow_unknown", "true or false", s.allow_unknown)
+    for name in ("allow_unknown", "float32_screen"):
+        if not isinstance(getattr(s, name), bool):
+            raise _fail(source, name, "true or false", getattr(s, name))
     if s.device not in ("cpu", "cuda"):
         raise _fail(source, "device", "'cpu' or 'cuda'", s.device)
 

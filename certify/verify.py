@@ -77,8 +77,9 @@ def verify(checkpoint: Checkpoint, settings: VerifySettings | None = None, *,
         checks["lipschitz"] = timed("lipschitz", check_lipschitz, problem, settings,
                                     progress=progress, local_upper=local)
     rate, res, lip = checks.get("rate"), checks.get("residual"), checks.get("lipschitz")
-    lam_cert = rate.proved_lower if rate is not None and rate.proved_lower is not None \
-        and rate.proved_lower > 0 else None
+    lam_cert = None
+    if rate is not None:  # a sampled rate <= 0 already rules any bound out; else the proved one
+        lam_cert = rate.sampled_upper if rate.sampled_upper <= 0 else rate.proved_lower
     eps_bar = res.upper if res is not None else None
     L = lip.value if lip is not None else None
     if wanted("bounds"):

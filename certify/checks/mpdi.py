@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from certify.falsify import SearchOutcome, maximize_over_box
+from certify.gridkernel import GridKernel
 from certify.kernels import mpdi_lam_max
 from certify.problem import Problem
 from certify.progress import NullProgress, Progress
@@ -53,11 +54,18 @@ def counterexamples_from(search: SearchOutcome, n: int, above: float | None = No
 
 def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | None = None,
                  progress: Progress | None = None) -> SearchOutcome:
+    """Grid + adversarial search for the largest lam_max(D) (float64 values throughout).
+
+    The grid is swept with a float32 copy of the kernel as a screen; every point that could be
+    above 0 and every top candidate is re-evaluated in float64 (see `maximize_over_box`).
+    """
     lo, hi = joint_box(problem)
-    return maximize_over_box(mpdi_score(problem, lam), lo, hi, grid_points=settings.grid_points,
+    exact = GridKernel(problem, lam)
+    screen = GridKernel(problem, lam, dtype=torch.float32) if settings.float32_screen else None
+    return maximize_over_box(exact, lo, hi, grid_points=settings.grid_points,
                              starts=settings.adversarial_starts, steps=settings.adversarial_steps,
                              top_k=settings.top_counterexamples, seed=settings.seed,
-                             progress=progress, task="MPDI grid")
+                             screen=screen, progress=progress, task="MPDI grid")
 
 
 def check_mpdi(problem: Problem, settings: VerifySettings, *,

@@ -1,0 +1,1 @@
+"""The verifier checks: one `check_x(problem, ...) -> XResult` per module."""

@@ -1,0 +1,301 @@
+"""Error bounds from a certified rate: Theorem 3 as stated, the ISS bound, its metric variant.
+
+METHOD §3.6-3.7. Inputs are the *proved* numbers of the other checks: `lam_cert` (a proved
+lower bound on the contraction rate with metric P, in the convention D = He{P (Jf + dk/dxhat)}
++ 2 lam P, so the error contracts at rate 2 lam in the P-norm), `eps_bar` (a sound upper bound
+on the boundary-condition residual over X) and `L` (a sound Lipschitz bound of k in y).
+Nothing here is sampled: a bound is applicable only when every input is a finite sound
+number, and its conditions of validity (a)-(d) are stated beside it in words.
+
+Bounds, with e = x - xhat, W = ||P^(1/2) e||, c = ||P^(1/2)||_2 (eps_bar + L vbar):
+
+- theorem3 (P = I, lam > 2, eta = lam - 2):
+  ||e(t)|| <= ||e0|| e^(-eta t) + eps_bar / (2 sqrt(eta)) + L vbar / (2 sqrt(eta))
+- iss:  ||e(t)|| <= (e^(-2 lam t) W0 + (1 - e^(-2 lam t)) c / (2 lam)) / sqrt(lam_min(P))
+- iss_metric: the same with c replaced by eps_bar_P + L_P vbar (residual and Lipschitz
+  constant of P^(1/2) k), which is never larger when those are computed directly.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from certify.errors import SettingsError
+from certify.problem import Problem
+from certify.results import BoundResult, BoundsResult, Status
+
+#: Names accepted by `bound_curve`.
+BOUND_NAMES = ("theorem3", "iss", "iss_metric")
+
+# Relative outward nudge on every computed constant: the formulas are a handful of float64
+# operations (relative error a few ulp); 1e-12 covers them with a wide margin.
+_NUDGE = 1e-12
+
+
+def _up(value: float) -> float:
+    return value * (1.0 + _NUDGE) if value >= 0 else value * (1.0 - _NUDGE)
+
+
+def _describe_missing(name: str, value: float | None, what: str) -> str | None:
+    """A reason why `value` cannot enter a bound, or None when it is a finite number >= 0."""
+    if value is None:
+        return f"{name} was not established ({what} has no sound value)"
+    if not math.isfinite(value):
+        return f"{name} = {value} is not finite"
+    if value < 0:
+        return f"{name} = {value:.6g} < 0 is not a valid upper bound"
+    return None
+
+
+def metric_constants(P: np.ndarray) -> tuple[float, float, float]:
+    """(lam_min(P) rounded down, ||P^(1/2)||_2 rounded up, kappa(P) rounded up).
+
+    eigvalsh errs by about n u ||P||; the margin below covers it, so the bound stays sound.
+    """
+    P = np.asarray(P, dtype=np.float64)
+    eig = np.linalg.eigvalsh((P + P.T) / 2)
+    margin = 4.0 * P.shape[0] * np.finfo(np.float64).eps * float(np.abs(eig).max())
+    lo, hi = float(eig[0]) - margin, float(eig[-1]) + margin
+    if lo <= 0:
+        return float("nan"), float("nan"), float("inf")
+    return lo, _up(math.sqrt(hi)), _up(hi / lo)
+
+
+def _is_identity(P: np.ndarray) -> bool:
+    P = np.asarray(P, dtype=np.float64)
+    return bool(np.array_equal(P, np.eye(P.shape[0])))
+
+
+def _theorem3(P: np.ndarray, lam: float | None, eps: float | None, L: float | None,
+              vbar: float, common: list[str]) -> BoundResult:
+    name = "theorem3"
+    formula = ("||e(t)|| <= ||e0|| e^(-eta t) + eps_bar/(2 sqrt(eta)) + L vbar/(2 sqrt(eta)), "
+               "eta = lam_cert - 2 (source, Theorem 3, P = I)")
+
+    def no(reason: str) -> BoundResult:
+        return BoundResult(name=name, applicable=False, reason=reason, rate=None, gain=None,
+                           bias=None, bias_per_unit_noise=None, formula=formula)
+
+    if common:
+        return no("; ".join(common))
+    assert lam is not None and eps is not None and L is not None
+    if not _is_identity(P):
+        return no("Theorem 3 of the source is stated for P = I only; this problem uses a "
+                  "different metric P (use the ISS bound)")
+    if not lam > 2.0:
+        return no(f"lam_cert = {lam:.6g} <= 2: Theorem 3 needs lam > 2 (eta = lam - 2 > 0); "
+                  "the ISS bound needs only lam > 0")
+    eta = lam - 2.0
+    denom = 2.0 * math.sqrt(eta)
+    bias = _up((eps + L * vbar) / denom)
+    return BoundResult(
+        name=name, applicable=True,
+        reason=f"P = I and lam_cert = {lam:.6g} > 2 (eta = {eta:.6g})",
+        rate=eta, gain=1.0, bias=bias, bias_per_unit_noise=_up(L / denom), formula=formula)
+
+
+def _iss(name: str, lam: float | None, c0: float | None, c1: float | None, vbar: float,
+         lam_min: float, common: list[str], what: str, formula: str) -> BoundResult:
+    """ISS bound with W' <= -2 lam W + c0 + c1 vbar; ||e|| <= W / sqrt(lam_min(P))."""
+
+    def no(reason: str) -> BoundResult:
+        return BoundResult(name=name, applicable=False, reason=reason, rate=None, gain=None,
+                           bias=None, bias_per_unit_noise=None, formula=formula)
+
+    if common:
+        return no("; ".join(common))
+    assert lam is not None and c0 is not None and c1 is not None
+    if not lam_min > 0:
+        return no("the metric P is not numerically positive definite")
+    s = math.sqrt(lam_min)
+    s = s * (1.0 - _NUDGE)  # sqrt rounded down, so 1/s is rounded up
+    bias = _up((c0 + c1 * vbar) / (2.0 * lam) / s)
+    return BoundResult(
+        name=name, applicable=True,
+        reason=f"lam_cert = {lam:.6g} > 0 with sound {what}",
+        rate=2.0 * lam, gain=_up(1.0 / s), bias=bias,
+        bias_per_unit_noise=_up(c1 / (2.0 * lam) / s), formula=formula)
+
+
+def validity_conditions(problem: Problem, *, vbar: float, L_is_local: bool,
+                        c: float | None = None, lam: float | None = None) -> list[str]:
+    """Conditions (a)-(d) of METHOD §3.7, in words, with the boxes of this problem."""
+    sysm = problem.system
+    X = ", ".join(f"{s} in [{lo:g}, {hi:g}]" for s, (lo, hi) in zip(sysm.states, sysm.X))
+    Y = ", ".join(f"{s} in [{lo:g}, {hi:g}]" for s, (lo, hi) in zip(sysm.outputs, sysm.Y))
+    radius = ""
+    if c is not None and lam is not None and lam > 0:
+        radius = (f" A checkable form: if x(s) stays in a set K and the P-ellipsoid "
+                  f"{{z : ||P^(1/2)(z - x)|| <= max(W(0), c/(2 lam))}} (c/(2 lam) = "
+                  f"{c / (2 * lam):.4g}) lies inside X for every x in K, then xhat stays in X.")
+    cond = [
+        f"(a) X is a box (convex) and both the plant state x(s) and the observer state "
+        f"xhat(s) stay in X = {{{X}}} for all s in [0, t]; the bound holds only up to the "
+        f"first exit (forward invariance, the source's Assumption 1, is not implied and is "
+        f"checked by simulation).{radius}",
+        f"(b) the true output h(x(s)) stays in Y = {{{Y}}} for all s in [0, t].",
+        f"(c) the measurement noise is bounded: ||v(s)||_2 <= vbar = {vbar:g} for all s in "
+        f"[0, t] (Euclidean norm in R^{sysm.p}); Gaussian white noise has no such bound, so "
+        f"the bounds do not apply to it.",
+    ]
+    if L_is_local:
+        cond.append("(d) the measured output y_e(s) = h(x(s)) + v(s) stays in Y for all s in "
+                    "[0, t], because L is a local bound (sup ||dk/dy||_2 over X x Y) and "
+                    "holds only for y in Y.")
+    else:
+        cond.append("(d) not needed: L is a global bound (LipSDP holds for every xhat in R^n "
+                    "and y in R^p), so y_e = h(x) + v may leave Y.")
+    return cond
+
+
+def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | None,
+                 L: float | None, vbar: float, eps_bar_P: float | None = None,
+                 L_P: float | None = None, L_is_local: bool = False) -> BoundsResult:
+    """Theorem 3 (as stated), the ISS bound and its metric variant at noise level `vbar`.
+
+    All inputs must be sound: `lam_cert` a proved lower bound on the rate (metric
+    `problem.P`), `eps_bar`, `L` (and `eps_bar_P`, `L_P`) proved upper bounds. PROVED when the
+    ISS bound is applicable; SKIPPED when an input was not established (None); UNKNOWN when
+    one is not finite or lam_cert <= 0.
+    """
+    if vbar is None or isinstance(vbar, bool) or not math.isfinite(float(vbar)) or vbar < 0:
+        raise SettingsError(f"settings noise must be a number >= 0; got {vbar!r}")
+    vbar = float(vbar)
+    P = np.asarray(problem.P, dtype=np.float64)
+    lam_min, sqrtP_norm, kappa = metric_constants(P)
+
+    def as_float(v: float | None) -> float | None:
+        return None if v is None else float(v)
+
+    lam, eps, Lf = as_float(lam_cert), as_float(eps_bar), as_float(L)
+    epsP, LP = as_float(eps_bar_P), as_float(L_P)
+
+    missing: list[str] = []  # inputs not established (None)
+    invalid: list[str] = []  # inputs that exist but cannot give a bound
+    if lam is None:
+        missing.append("lam_cert was not established (no proved contraction rate)")
+    elif not math.isfinite(lam):
+        invalid.append(f"lam_cert = {lam} is not finite")
+    elif lam <= 0:
+        invalid.append(f"lam_cert = {lam:.6g} <= 0: no contraction was certified, so no bound "
+                       "exists")
+    for nm, v, what in (("eps_bar", eps, "the residual check"),
+                        ("L", Lf, "the Lipschitz check")):
+        r = _describe_missing(nm, v, what)
+        if r:
+            (missing if v is None else invalid).append(r)
+    common = invalid + missing
+
+    theorem3 = _theorem3(P, lam, eps, Lf, vbar, common)
+    iss_formula = ("||e(t)|| <= (e^(-2 lam t) W0 + (1 - e^(-2 lam t)) ||P^(1/2)||_2 "
+                   "(eps_bar + L vbar)/(2 lam)) / sqrt(lam_min(P)), W0 = ||P^(1/2) e0||, "
+                   "lam = lam_cert")
+    iss = _iss("iss", lam, None if eps is None else _up(sqrtP_norm * eps),
+               None if Lf is None else _up(sqrtP_norm * Lf), vbar, lam_min, common,
+               "eps_bar and L", iss_formula)
+
+    # the sharper variant: eps_bar_P, L_P; a missing one is replaced by its sound fallback
+    # ||P^(1/2)|| eps_bar (resp. ||P^(1/2)|| L) and the reason says so.
+    metric_formula = ("||e(t)|| <= (e^(-2 lam t) W0 + (1 - e^(-2 lam t)) (eps_bar_P + L_P "
+                      "vbar)/(2 lam)) / sqrt(lam_min(P)), eps_bar_P = sup ||P^(1/2) k(x, h(x))||,"
+                      " L_P = Lipschitz constant of P^(1/2) k in y")
+    if epsP is None and LP is None:
+        iss_metric = BoundResult(
+            name="iss_metric", applicable=False,
+            reason="eps_bar_P and L_P (the residual and Lipschitz constant of P^(1/2) k) were "
+                   "not computed", rate=None, gain=None, bias=None, bias_per_unit_noise=None,
+            formula=metric_formula)
+    else:
+        mcommon = list(common)
+        notes = []
+        for nm, v in (("eps_bar_P", epsP), ("L_P", LP)):
+            if v is not None:
+                r = _describe_missing(nm, v, "the metric variant")
+                if r:
+                    mcommon.append(r)
+        if epsP is None and eps is not None:
+            epsP = _up(sqrtP_norm * eps)
+            notes.append("eps_bar_P <= ||P^(1/2)|| eps_bar")
+        if LP is None and Lf is not None:
+            LP = _up(sqrtP_norm * Lf)
+            notes.append("L_P <= ||P^(1/2)|| L")
+        what = "eps_bar_P and L_P" + (f" (using {', '.join(notes)})" if notes else "")
+        iss_metric = _iss("iss_metric", lam, epsP, LP, vbar, lam_min, mcommon, what,
+                          metric_formula)
+
+    c = None
+    if iss.applicable:
+        c = sqrtP_norm * (eps + Lf * vbar)  # type: ignore[operator]
+    validity = validity_conditions(problem, vbar=vbar, L_is_local=L_is_local, c=c, lam=lam)
+
+    if iss.applicable:
+        assert lam is not None
+        applicable = [b for b in (theorem3, iss, iss_metric) if b.applicable]
+        best = min(applicable, key=lambda b: float(b.bias or 0.0))
+        t3 = (f"applicable, ultimate bound {theorem3.bias:.4g}" if theorem3.applicable
+              else f"not applicable ({theorem3.reason})")
+        status = Status.PROVED
+        msg = (f"error bound proved at vbar = {vbar:g}: the error contracts at rate "
+               f"2 lam_cert = {2 * lam:.4g} in the P-norm; ultimate bound on ||e|| "
+               f"{best.bias:.4g} ({best.name}); Theorem 3 as stated: {t3}. Valid only under "
+               "conditions (a)-(d).")
+    else:
+        status = Status.UNKNOWN if invalid else Status.SKIPPED
+        msg = "no error bound: " + "; ".join(common)
+    return BoundsResult(status=status, message=msg, vbar=vbar, lam_cert=lam, eps_bar=eps, L=Lf,
+                        theorem3=theorem3, iss=iss, iss_metric=iss_metric, validity=validity,
+                        kappa_P=kappa, L_is_local=bool(L_is_local))
+
+
+def initial_value(which: str, e0: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """The start value a bound multiplies: ||e0|| (theorem3) or W0 = ||P^(1/2) e0|| (ISS).
+
+    e0 has shape [n] or [R, n]; returns a scalar array or shape [R].
+    """
+    e0 = np.asarray(e0, dtype=np.float64)
+    if which == "theorem3":
+        return np.linalg.norm(e0, axis=-1)
+    if which not in BOUND_NAMES:
+        raise ValueError(f"unknown bound {which!r}; one of {BOUND_NAMES}")
+    quad = np.einsum("...i,ij,...j->...", e0, np.asarray(P, dtype=np.float64), e0)
+    return np.sqrt(np.maximum(quad, 0.0)) * (1.0 + _NUDGE)
+
+
+def bound_curve(bounds: BoundsResult, which: str, start: float | np.ndarray,
+                t: np.ndarray) -> np.ndarray:
+    """The bound on ||e(t)|| over times t [T] for start values [R] (or a scalar) -> [R, T] or [T].
+
+    `start` is ||e0|| for "theorem3" and W0 = ||P^(1/2) e0|| for "iss"/"iss_metric" (see
+    `initial_value`). Raises ValueError when that bound is not applicable.
+    """
+    if which not in BOUND_NAMES:
+        raise ValueError(f"unknown bound {which!r}; one of {BOUND_NAMES}")
+    b: BoundResult | None = getattr(bounds, which)
+    if b is None or not b.applicable:
+        raise ValueError(f"bound {which} is not applicable: "
+                         f"{b.reason if b is not None else 'not computed'}")
+    t = np.asarray(t, dtype=np.float64)
+    s = np.asarray(start, dtype=np.float64)
+    decay = np.exp(-b.rate * t)  # type: ignore[operator]
+    s_ = s[..., None] if s.ndim else s
+    if which == "theorem3":
+        return b.gain * s_ * decay + b.bias  # type: ignore[operator]
+    return b.gain * s_ * decay + (1.0 - decay) * b.bias  # type: ignore[operator]
+
+
+def ultimate_bound_per_unit_noise(*, lam_cert: float | None, eps_bar: float | None,
+                                  L: float | None, vbar: float, kappa_P: float = 1.0
+                                  ) -> float | None:
+    """sqrt(kappa(P)) (eps_bar + L vbar) / (2 lam_cert): the ISS ultimate bound at `vbar`.
+
+    The quantity of the comparison table (issue 5, item 5), evaluated at the given vbar (not
+    divided by it). None when it does not exist (lam_cert <= 0 or an input missing/non-finite).
+    """
+    vals = (lam_cert, eps_bar, L, vbar, kappa_P)
+    if any(v is None or not math.isfinite(float(v)) for v in vals):
+        return None
+    if lam_cert <= 0 or eps_bar < 0 or L < 0 or vbar < 0 or kappa_P < 1:  # type: ignore[operator]
+        return None
+    return _up(math.sqrt(kappa_P) * (eps_bar + L * vbar) / (2.0 * lam_cert))  # type: ignore[operator]
