@@ -1,0 +1,484 @@
+"""Figures of a certificate (matplotlib, Agg canvas, no pyplot global state).
+
+Each `fig_*` function is pure: it takes a `Certificate`, reads `certificate.figures` and the
+check results, and returns a `matplotlib.figure.Figure`, or None when its data is missing
+(every figure is optional). `render_figures` draws them all once to PNG so the HTML and
+PDF reports embed identical images.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import matplotlib
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import PolyCollection
+from matplotlib.colors import Normalize, TwoSlopeNorm
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
+from matplotlib.ticker import MaxNLocator
+
+from certify.certificate import Certificate
+from reports.content import fmt
+
+WIDTH = 7.0  # inches: a full-width figure in both reports
+STYLE = {
+    "font.size": 9, "axes.titlesize": 10, "axes.labelsize": 9, "legend.fontsize": 8,
+    "xtick.labelsize": 8, "ytick.labelsize": 8, "axes.spines.top": False,
+    "axes.spines.right": False, "axes.grid": False, "figure.dpi": 100,
+    "font.family": "DejaVu Sans", "image.interpolation": "nearest",
+}
+BOX_COLOURS = {"proved": "#22c55e", "violated": "#dc2626", "unknown": "#f59e0b"}
+STATE_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf",
+                 "#bcbd22"]
+
+
+# ----------------------------------------------------------------------------- helpers
+
+def _array(values: Any) -> np.ndarray:
+    """Nested lists with "NaN"/"Infinity" strings (JSON form) or floats to a float array."""
+    special = {"NaN": np.nan, "Infinity": np.inf, "-Infinity": -np.inf}
+
+    def conv(v: Any) -> Any:
+        if isinstance(v, list):
+            return [conv(a) for a in v]
+        if isinstance(v, str):
+            return special.get(v, np.nan)
+        return np.nan if v is None else v
+
+    return np.asarray(conv(values), dtype=float)
+
+
+def _grid(cert: Certificate, key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                 list[str]] | None:
+    """(x [nx], y [ny], values [ny, nx], axis names) of a figure map, or None if unusable."""
+    data = (cert.figures or {}).get(key)
+    if not isinstance(data, dict):
+        return None
+    try:
+        x, y, v = _array(data["x"]), _array(data["y"]), _array(data["values"])
+    except (KeyError, ValueError, TypeError):
+        return None
+    if v.ndim != 2 or v.shape != (len(y), len(x)) or v.size == 0:
+        return None
+    axes = list(data.get("axes") or ["x1", "x2"])
+    return x, y, v, axes
+
+
+def _new(height: float, width: float = WIDTH) -> Figure:
+    fig = Figure(figsize=(width, height), layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _names(cert: Certificate) -> list[str]:
+    return list((cert.system or {}).get("states") or ["x1", "x2"])
+
+
+def _heatmap(fig: Figure, ax: Any, x: np.ndarray, y: np.ndarray, v: np.ndarray, *,
+             label: str, diverging: bool, cmap: str = "viridis") -> None:
+    """pcolormesh with a colour bar; diverging maps are centred on zero with a zero contour."""
+    finite = v[np.isfinite(v)]
+    if finite.size == 0:
+        ax.text(0.5, 0.5, "no finite values", ha="center", va="center", transform=ax.transAxes)
+        return
+    lo, hi = float(finite.min()), float(finite.max())
+    if hi - lo <= 1e-12 * max(1.0, abs(hi)):
+        ax.pcolormesh(x, y, np.ma.masked_invalid(v), shading="nearest", cmap="Greys",
+                      vmin=lo - 1, vmax=lo + 3, rasterized=True)
+        ax.text(0.5, 0.5, f"{label} = {fmt(lo)} everywhere on the grid", ha="center",
+                va="center", transform=ax.transAxes, fontsize=10,
+                bbox={"fc": "white", "ec": "#9ca3af", "boxstyle": "round"})
+        ax.set_xlim(x.min(), x.max())
+        ax.set_ylim(y.min(), y.max())
+        return
+    if diverging and lo < 0 < hi:
+        norm: Normalize = TwoSlopeNorm(vmin=lo, vcenter=0.0, vmax=hi)
+        cmap = "RdBu_r"
+    elif diverging:
+        # one sign only: keep blue for negative, red for positive
+        cmap = "Reds" if lo >= 0 else "Blues_r"
+        norm = Normalize(vmin=lo, vmax=hi if hi > lo else lo + 1e-12)
+    else:
+        norm = Normalize(vmin=lo, vmax=hi if hi > lo else lo + 1e-12)
+    masked = np.ma.masked_invalid(v)
+    ax.set_facecolor("#d1d5db")  # shows through where values are NaN
+    mesh = ax.pcolormesh(x, y, masked, shading="nearest", cmap=cmap, norm=norm,
+                         rasterized=True)
+    cb = fig.colorbar(mesh, ax=ax, shrink=0.95, pad=0.02)
+    cb.set_label(label)
+    if diverging and lo < 0 < hi:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            cs = ax.contour(x, y, masked, levels=[0.0], colors="black", linewidths=1.4)
+        cb.ax.axhline(0.0, color="black", lw=1.2)
+        if cs.allsegs and any(len(s) for s in cs.allsegs[0]):
+            ax.plot([], [], color="black", lw=1.4, label="zero contour")
+    ax.set_xlim(x.min(), x.max())
+    ax.set_ylim(y.min(), y.max())
+
+
+def _legend(ax: Any, **kw: Any) -> None:
+    handles, labels = ax.get_legend_handles_labels()
+    if handles:
+        ax.legend(**{"loc": "upper right", "framealpha": 0.9, **kw})
+
+
+# ----------------------------------------------------------------------------- figures
+
+def fig_mpdi_map(cert: Certificate) -> Figure | None:
+    """Heatmap of max over y of lam_max(D) over the xhat box, zero contour, counterexamples."""
+    g = _grid(cert, "mpdi_map")
+    if g is None:
+        return None
+    x, y, v, axes = g
+    fig = _new(4.3)
+    ax = fig.add_subplot()
+    _heatmap(fig, ax, x, y, v, label="max over y of \u03bb_max(D)", diverging=True)
+    r = cert.checks.get("mpdi")
+    if r is not None:
+        pts = np.array([c.xhat[:2] for c in r.counterexamples if len(c.xhat) >= 2])
+        if len(pts):
+            ax.scatter(pts[:, 0], pts[:, 1], marker="x", s=40, c="#111827", linewidths=1.5,
+                       label=f"counterexamples ({len(pts)})", zorder=5)
+        if r.worst is not None and len(r.worst.xhat) >= 2:
+            ax.scatter([r.worst.xhat[0]], [r.worst.xhat[1]], marker="*", s=160,
+                       c="#fde047", edgecolors="black", linewidths=0.8, zorder=6, clip_on=False,
+                       label=f"worst point ({fmt(r.worst.value, 4, signed=True)})")
+    ax.set_xlabel(axes[0])
+    ax.set_ylabel(axes[1] if len(axes) > 1 else "")
+    n = len(_names(cert))
+    extra = " (other states at their box centre)" if n > 2 else ""
+    ax.set_title("MPDI map: max over y of \u03bb_max(D(x\u0302, y))" + extra)
+    _legend(ax)
+    return fig
+
+
+def fig_prover(cert: Certificate) -> Figure | None:
+    """The prover's leaf sub-boxes by status, and proved volume over time."""
+    data = (cert.figures or {}).get("proof_boxes")
+    hist = (cert.figures or {}).get("proof_history")
+    r = cert.checks.get("mpdi")
+    if not hist and r is not None and r.proof is not None:
+        hist = r.proof.volume_history
+    have_boxes = isinstance(data, dict) and data.get("lo") and data.get("hi")
+    if not have_boxes and not hist:
+        return None
+    panels = int(bool(have_boxes)) + int(bool(hist))
+    fig = _new(3.6)
+    axs = fig.subplots(1, panels, width_ratios=[1.25, 1] if panels == 2 else None,
+                       squeeze=False)[0]
+    i = 0
+    if have_boxes:
+        ax = axs[i]
+        i += 1
+        lo, hi = _array(data["lo"]), _array(data["hi"])
+        status = np.asarray(data.get("status") or ["unknown"] * len(lo))
+        verts = np.stack([np.stack([lo[:, 0], lo[:, 1]], 1), np.stack([hi[:, 0], lo[:, 1]], 1),
+                          np.stack([hi[:, 0], hi[:, 1]], 1), np.stack([lo[:, 0], hi[:, 1]], 1)],
+                         axis=1)
+        colours = [BOX_COLOURS.get(str(s), "#9ca3af") for s in status]
+        edge = 0.3 if len(lo) <= 5000 else 0.0
+        ax.add_collection(PolyCollection(verts, facecolors=colours, edgecolors="white",
+                                         linewidths=edge, rasterized=True))
+        ax.set_xlim(lo[:, 0].min(), hi[:, 0].max())
+        ax.set_ylim(lo[:, 1].min(), hi[:, 1].max())
+        axes = list(data.get("axes") or ["x1", "x2"])
+        ax.set_xlabel(axes[0])
+        ax.set_ylabel(axes[1] if len(axes) > 1 else "")
+        ax.xaxis.set_major_locator(MaxNLocator(5))
+        ax.set_title(f"Prover's leaf boxes ({fmt(len(lo))})")
+        counts = {k: int(np.sum(status == k)) for k in BOX_COLOURS}
+        ax.legend(handles=[Patch(color=c, label=f"{k} ({fmt(counts[k])})")
+                           for k, c in BOX_COLOURS.items()],
+                  loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=3, frameon=False)
+    if hist:
+        ax = axs[i]
+        h = _array(hist)
+        if h.ndim == 2 and h.shape[1] >= 2:
+            ax.plot(h[:, 0], 100 * h[:, 1], color="#15803d", lw=1.8,
+                    marker="o" if len(h) <= 40 else None, ms=3)
+            ax.fill_between(h[:, 0], 100 * h[:, 1], color="#22c55e", alpha=0.15)
+        ax.set_ylim(0, 102)
+        ax.set_xlabel("prover time (s)")
+        ax.set_ylabel("proved volume (%)")
+        ax.set_title("Proved volume over time")
+        ax.grid(alpha=0.3)
+        if r is not None and r.proof is not None:
+            ax.text(0.97, 0.05, f"{fmt(r.proof.boxes_processed)} boxes\n"
+                                f"{fmt(r.proof.boxes_per_second)} boxes/s",
+                    transform=ax.transAxes, ha="right", va="bottom", fontsize=8,
+                    bbox={"boxstyle": "round", "fc": "white", "ec": "#d1d5db"})
+    return fig
+
+
+def fig_necessary_map(cert: Certificate) -> Figure | None:
+    """q(xhat) over X with its zero contour and witness; blank where h(xhat) is not in Y."""
+    g = _grid(cert, "necessary_map")
+    if g is None:
+        return None
+    x, y, v, axes = g
+    fig = _new(3.9)
+    ax = fig.add_subplot()
+    _heatmap(fig, ax, x, y, v, label="q(x\u0302)", diverging=True)
+    r = cert.checks.get("necessary")
+    if r is not None and r.witness is not None and len(r.witness) >= 2:
+        ax.scatter([r.witness[0]], [r.witness[1]], marker="*", s=170, c="#fde047",
+                   edgecolors="black", linewidths=0.8, zorder=6, clip_on=False,
+                   label=f"witness (q = {fmt(r.q_max, 4, signed=True)})")
+    if np.isnan(v).any():
+        ax.add_artist(ax.legend(handles=[Patch(color="#d1d5db", label="h(x\u0302) \u2209 Y")],
+                                loc="lower left", framealpha=0.9))
+    ax.set_xlabel(axes[0])
+    ax.set_ylabel(axes[1] if len(axes) > 1 else "")
+    ax.set_title("Necessary condition: q(x\u0302) on the output manifold (> 0: impossible)")
+    _legend(ax)
+    return fig
+
+
+def fig_residual_map(cert: Certificate) -> Figure | None:
+    """||k(x, h(x))|| over X."""
+    g = _grid(cert, "residual_map")
+    if g is None:
+        return None
+    x, y, v, axes = g
+    r = cert.checks.get("residual")
+    if r is not None and r.structural and np.all(v[np.isfinite(v)] == 0):
+        return None  # zero by construction: the section says so, a blank map adds nothing
+    fig = _new(3.9)
+    ax = fig.add_subplot()
+    _heatmap(fig, ax, x, y, v, label="\u2016k(x, h(x))\u2016", diverging=False,
+             cmap="viridis")
+    if r is not None and r.worst is not None and len(r.worst) >= 2:
+        ax.scatter([r.worst[0]], [r.worst[1]], marker="*", s=160, c="#f472b6",
+                   edgecolors="black", linewidths=0.8, zorder=6, clip_on=False,
+                   label=f"worst ({fmt(r.sampled)})")
+    ax.set_xlabel(axes[0])
+    ax.set_ylabel(axes[1] if len(axes) > 1 else "")
+    title = "Boundary residual \u2016k(x, h(x))\u2016 over X"
+    if r is not None and r.structural:
+        title += " (zero by construction)"
+    ax.set_title(title)
+    _legend(ax)
+    return fig
+
+
+def fig_lipschitz(cert: Certificate) -> Figure | None:
+    """LipSDP / local / naive bounds against the sampled lower bound (log scale)."""
+    r = cert.checks.get("lipschitz")
+    if r is None:
+        return None
+    items = [("sampled (lower)", r.sampled, "#6b7280", ""),
+             ("local interval", r.local_upper, "#0ea5e9", "local"),
+             ("LipSDP", r.lipsdp, "#2563eb", "lipsdp"),
+             ("naive", r.naive, "#9333ea", "naive")]
+    fig = _new(2.3)
+    ax = fig.add_subplot()
+    vals = [v for _, v, _, _ in items if v is not None and math.isfinite(v) and v > 0]
+    if not vals:
+        return None
+    ypos = np.arange(len(items))[::-1]
+    for yy, (_, v, colour, key) in zip(ypos, items):
+        if v is None or not math.isfinite(v) or v <= 0:
+            ax.text(min(vals), yy, "  \u2014 not available", va="center", fontsize=8,
+                    color="#6b7280")
+            continue
+        used = key and key == r.which
+        ax.barh(yy, v, color=colour, alpha=1.0 if used else 0.55,
+                edgecolor="black" if used else "none", linewidth=1.2, height=0.6)
+        ax.text(v, yy, f"  {fmt(v)}" + ("  \u2190 used" if used else ""), va="center",
+                fontsize=8, fontweight="bold" if used else "normal")
+    ax.set_yticks(ypos, [n for n, *_ in items])
+    if max(vals) / min(vals) > 20:
+        ax.set_xscale("log")
+        ax.set_xlim(min(vals) / 3, max(vals) * 4)
+    else:
+        ax.set_xlim(0, max(vals) * 1.35)
+    ax.set_xlabel("Lipschitz constant of k in y (L2 \u2192 L2)")
+    ax.set_title("Lipschitz bounds side by side")
+    return fig
+
+
+def _runs(cert: Certificate) -> list[Any]:
+    r = cert.checks.get("simulation")
+    return [] if r is None else [run for run in r.runs if run.t]
+
+
+def _grid_axes(fig: Figure, k: int, ncols: int) -> list[Any]:
+    rows = math.ceil(k / ncols)
+    axs = fig.subplots(rows, ncols, squeeze=False).ravel()
+    for ax in axs[k:]:
+        ax.set_visible(False)
+    return list(axs[:k])
+
+
+def fig_bounds(cert: Certificate) -> Figure | None:
+    """Observed error against the proved bound, one panel per initial condition."""
+    runs = _runs(cert)
+    if not runs:
+        return None
+    runs = runs[:8]
+    ncols = 2 if len(runs) > 1 else 1
+    fig = _new(2.1 * math.ceil(len(runs) / ncols) + 0.7)
+    for ax, run in zip(_grid_axes(fig, len(runs), ncols), runs):
+        t, e = _array(run.t), _array(run.error)
+        ax.semilogy(t, np.maximum(e, 1e-12), color="#1f2937", lw=1.2)
+        if run.bound:
+            b = _array(run.bound)
+            ax.semilogy(t[:len(b)], b, color="#2563eb", lw=1.6, ls="--")
+        if run.exit_time is not None:
+            ax.axvspan(run.exit_time, t.max(), color="#fecaca", alpha=0.5, lw=0)
+            ax.axvline(run.exit_time, color="#b91c1c", lw=1)
+        tag = "" if run.within_conditions else " \u2014 outside conditions"
+        if run.breach:
+            tag += " \u2014 BREACH"
+        ax.set_title(f"{run.label}{tag}", fontsize=8.5)
+        ax.set_xlabel("t (s)")
+        ax.set_ylabel("error")
+        ax.set_xlim(t.min(), t.max())
+        ax.grid(alpha=0.3, which="major")
+        if not run.bound:
+            ax.text(0.98, 0.95, "no proved bound", transform=ax.transAxes, fontsize=7.5,
+                    color="#4b5563", ha="right", va="top",
+                    bbox={"fc": "white", "ec": "none", "alpha": 0.8, "pad": 1.5})
+    handles = [Line2D([], [], color="#1f2937", lw=1.2,
+                      label="observed \u2016x \u2212 x\u0302\u2016"),
+               Line2D([], [], color="#2563eb", lw=1.6, ls="--", label="proved bound"),
+               Patch(color="#fecaca", label="after first exit (no claim)"),
+               Line2D([], [], color="#b91c1c", lw=1, label="first exit")]
+    fig.legend(handles=handles, loc="outside lower center", ncol=4, frameon=False)
+    fig.suptitle("Simulated error against the proved bound", fontsize=10)
+    return fig
+
+
+def fig_simulation(cert: Certificate) -> Figure | None:
+    """True (solid) and estimated (dashed) states over time, one panel per run."""
+    runs = _runs(cert)
+    if not runs or not runs[0].x:
+        return None
+    runs = runs[:8]
+    names = _names(cert)
+    ncols = 2 if len(runs) > 1 else 1
+    fig = _new(2.1 * math.ceil(len(runs) / ncols) + 0.7)
+    X = _array((cert.system or {}).get("X") or [])
+    for ax, run in zip(_grid_axes(fig, len(runs), ncols), runs):
+        t = _array(run.t)
+        x, xh = _array(run.x), _array(run.xhat)
+        if x.ndim != 2:
+            continue
+        for j in range(x.shape[1]):
+            c = STATE_COLOURS[j % len(STATE_COLOURS)]
+            ax.plot(t, x[:, j], color=c, lw=1.3)
+            if xh.ndim == 2 and xh.shape[1] > j:
+                ax.plot(t, xh[:, j], color=c, lw=1.1, ls="--")
+            if X.ndim == 2 and X.shape[0] > j:
+                for edge in X[j]:
+                    ax.axhline(edge, color=c, lw=0.6, ls=":", alpha=0.7)
+        if run.exit_time is not None:
+            ax.axvline(run.exit_time, color="#b91c1c", lw=1)
+            ax.text(run.exit_time, 1.0, " exit", color="#b91c1c", fontsize=7,
+                    transform=ax.get_xaxis_transform(), va="top")
+        noise = "" if run.noise in run.label.lower() else f" ({run.noise} noise)"
+        ax.set_title(f"{run.label}{noise}", fontsize=8.5)
+        ax.set_xlabel("t (s)")
+        ax.set_xlim(t.min(), t.max())
+        ax.grid(alpha=0.3)
+    handles = [Line2D([], [], color=STATE_COLOURS[j % len(STATE_COLOURS)], lw=1.3, label=nm)
+               for j, nm in enumerate(names)]
+    handles += [Line2D([], [], color="#374151", lw=1.3, label="true x"),
+                Line2D([], [], color="#374151", lw=1.1, ls="--", label="estimate x\u0302"),
+                Line2D([], [], color="#374151", lw=0.6, ls=":", label="box X edges"),
+                Line2D([], [], color="#b91c1c", lw=1, label="first exit")]
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), frameon=False)
+    fig.suptitle("Simulation: true and estimated states", fontsize=10)
+    return fig
+
+
+# ----------------------------------------------------------------------------- rendering
+
+@dataclass(frozen=True)
+class FigureSpec:
+    """A figure of the report: where it goes and what its caption says."""
+
+    key: str
+    section: str
+    caption: str
+    build: Callable[[Certificate], Figure | None]
+
+
+FIGURES: tuple[FigureSpec, ...] = (
+    FigureSpec("mpdi_map", "mpdi",
+               "max over y of \u03bb_max(D) on a grid over the first two states (red > 0 "
+               "violates the MPDI); black line: zero contour; \u00d7 counterexamples; "
+               "\u2605 worst point found.", fig_mpdi_map),
+    FigureSpec("prover", "mpdi",
+               "Branch and bound: leaf sub-boxes projected onto the first two states "
+               "(green proved, red violated, amber unknown) and the proved volume over time.",
+               fig_prover),
+    FigureSpec("necessary_map", "necessary",
+               "q(x\u0302) over X (independent of the network); positive values make the "
+               "MPDI and the boundary condition incompatible; \u2605 witness.",
+               fig_necessary_map),
+    FigureSpec("residual_map", "residual",
+               "Boundary-condition residual \u2016k(x, h(x))\u2016 over X.", fig_residual_map),
+    FigureSpec("lipschitz", "lipschitz",
+               "Upper bounds (LipSDP, local interval, naive) against the sampled lower bound; "
+               "the outlined bar is the one used downstream.", fig_lipschitz),
+    FigureSpec("bounds", "bounds",
+               "Observed \u2016x \u2212 x\u0302\u2016 (solid) against the proved bound (dashed) "
+               "for each initial condition; shaded: after the first exit from the validity "
+               "conditions, where no bound is claimed.", fig_bounds),
+    FigureSpec("simulation", "simulation",
+               "True states (solid) and observer estimates (dashed); dotted: edges of X.",
+               fig_simulation),
+)
+
+
+@dataclass(frozen=True)
+class RenderedFigure:
+    """One figure drawn to PNG (shared by the HTML and the PDF report)."""
+
+    key: str
+    section: str
+    caption: str
+    png: bytes
+    width_in: float
+    height_in: float
+    width_px: int
+    height_px: int
+
+
+def figure_png(fig: Figure, dpi: int) -> bytes:
+    """PNG bytes of a figure (fixed metadata, so identical inputs give identical bytes)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, facecolor="white",
+                metadata={"Software": None})
+    return buf.getvalue()
+
+
+def render_figures(cert: Certificate, dpi: int = 150) -> list[RenderedFigure]:
+    """Draw every figure whose data is present, in report order."""
+    out = []
+    with matplotlib.rc_context(STYLE):
+        for spec in FIGURES:
+            fig = spec.build(cert)
+            if fig is None:
+                continue
+            png = figure_png(fig, dpi)
+            w, h = fig.get_size_inches()
+            wpx, hpx = _png_size(png)
+            out.append(RenderedFigure(spec.key, spec.section, spec.caption, png, float(w),
+                                      float(h), wpx, hpx))
+    return out
+
+
+def _png_size(png: bytes) -> tuple[int, int]:
+    """Width and height from a PNG's IHDR chunk."""
+    return int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")

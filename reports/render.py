@@ -1,0 +1,57 @@
+"""Write every requested report, atomically: all or nothing per file, never half-written.
+
+Everything is rendered in memory first (figures drawn once, shared by HTML and PDF); only
+then is each file written through a temporary file in its own directory and `os.replace`.
+An exception or KeyboardInterrupt while rendering writes nothing; one while writing leaves
+each target either as it was or complete.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from certify.certificate import Certificate
+from certify.checkpoint import atomic_write_bytes
+from reports.figures import render_figures
+from reports.html import render_html
+from reports.junit import render_junit
+from reports.pdf import render_pdf
+
+PathLike = str | Path
+
+
+def render_reports(certificate: Certificate, *, html: bool = False, pdf: bool = False,
+                   junit: bool = False, json: bool = False,
+                   unknown: str = "failure") -> dict[str, bytes]:
+    """The requested reports as bytes, keyed 'html' / 'pdf' / 'junit' / 'json'."""
+    out: dict[str, bytes] = {}
+    figures = render_figures(certificate) if (html or pdf) else []
+    if json:
+        out["json"] = (certificate.to_json() + "\n").encode("utf-8")
+    if junit:
+        out["junit"] = render_junit(certificate, unknown=unknown).encode("utf-8")
+    if html:
+        out["html"] = render_html(certificate, figures).encode("utf-8")
+    if pdf:
+        out["pdf"] = render_pdf(certificate, figures)
+    return out
+
+
+def write_reports(certificate: Certificate, *, html: PathLike | None = None,
+                  pdf: PathLike | None = None, junit: PathLike | None = None,
+                  json: PathLike | None = None, unknown: str = "failure") -> list[Path]:
+    """Render, then atomically write each report whose path is given; returns the paths.
+
+    `unknown` is the JUnit policy for UNKNOWN checks ("failure" or "error").
+    """
+    targets = {k: Path(v) for k, v in (("html", html), ("pdf", pdf), ("junit", junit),
+                                       ("json", json)) if v is not None}
+    if not targets:
+        return []
+    data = render_reports(certificate, unknown=unknown,
+                          **{k: True for k in targets})  # type: ignore[arg-type]
+    written = []
+    for key, path in targets.items():
+        atomic_write_bytes(path, data[key])
+        written.append(path)
+    return written
