@@ -30,12 +30,17 @@ FUNCTIONS: dict[str, tuple[Any, Callable[[torch.Tensor], torch.Tensor]]] = {
     "abs": (sympy.Abs, torch.abs),
 }
 
+#: Functions that only appear in derivatives of whitelisted ones (never parsed from text).
+DERIVED_FUNCTIONS: dict[str, tuple[Any, Callable[[torch.Tensor], torch.Tensor]]] = {
+    "sign": (sympy.sign, torch.sign),  # d/dx abs(x)
+}
+
 #: Named constants accepted in expressions.
 CONSTANTS: dict[str, Any] = {"pi": sympy.pi}
 
 _SYMPY_TO_NAME = {
     sympy.sin: "sin", sympy.cos: "cos", sympy.tan: "tan", sympy.exp: "exp",
-    sympy.log: "log", sympy.tanh: "tanh", sympy.Abs: "abs",
+    sympy.log: "log", sympy.tanh: "tanh", sympy.Abs: "abs", sympy.sign: "sign",
 }
 
 
@@ -143,7 +148,8 @@ def function_name(expr: sympy.Expr) -> str:
     """Whitelist name of a sympy function node (or raise naming it)."""
     name = _SYMPY_TO_NAME.get(expr.func)
     if name is None:
-        raise SpecError(f"no evaluation rule for function {expr.func}")
+        raise SpecError(f"no evaluation rule for {expr.func} (in {expr}); the checks need f and h "
+                        "twice differentiable")
     return name
 
 
@@ -204,7 +210,8 @@ class TorchAlgebra:
         return a**e
 
     def func(self, name: str, a: torch.Tensor) -> torch.Tensor:
-        return FUNCTIONS[name][1](a)
+        table = FUNCTIONS if name in FUNCTIONS else DERIVED_FUNCTIONS
+        return table[name][1](a)
 
 
 TORCH = TorchAlgebra()

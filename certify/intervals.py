@@ -25,7 +25,7 @@ import sympy
 import torch
 
 from certify.errors import SpecError
-from certify.expr import FUNCTIONS, evaluate
+from certify.expr import DERIVED_FUNCTIONS, FUNCTIONS, evaluate
 
 ROUNDING = (
     "outward rounding: every +, -, *, / and sqrt result is moved one ulp outward with "
@@ -290,6 +290,7 @@ RULES: dict[str, Rule] = {
     "sqrt": Rule(torch.sqrt, _sqrt_rule),
     "tanh": Rule(torch.tanh, _monotone_increasing(torch.tanh)),
     "abs": Rule(torch.abs, _abs_rule),
+    "sign": Rule(torch.sign, lambda a: Interval(torch.sign(a.lo), torch.sign(a.hi))),  # exact
 }
 
 
@@ -326,7 +327,8 @@ class IntervalAlgebra:
 
 INTERVAL = IntervalAlgebra()
 
-assert set(RULES) == set(FUNCTIONS), "every whitelisted function needs an enclosure rule"
+assert set(RULES) == set(FUNCTIONS) | set(DERIVED_FUNCTIONS), \
+    "every whitelisted function needs an enclosure rule"
 
 
 # ----- tanh and its derivatives (the network's activation) -------------------------------
