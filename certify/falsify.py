@@ -195,6 +195,8 @@ def _ascent(fn: ScoreFn, x0: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, s
     for it in range(1, steps + 1):
         val = fn(x)
         finite = torch.isfinite(val)
+        if not val.requires_grad:  # fn does not depend on x: nothing to climb
+            break
         (grad,) = torch.autograd.grad(torch.where(finite, val, 0.0).sum(), x)
         with torch.no_grad():
             improved = finite & (val > best_v)

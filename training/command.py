@@ -1,0 +1,205 @@
+"""`certify train`: the command-line hook (arguments, progress display, checkpoint writing).
+
+The lead's `certify/cli.py` calls `add_train_arguments(parser)` and `run_train(args)`; bad
+values raise `CertifyError` subclasses, which the CLI turns into one line and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from certify import checkpoint
+from certify.errors import CertifyError, SettingsError
+from certify.system import load_system
+from training.presets import PRESETS, make_config
+from training.train import train
+
+
+def parse_hidden(text: str) -> tuple[int, ...]:
+    """'30,30,30' -> (30, 30, 30); anything else is refused naming --hidden."""
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        widths = tuple(int(p) for p in parts)
+    except ValueError:
+        widths = ()
+    if not widths or any(w < 1 for w in widths):
+        raise SettingsError(f"--hidden must be comma-separated positive layer widths like "
+                            f"30,30,30; got {text!r}")
+    return widths
+
+
+def parse_metric(text: str, n: int | None = None) -> tuple[tuple[float, ...], ...]:
+    """'[[a,b],[b,c]]' -> a validated symmetric positive definite matrix (JSON or a Python
+    literal; never evaluated as code)."""
+    try:
+        value: Any = json.loads(text)
+    except (json.JSONDecodeError, TypeError):
+        try:
+            value = ast.literal_eval(str(text))
+        except (ValueError, SyntaxError, TypeError, MemoryError, RecursionError):
+            raise SettingsError(f"--metric must be a matrix like [[1, 0], [0, 1]]; got "
+                                f"{text!r}") from None
+    ok = isinstance(value, (list, tuple)) and len(value) > 0 and all(
+        isinstance(row, (list, tuple)) and len(row) == len(value)
+        and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in row)
+        for row in value)
+    if not ok:
+        raise SettingsError(f"--metric must be a square matrix of numbers like "
+                            f"[[1, 0], [0, 1]]; got {text!r}")
+    arr = np.asarray(value, dtype=np.float64)
+    if n is not None and arr.shape != (n, n):
+        raise SettingsError(f"--metric must be {n}x{n} for this system; got "
+                            f"{arr.shape[0]}x{arr.shape[1]}")
+    if not np.all(np.isfinite(arr)):
+        raise SettingsError(f"--metric has a non-finite entry; got {text!r}")
+    if not np.allclose(arr, arr.T, rtol=0, atol=1e-12 * max(1.0, float(np.abs(arr).max()))):
+        raise SettingsError(f"--metric must be symmetric; got {text!r}")
+    if float(np.linalg.eigvalsh((arr + arr.T) / 2).min()) <= 0:
+        raise SettingsError(f"--metric must be positive definite; got {text!r}")
+    return tuple(tuple(float(v) for v in row) for row in arr)
+
+
+def add_train_arguments(parser: argparse.ArgumentParser) -> None:
+    """The arguments of `certify train`."""
+    parser.add_argument("system", help="built-in system name (vdp, duffing) or a spec .toml path")
+    parser.add_argument("-o", "--output", required=True, help="checkpoint file to write (.ckpt)")
+    parser.add_argument("--preset", default="paper",
+                        help=f"training recipe: {', '.join(PRESETS)} (default: paper, the "
+                             "source method reproduced)")
+    parser.add_argument("--lam", type=float, default=None,
+                        help="contraction rate lam (default: the system's)")
+    parser.add_argument("--metric", default=None,
+                        help="constant metric P as [[a,b],[b,c]] (default: the system's)")
+    parser.add_argument("--seed", type=int, default=None, help="random seed (default 0)")
+    parser.add_argument("--points", type=int, default=None,
+                        help="collocation points (paper: 4000)")
+    parser.add_argument("--hidden", default=None,
+                        help="hidden widths, comma-separated (paper: 30,30,30,30,30)")
+    parser.add_argument("--adam-iters", type=int, default=None, dest="adam_iters",
+                        help="full-batch Adam iterations (paper: 500)")
+    parser.add_argument("--lbfgs-iters", type=int, default=None, dest="lbfgs_iters",
+                        help="L-BFGS iterations (paper: 500)")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+class PlainProgress:
+    """Progress as plain lines (for logs and CI): one line per `every` iterations."""
+
+    def __init__(self, stream: TextIO, every: int = 100) -> None:
+        self.stream, self.every = stream, every
+        self.count: dict[str, int] = {}
+        self.total: dict[str, float | None] = {}
+        self.t0: dict[str, float] = {}
+
+    def start(self, task: str, total: float | None = None) -> None:
+        self.count[task], self.total[task], self.t0[task] = 0, total, time.perf_counter()
+
+    def update(self, task: str, advance: float = 1.0, **fields: object) -> None:
+        before = self.count.get(task, 0)
+        self.count[task] = before + int(advance)
+        if self.count[task] // self.every > before // self.every:
+            self._line(task, fields)
+
+    def _line(self, task: str, fields: dict[str, object]) -> None:
+        terms = "  ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                          for k, v in fields.items())
+        total = self.total.get(task)
+        of = f"/{int(total)}" if total else ""
+        print(f"train {task:5s} {self.count[task]}{of}  {terms}", file=self.stream, flush=True)
+
+    def finish(self, task: str, message: str = "") -> None:
+        took = time.perf_counter() - self.t0.get(task, time.perf_counter())
+        print(f"train {task:5s} done in {took:.1f} s  {message}", file=self.stream, flush=True)
+
+
+class RichProgress:
+    """A rich progress bar per phase, with the loss terms beside it (terminals)."""
+
+    def __init__(self) -> None:
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+        )
+        self._bar = Progress(TextColumn("{task.description:6s}"), BarColumn(),
+                             MofNCompleteColumn(), TimeElapsedColumn(),
+                             TextColumn("{task.fields[terms]}"))
+        self._ids: dict[str, Any] = {}
+
+    def __enter__(self) -> RichProgress:
+        self._bar.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._bar.__exit__(*exc)
+
+    def start(self, task: str, total: float | None = None) -> None:
+        self._ids[task] = self._bar.add_task(task, total=total, terms="")
+
+    def update(self, task: str, advance: float = 1.0, **fields: object) -> None:
+        terms = "  ".join(f"{k} {v:.3e}" if isinstance(v, float) else f"{k} {v}"
+                          for k, v in fields.items())
+        self._bar.update(self._ids[task], advance=advance, terms=terms)
+
+    def finish(self, task: str, message: str = "") -> None:
+        tid = self._ids[task]
+        total = self._bar.tasks[[t.id for t in self._bar.tasks].index(tid)].total
+        self._bar.update(tid, completed=total, terms=message)
+
+
+def _config_from_args(args: argparse.Namespace, system: Any) -> Any:
+    hidden = parse_hidden(args.hidden) if getattr(args, "hidden", None) is not None else None
+    metric = parse_metric(args.metric, system.n) if getattr(args, "metric", None) else None
+    preset = getattr(args, "preset", None) or "paper"
+    return make_config(system, preset, lam=getattr(args, "lam", None), P=metric,
+                       seed=getattr(args, "seed", None), points=getattr(args, "points", None),
+                       hidden=hidden, adam_iters=getattr(args, "adam_iters", None),
+                       lbfgs_iters=getattr(args, "lbfgs_iters", None))
+
+
+def run_train(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
+    """Train as `args` say and write the checkpoint; returns the exit code (0).
+
+    Raises `CertifyError` (exit code 2) for a bad system, setting or output path.
+    """
+    out = stdout or sys.stdout
+    system = load_system(args.system)
+    config = _config_from_args(args, system)
+    output = Path(args.output)
+    if output.exists() and output.is_dir():
+        raise CertifyError(f"--output {output} is a directory; give a file name like "
+                           f"{system.name}.ckpt")
+    quiet = bool(getattr(args, "quiet", False))
+    if not quiet:
+        print(f"training {system.name} with preset {config.preset}: lam {config.lam:g}, "
+              f"{config.points} points, hidden {','.join(map(str, config.hidden))}, "
+              f"Adam {config.adam_iters} + L-BFGS {config.lbfgs_iters}, seed {config.seed}",
+              file=out, flush=True)
+    if quiet:
+        result = train(system, config)
+    elif out.isatty():
+        with RichProgress() as bar:
+            result = train(system, config, progress=bar)
+    else:
+        result = train(system, config, progress=PlainProgress(out))
+    try:
+        sha = checkpoint.save(output, system=system, network=result.network, lam=config.lam,
+                              P=np.asarray(config.P), training=result.record())
+    except OSError as exc:
+        raise CertifyError(f"cannot write checkpoint {output}: {exc.strerror or exc}") from None
+    if not quiet:
+        f = result.final
+        print(f"wrote {output} (sha256 {sha[:12]}) in {result.timings['total']:.1f} s: "
+              f"loss {f['total']:.4g} (MPDI {f['mpdi']:.4g}, BC {f['bc']:.4g})",
+              file=out, flush=True)
+    return 0

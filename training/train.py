@@ -1,0 +1,443 @@
+"""Train a gain network: `train(system, config) -> TrainResult`.
+
+The objective (METHOD.md section 2) needs, at every collocation point, the network's value and
+its Jacobian in xhat, and the gradient of the loss with respect to the weights. A plain
+autograd implementation (double backward) costs about 45 ms per evaluation here; this module
+instead evaluates the MLP trunk by hand:
+
+- forward mode for the n Jacobian columns, value and tangent rows stacked in one buffer so
+  each layer is one or two matrix products (no Python loop over points);
+- a hand-written reverse pass through that forward-mode computation (the derivative of
+  s = 1 - tanh^2 is -2 tanh s, so the second-order term costs one fused multiply-add);
+- preallocated buffers, float32 (the checkpoint and the verifier stay float64);
+- autograd only for the small loss head on [B, n, n] matrices, so any n, p, either structure,
+  the linear injection K and every loss kind share one code path.
+
+Everything that does not depend on the weights (Jf at the points, the constant part of D,
+h and dh/dx for the structural gain) is computed once, in float64, before training.
+`tests/test_training.py` checks the hand-written gradient against autograd through
+`GainNetwork.forward_with_jacobian` and `certify.kernels.gain_terms`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from certify.checkpoint import versions
+from certify.kernels import sym
+from certify.network import GainNetwork
+from certify.progress import NullProgress, Progress
+from certify.system import System
+from training import losses
+from training.collocation import collocation_points
+from training.optim import PhaseStats, run_adam, run_lbfgs
+from training.presets import TrainConfig, check_for_system, make_config
+
+# points per chunk of the objective. Chunks are the unit of parallel work (one worker thread
+# each); the constant is fixed so that the weights do not depend on the number of workers.
+CHUNK_POINTS = 2048
+# worker threads for the chunks (each runs single-threaded torch ops: no OpenMP barriers, so
+# a busy second core costs nothing, while a free one nearly halves the time)
+WORKERS = 2
+TERMS = ("total", "mpdi", "bc")
+
+
+@dataclass
+class LossValues:
+    """The loss terms at one evaluation (python floats)."""
+
+    total: float
+    mpdi: float
+    bc: float
+
+    def as_dict(self) -> dict[str, float]:
+        return {"total": self.total, "mpdi": self.mpdi, "bc": self.bc}
+
+
+class _Chunk:
+    """Constants and work buffers for one chunk of C collocation points."""
+
+    def __init__(self, Z: torch.Tensor, C: int, widths: list[int], m: int,
+                 with_bc: bool) -> None:
+        self.C = C
+        self.R = self.C * (2 if with_bc else 1)  # value rows: collocation (+ BC) points
+        self.Z = Z
+        rows, dt = self.R + m * self.C, Z.dtype
+        self.pre = [torch.empty(self.R, widths[1], dtype=dt)]  # layer 0: value rows only
+        self.X: list[torch.Tensor] = [Z]
+        self.S: list[torch.Tensor] = [torch.empty(0)]
+        self.G = [torch.empty(self.R, widths[1], dtype=dt)]
+        self.GX: list[torch.Tensor] = [torch.empty(0)]
+        for i in range(1, len(widths) - 1):
+            self.X.append(torch.empty(rows, widths[i], dtype=dt))
+            self.S.append(torch.empty(self.R, widths[i], dtype=dt))
+            self.pre.append(torch.empty(rows, widths[i + 1], dtype=dt))
+            self.G.append(torch.empty(rows, widths[i + 1], dtype=dt))
+            self.GX.append(torch.empty(rows, widths[i], dtype=dt))
+        self.gs = [torch.empty(self.C, w, dtype=dt) for w in widths]
+        self.ones = torch.ones(self.R, dtype=dt)
+        self.grads = [torch.empty(b, a, dtype=dt) if k == 0 else torch.empty(b, dtype=dt)
+                      for a, b in zip(widths[:-1], widths[1:]) for k in (0, 1)]
+
+
+class Objective:
+    """The training loss of `net` over fixed collocation points, with its weight gradient.
+
+    `evaluate(grad=True)` writes d(loss)/d(weights) into each parameter's `.grad` and returns
+    the loss terms. The network's parameters are read at every call (optimisers update them
+    in place).
+    """
+
+    def __init__(self, system: System, net: GainNetwork, xhat: torch.Tensor, y: torch.Tensor,
+                 *, lam: float, P: torch.Tensor, weights: losses.LossWeights,
+                 loss: str = "minors", margin: float = 0.0,
+                 chunk_points: int = CHUNK_POINTS, workers: int = WORKERS) -> None:
+        if len(net.layers) < 2:
+            raise ValueError("training needs a network with at least one hidden layer")
+        dt = net.layers[0].weight.dtype
+        n, p = system.n, system.p
+        self.net, self.n, self.p, self.m = net, n, p, n
+        self.N = xhat.shape[0]
+        self.weights, self.loss, self.margin = weights, loss, float(margin)
+        self.structural = net.structure == "structural"
+        self.params: list[torch.Tensor] = []
+        for layer in net.layers:
+            self.params += [layer.weight, layer.bias]
+        widths = [n + p, *[layer.weight.shape[0] for layer in net.layers]]
+        x64, y64 = xhat.to(torch.float64), y.to(torch.float64)
+        P64 = torch.as_tensor(P, dtype=torch.float64)
+        K = net.K.to(torch.float64)
+        Jbase = system.jac_f(x64)
+        need_h = self.structural or bool(torch.any(K != 0))
+        hx = system.h(x64) if (need_h or not self.structural) else None
+        Hx = system.jac_h(x64) if need_h else None
+        if Hx is not None and bool(torch.any(K != 0)):
+            Jbase = Jbase - K @ Hx  # the K (y - h(xhat)) term's xhat-derivative
+        D0 = sym(P64 @ Jbase) + 2.0 * float(lam) * P64  # the weight-free part of D
+        self.P = P64.to(dt)
+        self.P_is_identity = bool(torch.equal(P64, torch.eye(n, dtype=torch.float64)))
+        self.D0 = D0.to(dt).contiguous()
+        self.r = (y64 - hx).to(dt) if self.structural else None
+        self.Hx = Hx.to(dt) if (self.structural and Hx is not None) else None
+        self.chunks: list[_Chunk] = []
+        for lo in range(0, self.N, max(1, int(chunk_points))):
+            hi = min(self.N, lo + int(chunk_points))
+            z = torch.cat([x64[lo:hi], y64[lo:hi]], dim=1)
+            if not self.structural:  # BC rows: k(x, h(x)); zero by construction if structural
+                z = torch.cat([z, torch.cat([x64[lo:hi], hx[lo:hi]], dim=1)], dim=0)
+            self.chunks.append(_Chunk(z.to(dt).contiguous(), hi - lo, widths, self.m,
+                                      not self.structural))
+        self.evaluations = 0
+        self.workers = max(1, min(int(workers), len(self.chunks)))
+        self._pool: ThreadPoolExecutor | None = None
+
+    def _map(self, fn: Callable[[Any], Any], items: list[Any]) -> list[Any]:
+        """fn over items, on `workers` threads (torch releases the GIL inside its ops)."""
+        if self.workers == 1 or len(items) == 1:
+            return [fn(item) for item in items]
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=self.workers,
+                                            thread_name_prefix="certify-train",
+                                            initializer=torch.set_num_threads, initargs=(1,))
+        return list(self._pool.map(fn, items))
+
+    def close(self) -> None:
+        """Stop the worker threads (if any)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    # ----- trunk: forward mode with stacked value/tangent rows ---------------------------
+    @torch.no_grad()
+    def _forward(self, ch: _Chunk) -> tuple[torch.Tensor, torch.Tensor]:
+        Ws, bs = self.params[0::2], self.params[1::2]
+        R, C, m = ch.R, ch.C, self.m
+        torch.mm(ch.Z, Ws[0].T, out=ch.pre[0]).add_(bs[0])
+        w0t = Ws[0][:, :m].T  # [m, h0]: the first layer's tangent, the same at every point
+        one = torch.ones((), dtype=ch.Z.dtype)
+        for i in range(1, len(Ws)):
+            X, S = ch.X[i], ch.S[i]
+            t = X[:R]
+            torch.tanh(ch.pre[i - 1][:R], out=t)
+            torch.addcmul(one, t, t, value=-1.0, out=S)  # s = 1 - tanh^2
+            A = X[R:].view(m, C, -1)
+            U = w0t.unsqueeze(1) if i == 1 else ch.pre[i - 1][R:].view(m, C, -1)
+            torch.mul(S[:C].unsqueeze(0), U, out=A)
+            torch.mm(X, Ws[i].T, out=ch.pre[i])  # value and tangent rows at once
+            ch.pre[i][:R].add_(bs[i])  # the bias enters the value rows only
+        last = ch.pre[-1]
+        return last[:R], last[R:].view(m, C, -1)
+
+    @torch.no_grad()
+    def _backward(self, ch: _Chunk, g_val: torch.Tensor, g_tan: torch.Tensor) -> None:
+        """Reverse pass through `_forward`: this chunk's weight gradient into `ch.grads`."""
+        Ws = self.params[0::2]
+        grads = ch.grads
+        R, C, m = ch.R, ch.C, self.m
+        L = len(Ws) - 1
+        G = ch.G[L]
+        G[:R].copy_(g_val)
+        G[R:].copy_(g_tan.reshape(m * C, -1))
+        for i in range(L, 0, -1):
+            X, S, G = ch.X[i], ch.S[i], ch.G[i]
+            torch.mm(G.T, X, out=grads[2 * i])
+            torch.mv(G[:R].T, ch.ones, out=grads[2 * i + 1])
+            GX = ch.GX[i]
+            torch.mm(G, Ws[i], out=GX)
+            gt, gA = GX[:R], GX[R:].view(m, C, -1)
+            gs = ch.gs[i]
+            if i == 1:
+                w0t = Ws[0][:, :m].T
+                torch.mul(gA[0], w0t[0], out=gs)
+                for j in range(1, m):
+                    gs.addcmul_(gA[j], w0t[j])
+                w0_tangent_grad = (gA * S[:C].unsqueeze(0)).sum(1).T
+            else:
+                U = ch.pre[i - 1][R:].view(m, C, -1)
+                torch.mul(gA[0], U[0], out=gs)
+                for j in range(1, m):
+                    gs.addcmul_(gA[j], U[j])
+                torch.mul(gA, S[:C].unsqueeze(0), out=ch.G[i - 1][R:].view(m, C, -1))
+            gt[:C].addcmul_(gs, X[:C], value=-2.0)  # ds/dpre = -2 tanh s
+            torch.mul(gt, S, out=ch.G[i - 1][:R])
+        G0 = ch.G[0]
+        torch.mm(G0.T, ch.Z, out=grads[0])
+        grads[0][:, :m].add_(w0_tangent_grad)
+        torch.mv(G0.T, ch.ones, out=grads[1])
+
+    # ----- loss head: D from the trunk's outputs, the loss, and its gradient ----------
+    def _head(self, val: torch.Tensor, tan: torch.Tensor, k_bc: torch.Tensor | None,
+              grad: bool) -> tuple[float, float, list[torch.Tensor] | None]:
+        """MPDI and BC sums over all points; with `grad`, d(total)/d(val, tan, k_bc).
+
+        val [N, out] and tan [m, N, out] are the trunk's value and xhat-tangents at the
+        collocation points, k_bc [N, n] its value at (x, h(x)) (None if structural). D is
+        linear in (val, tan), so only d(loss)/dD needs differentiating (closed form for the
+        minor loss with n <= 2, autograd otherwise); the rest is mapped back by hand.
+        """
+        n, p, N = self.n, self.p, self.N
+        if self.structural:
+            G = val.view(N, n, p)
+            dG = tan.view(self.m, N, n, p)  # [j, b, i, q] = dG_iq/dxhat_j
+            M = torch.einsum("jbiq,bq->bij", dG, self.r)
+            if self.Hx is not None:
+                M = M - G @ self.Hx
+        else:
+            M = tan.permute(1, 2, 0)  # [b, i, j] = dk_i/dxhat_j
+        D = self.D0 + sym(M if self.P_is_identity else self.P @ M)
+        bc = 0.0 if k_bc is None else float((k_bc * k_bc).sum())
+        if self.loss == "minors":
+            if grad:
+                mpdi_t, gD = losses.minor_loss_sum_and_grad(D, self.weights.rho)
+            else:
+                mpdi_t, gD = losses.minor_loss(D, self.weights.rho, reduce="sum"), None
+        else:
+            squared = self.loss == "eigen_squared"
+            if grad:
+                Dl = D.detach().requires_grad_(True)
+                with torch.enable_grad():
+                    mpdi_t = losses.eigen_loss(Dl, self.margin, squared, reduce="sum")
+                    (gD,) = torch.autograd.grad(mpdi_t, [Dl])
+            else:
+                mpdi_t, gD = losses.eigen_loss(D, self.margin, squared, reduce="sum"), None
+        mpdi = float(mpdi_t)
+        if not grad:
+            return mpdi, bc, None
+        scale = self.weights.mu1 / N
+        gM = sym(gD) * scale
+        if not self.P_is_identity:
+            gM = self.P.T @ gM
+        if self.structural:
+            g_tan = torch.einsum("bij,bq->jbiq", gM, self.r).reshape(self.m, N, n * p)
+            g_val = torch.zeros_like(val) if self.Hx is None else \
+                (-(gM @ self.Hx.transpose(1, 2))).reshape(N, n * p)
+            return mpdi, bc, [g_val, g_tan]
+        g_tan = gM.permute(2, 0, 1)
+        g_bc = k_bc * (2.0 * self.weights.mu2 / N)
+        return mpdi, bc, [torch.zeros_like(val), g_tan, g_bc]
+
+    def evaluate(self, grad: bool = True) -> LossValues:
+        """Loss terms at the current weights; with `grad`, d(total)/d(weights) into `.grad`.
+
+        All chunks go forward, then one loss head over all points, then all chunks go
+        backward; chunks run on `workers` threads, and their gradients are summed in a
+        fixed order (the result does not depend on the number of workers).
+        """
+        mu1, mu2 = self.weights.mu1, self.weights.mu2
+        outs = self._map(self._forward, self.chunks)
+        with torch.no_grad():
+            val = torch.cat([v[:ch.C] for (v, _), ch in zip(outs, self.chunks)])
+            tan = torch.cat([t for _, t in outs], dim=1)
+            k_bc = None if self.structural else torch.cat(
+                [v[ch.C:] for (v, _), ch in zip(outs, self.chunks)])
+            mpdi, bc, g = self._head(val, tan, k_bc, grad)
+        if g is not None:
+            jobs, lo = [], 0
+            for ch in self.chunks:
+                hi = lo + ch.C
+                g_val = g[0][lo:hi] if self.structural else torch.cat([g[0][lo:hi],
+                                                                      g[2][lo:hi]])
+                jobs.append((ch, g_val, g[1][:, lo:hi]))
+                lo = hi
+            self._map(lambda job: self._backward(*job), jobs)
+            with torch.no_grad():
+                for k, prm in enumerate(self.params):  # fixed order: deterministic sums
+                    if prm.grad is None:
+                        prm.grad = torch.empty_like(prm)
+                    prm.grad.copy_(self.chunks[0].grads[k])
+                    for ch in self.chunks[1:]:
+                        prm.grad.add_(ch.grads[k])
+        self.evaluations += 1
+        mpdi_mean, bc_mean = mpdi / self.N, bc / self.N
+        return LossValues(total=mu1 * mpdi_mean + mu2 * bc_mean, mpdi=mpdi_mean, bc=bc_mean)
+
+
+# ----- the training run ----------------------------------------------------------------
+
+
+@dataclass
+class TrainResult:
+    """A trained network (float64) with its loss history, timings and settings.
+
+    `history[phase][term]` lists one value per objective evaluation: Adam has one per
+    iteration; L-BFGS one per function evaluation, with `history["lbfgs"]["iteration"]` the
+    L-BFGS iteration it belongs to (the last evaluation of an iteration is normally its
+    accepted point). `final` holds the loss terms of the returned network, in float64.
+    """
+
+    network: GainNetwork
+    history: dict[str, dict[str, list[float]]]
+    timings: dict[str, float]
+    config: TrainConfig
+    final: dict[str, float] = field(default_factory=dict)
+    counts: dict[str, int] = field(default_factory=dict)
+
+    def record(self) -> dict[str, Any]:
+        """The training record stored in the checkpoint (plain data and tensors)."""
+        hist = {phase: {k: torch.tensor(v, dtype=torch.int64 if k == "iteration"
+                                        else torch.float64) for k, v in cols.items()}
+                for phase, cols in self.history.items()}
+        return {"config": self.config.to_dict(), "seed": self.config.seed, "history": hist,
+                "final": dict(self.final), "timings": dict(self.timings),
+                "counts": dict(self.counts), "versions": versions(),
+                "notes": "history: one entry per objective evaluation; lbfgs.iteration is "
+                         "the L-BFGS iteration of each evaluation; final: float64 loss of "
+                         "the saved weights on the training points"}
+
+
+def _new_network(system: System, config: TrainConfig) -> GainNetwork:
+    """The initial network, seeded without touching the global RNG state."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        net = GainNetwork(system.n, system.p, config.hidden, structure=config.structure)
+    return net.to(getattr(torch, config.dtype))
+
+
+@contextlib.contextmanager
+def _intra_op_threads(count: int) -> Iterator[None]:
+    """Run with `count` intra-op torch threads, restoring the caller's setting afterwards.
+
+    Training uses one intra-op thread plus its own chunk workers: on a shared machine
+    OpenMP's spinning barriers made two intra-op threads five times slower.
+    """
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def train(system: System, config: TrainConfig | None = None, *,
+          progress: Progress | None = None,
+          network: GainNetwork | None = None) -> TrainResult:
+    """Train a gain network for `system` with `config` (default: the paper preset).
+
+    Adam (full batch) for `adam_iters` steps, then L-BFGS (strong Wolfe line search,
+    `max_iter = lbfgs_iters`). Seeded: the same config gives the same weights on CPU (with the
+    same thread count). `network`, if given, is the starting point (e.g. a warm start; its
+    structure and widths win over the config's). Raises `SettingsError` for bad settings.
+    """
+    with _intra_op_threads(1):
+        return _train(system, config, progress=progress, network=network)
+
+
+def _train(system: System, config: TrainConfig | None, *, progress: Progress | None,
+           network: GainNetwork | None) -> TrainResult:
+    t_start = time.perf_counter()
+    config = make_config(system) if config is None else config
+    check_for_system(config, system)
+    progress = progress or NullProgress()
+    lam = float(system.lam if config.lam is None else config.lam)
+    P = torch.as_tensor(system.P if config.P is None else config.P, dtype=torch.float64)
+    rho = config.rho if config.rho is not None else (1.0,) * system.n
+    weights = losses.LossWeights(mu1=config.mu1, mu2=config.mu2, rho=tuple(rho))
+    dtype = getattr(torch, config.dtype)
+    if network is None:
+        net = _new_network(system, config)
+    else:
+        net = GainNetwork.from_architecture(network.architecture())
+        net.load_state_dict(network.state_dict())
+        net = net.to(dtype)
+    net.train()
+    for prm in net.parameters():
+        prm.requires_grad_(True)
+    xhat, y = collocation_points(system, config.points, config.seed)
+    objective = Objective(system, net, xhat, y, lam=lam, P=P, weights=weights,
+                          loss=config.loss, margin=config.margin)
+    history: dict[str, dict[str, list[float]]] = {}
+    timings: dict[str, float] = {"setup": time.perf_counter() - t_start}
+
+    def recorder(phase: str) -> Callable[[LossValues, int], None]:
+        cols = history.setdefault(phase, {"iteration": [], **{k: [] for k in TERMS}})
+
+        def record(values: LossValues, iteration: int) -> None:
+            cols["iteration"].append(iteration)
+            for key, v in values.as_dict().items():
+                cols[key].append(v)
+        return record
+
+    stats: dict[str, PhaseStats] = {}
+    try:
+        _optimise(objective, config, stats, timings, recorder, progress)
+    finally:
+        objective.close()
+    t0 = time.perf_counter()
+    final_net = GainNetwork.from_architecture(net.architecture())
+    final_net.load_state_dict({k: v.detach() for k, v in net.state_dict().items()})
+    final_net = final_net.double().eval().requires_grad_(False)
+    final_obj = Objective(system, final_net, xhat, y, lam=lam, P=P, weights=weights,
+                          loss=config.loss, margin=config.margin, workers=1)
+    final = final_obj.evaluate(grad=False).as_dict()
+    timings["final_eval"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+    counts = {"adam_iterations": stats["adam"].iterations if "adam" in stats else 0,
+              "lbfgs_iterations": stats["lbfgs"].iterations if "lbfgs" in stats else 0,
+              "lbfgs_evaluations": stats["lbfgs"].evaluations if "lbfgs" in stats else 0,
+              "evaluations": objective.evaluations}
+    return TrainResult(network=final_net, history=history, timings=timings, config=config,
+                       final=final, counts=counts)
+
+
+def _optimise(objective: Objective, config: TrainConfig, stats: dict[str, PhaseStats],
+              timings: dict[str, float], recorder: Callable[[str], Any],
+              progress: Progress) -> None:
+    """Adam, then L-BFGS, as the config says; fills `stats` and `timings`."""
+    if config.adam_iters > 0:
+        t0 = time.perf_counter()
+        stats["adam"] = run_adam(objective, objective.params, iters=config.adam_iters,
+                                 lr=config.adam_lr, record=recorder("adam"), progress=progress)
+        timings["adam"] = time.perf_counter() - t0
+    if config.lbfgs_iters > 0:
+        t0 = time.perf_counter()
+        stats["lbfgs"] = run_lbfgs(objective, objective.params, iters=config.lbfgs_iters,
+                                   lr=config.lbfgs_lr, record=recorder("lbfgs"),
+                                   progress=progress)
+        timings["lbfgs"] = time.perf_counter() - t0
