@@ -143,6 +143,7 @@ class MetricResult:
     solver: dict[str, Any] = field(default_factory=dict)
     witness: list[float] | None = None
     seconds: float = 0.0
+    witness_y: list[float] | None = None  # y = h(witness) where no constant P can work
 
 
 @dataclass

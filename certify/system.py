@@ -172,7 +172,7 @@ class System:
     @functools.cached_property
     def h_is_linear(self) -> bool:
         """True when h(x) = C x + d (then ker dh is constant)."""
-        return all(sympy.diff(e, s).is_constant() for e in self.jh_expr for s in self.symbols)
+        return all(sympy.diff(e, s) == 0 for e in self.jh_expr for s in self.symbols)
 
     # ----- batched point evaluation ------------------------------------------------------
     def _eval_list(self, exprs: list[sympy.Expr], x: torch.Tensor) -> torch.Tensor:

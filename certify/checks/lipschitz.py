@@ -1,0 +1,243 @@
+"""Lipschitz constant L of k in y, uniformly in xhat (METHOD §3.4).
+
+Three numbers side by side: LipSDP-Neuron (verified on the rebuilt LMI, a global bound: any
+xhat, any y), the naive product of spectral norms (global), and a sampled lower bound
+(max ||dk/dy||_2 on a grid of X x Y + gradient ascent). A local bound from the interval
+prover (sup ||dk/dy||_2 over X x Y) may be passed in. `value` is the smallest sound bound.
+
+For the structural architecture k = G(xhat, y)(y - h(xhat)) the MLP's Lipschitz constant
+does not bound k's: dk/dy = (dG/dy) r + G with r = y - h(xhat) unbounded globally. Then
+LipSDP is not applicable (None) and only local bounds (valid while y, y_e stay in Y) exist.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import torch
+
+from certify import sdp
+from certify.kernels import gain_terms
+from certify.network import GainNetwork
+from certify.problem import Problem
+from certify.progress import NullProgress, Progress
+from certify.results import LipschitzResult, Status
+from certify.settings import VerifySettings
+
+_F64 = torch.float64
+_NULL_PROGRESS = NullProgress()
+_ROUND_UP = 1.0 + 1e-12  # covers the SVD's relative error in a product of a few norms
+
+
+def mlp_in_y(net: GainNetwork, n: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """The MLP with xhat frozen: [W0y, W1, ..., W_{H-1}] and W_out (numpy float64)."""
+    Ws = [layer.weight.detach().to(_F64).numpy() for layer in net.layers]
+    return [Ws[0][:, n:], *Ws[1:-1]], Ws[-1]
+
+
+def sqrtm_psd(P: np.ndarray) -> np.ndarray:
+    """Symmetric square root of a positive definite matrix."""
+    w, V = np.linalg.eigh(0.5 * (P + P.T))
+    return (V * np.sqrt(np.maximum(w, 0.0))) @ V.T
+
+
+def naive_bound(net: GainNetwork, n: int, out: np.ndarray | None = None) -> float:
+    """prod ||W_i||_2 over the y-path (tanh is 1-Lipschitz) + ||K||_2, rounded up; direct only."""
+    Ws, Wo = mlp_in_y(net, n)
+    K = net.K.detach().to(_F64).numpy()
+    if out is not None:
+        Wo, K = out @ Wo, out @ K
+    prod = float(np.prod([np.linalg.norm(W, 2) for W in [*Ws, Wo]]))
+    return (prod + float(np.linalg.norm(K, 2))) * _ROUND_UP ** (len(Ws) + 3)
+
+
+def structural_local_naive(problem: Problem) -> float | None:
+    """A sound bound on sup ||dk/dy||_2 over X x Y for k = G (y - h) + K (y - h).
+
+    dk/dy dy = reshape(dN/dy dy) r + (G + K) dy, so ||dk/dy|| <= L_N ||r||max + ||G||max +
+    ||K||, with L_N the naive constant of the MLP in y, ||G||_2 <= ||G||_F <= || |W_out| 1 +
+    |b_out| ||_2 (|tanh| <= 1) and ||r|| from the interval enclosure of h over X.
+    """
+    from certify.intervals import h_enclosure
+
+    net, system = problem.network, problem.system
+    Ws, Wo = mlp_in_y(net, system.n)
+    LN = float(np.prod([np.linalg.norm(W, 2) for W in [*Ws, Wo]]))
+    b = net.layers[-1].bias.detach().to(_F64).numpy()
+    Gmax = float(np.linalg.norm(np.abs(Wo).sum(1) + np.abs(b)))
+    X = torch.as_tensor(system.X, dtype=_F64)
+    hl, hh = h_enclosure(system, X[None, :, 0], X[None, :, 1])
+    hl, hh = hl[0].numpy(), hh[0].numpy()
+    if not (np.all(np.isfinite(hl)) and np.all(np.isfinite(hh))):
+        return None
+    Y = system.Y
+    rmax = float(np.linalg.norm(np.maximum(np.abs(Y[:, 1] - hl), np.abs(hh - Y[:, 0]))))
+    K = float(np.linalg.norm(net.K.detach().to(_F64).numpy(), 2))
+    return (LN * rmax + Gmax + K) * _ROUND_UP ** (len(Ws) + 6)
+
+
+def dk_dy_norms(problem: Problem, z: torch.Tensor) -> torch.Tensor:
+    """||dk/dy(xhat, y)||_2 at z = (xhat, y) [B, n+p] -> [B] (differentiable)."""
+    n = problem.n
+    J = gain_terms(problem.system, problem.network, z[:, :n], z[:, n:], with_dy=True).dk_dy
+    if J.shape[-1] == 1:
+        return torch.linalg.vector_norm(J[..., 0], dim=-1)
+    return torch.linalg.matrix_norm(J, ord=2)
+
+
+def sampled_lower(problem: Problem, points: int = 20_000, starts: int = 16, steps: int = 60,
+                  seed: int = 0, chunk: int = 65_536) -> tuple[float, list[float]]:
+    """max ||dk/dy||_2 over a grid of X x Y, then projected Adam ascent from the best points.
+
+    Every value is a float64 evaluation at a concrete point: a lower bound on the supremum.
+    """
+    box = np.vstack([problem.system.X, problem.system.Y])
+    lo = torch.as_tensor(box[:, 0], dtype=_F64)
+    hi = torch.as_tensor(box[:, 1], dtype=_F64)
+    d = len(lo)
+    per = max(2, int(round(points ** (1.0 / d))))
+    axes = [torch.linspace(float(a), float(b), per, dtype=_F64) for a, b in box]
+    grid = torch.cartesian_prod(*axes).reshape(-1, d)
+    vals = []
+    with torch.no_grad():
+        for s in range(0, len(grid), chunk):
+            vals.append(dk_dy_norms(problem, grid[s:s + chunk]))
+    v = torch.cat(vals)
+    v = torch.where(torch.isfinite(v), v, torch.full_like(v, -math.inf))
+    gen = torch.Generator().manual_seed(seed)
+    top = torch.topk(v, min(starts, len(v))).indices
+    rnd = lo + (hi - lo) * torch.rand(max(1, starts // 2), d, generator=gen, dtype=_F64)
+    x = torch.cat([grid[top], rnd])
+    best_x, best_v = grid[int(torch.argmax(v))].clone(), float(v.max())
+    m = torch.zeros_like(x)
+    s2 = torch.zeros_like(x)
+    width = hi - lo
+    for it in range(1, steps + 1):
+        xr = x.clone().requires_grad_(True)
+        val = dk_dy_norms(problem, xr)
+        fin = torch.isfinite(val)
+        (g,) = torch.autograd.grad(torch.where(fin, val, 0.0).sum(), xr)
+        with torch.no_grad():
+            vv = torch.where(fin, val, torch.full_like(val, -math.inf))
+            i = int(torch.argmax(vv))
+            if float(vv[i]) > best_v:
+                best_v, best_x = float(vv[i]), x[i].clone()
+            g = torch.nan_to_num(g * width)
+            m.mul_(0.9).add_(0.1 * g)
+            s2.mul_(0.999).add_(0.001 * g * g)
+            mh, sh = m / (1 - 0.9 ** it), s2 / (1 - 0.999 ** it)
+            lr = 0.02 * (1.0 - 0.9 * it / steps)
+            x = torch.maximum(torch.minimum(x + lr * width * mh / (sh.sqrt() + 1e-12), hi), lo)
+    with torch.no_grad():
+        fin_v = dk_dy_norms(problem, x)
+        fin_v = torch.where(torch.isfinite(fin_v), fin_v, torch.full_like(fin_v, -math.inf))
+        i = int(torch.argmax(fin_v))
+        if float(fin_v[i]) > best_v:
+            best_v, best_x = float(fin_v[i]), x[i].clone()
+        # re-evaluate the reported point alone, in float64
+        best_v = float(dk_dy_norms(problem, best_x[None])[0])
+    return best_v, best_x.tolist()
+
+
+def lipsdp_for(problem: Problem, metric_weighted: bool = False,
+               method: str = "ipm") -> sdp.SdpResult | None:
+    """Verified LipSDP for k (or P^(1/2) k) in y; None for the structural architecture."""
+    net = problem.network
+    if net.structure != "direct":
+        return None
+    Ws, Wo = mlp_in_y(net, problem.n)
+    K = net.K.detach().to(_F64).numpy()
+    if metric_weighted:
+        R = sqrtm_psd(np.asarray(problem.P, dtype=np.float64))
+        Wo, K = R @ Wo, R @ K
+    if not Ws:  # no hidden layer: k is affine in y, L = ||W0y + K||_2 exactly
+        L = float(np.linalg.norm(Wo[:, problem.n:] + K, 2)) * _ROUND_UP
+        return sdp.SdpResult(Status.PROVED, "affine in y: exact", L, solver="closed-form",
+                             raw_value=L, verified=True)
+    return sdp.lipsdp_neuron(Ws, Wo, K, method=method)
+
+
+def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
+                    progress: Progress = _NULL_PROGRESS, local_upper: float | None = None,
+                    sample_points: int = 20_000) -> LipschitzResult:
+    """LipSDP (verified), naive, sampled lower bound and the caller's local bound.
+
+    `value` is the smallest sound bound and `which` names it ("lipsdp", "naive" - both
+    global - or "local" - valid while y and y_e stay in Y). PROVED when a finite sound bound
+    exists, UNKNOWN otherwise; ERROR if a sampled value exceeds a sound bound (a bug).
+    """
+    t0 = time.perf_counter()
+    settings = settings or VerifySettings()
+    task = "lipschitz"
+    progress.start(task, total=3)
+    structural = problem.network.structure != "direct"
+    solver: dict = {}
+    res = lipsdp_for(problem)
+    progress.update(task)
+    lipsdp = lipsdp_raw = eig = None
+    verified = False
+    lipsdp_P = None
+    if res is not None:
+        solver = res.stats()
+        lipsdp_raw = res.raw_value
+        eig = res.check_max_eig
+        if res.status is Status.PROVED and res.value is not None and math.isfinite(res.value):
+            lipsdp, verified = res.value, True
+        if not np.allclose(problem.P, np.eye(problem.n)):
+            resP = lipsdp_for(problem, metric_weighted=True)
+            solver["metric_weighted"] = resP.stats() if resP is not None else None
+            if resP is not None and resP.status is Status.PROVED:
+                lipsdp_P = resP.value
+        else:
+            lipsdp_P = lipsdp
+    if structural:
+        naive = structural_local_naive(problem)
+        naive_f = math.inf if naive is None else naive
+    else:
+        naive_f = naive_bound(problem.network, problem.n)
+    progress.update(task)
+    sampled, where = sampled_lower(problem, points=min(sample_points, settings.grid_points),
+                                   seed=settings.seed)
+    progress.update(task)
+    cands: list[tuple[float, str]] = []
+    if lipsdp is not None:
+        cands.append((lipsdp, "lipsdp"))
+    if local_upper is not None and math.isfinite(local_upper):
+        cands.append((float(local_upper), "local"))
+    if math.isfinite(naive_f):
+        cands.append((naive_f, "local" if structural else "naive"))
+    value, which = (min(cands) if cands else (None, ""))
+    if structural and value is not None:
+        which = "local"
+    seconds = time.perf_counter() - t0
+    parts = [f"sampled >= {sampled:.6g}"]
+    if lipsdp is not None:
+        parts.append(f"LipSDP {lipsdp:.6g} (verified)")
+    elif res is not None:
+        parts.append(f"LipSDP unverified ({res.message})")
+    else:
+        parts.append("LipSDP not applicable (structural k = G (y - h): the MLP's constant does "
+                     "not bound k's)")
+    parts.append(f"naive {naive_f:.6g}" + (" (local, over X x Y)" if structural else ""))
+    if local_upper is not None:
+        parts.append(f"interval prover {local_upper:.6g} (local)")
+    if value is None:
+        status, msg = Status.UNKNOWN, "no finite sound bound; " + "; ".join(parts)
+    elif sampled > value * (1 + 1e-9) + 1e-12:
+        status = Status.ERROR
+        msg = (f"BUG: sampled ||dk/dy|| = {sampled:.6g} at {where} exceeds the sound bound "
+               f"{value:.6g} ({which}); " + "; ".join(parts))
+    else:
+        status = Status.PROVED
+        msg = (f"L <= {value:.6g} ({which}" + (", valid while y and y_e stay in Y" if
+               which == "local" else ", any xhat and y") + "); " + "; ".join(parts))
+    progress.finish(task, msg)
+    solver["sampled_at"] = where
+    return LipschitzResult(
+        status=status, message=msg, lipsdp=lipsdp, lipsdp_raw=lipsdp_raw,
+        lipsdp_verified=verified, lipsdp_lmi_max_eig=eig, naive=naive_f, sampled=sampled,
+        local_upper=local_upper, value=value, which=which, solver=solver, seconds=seconds,
+        lipsdp_P=lipsdp_P,
+    )

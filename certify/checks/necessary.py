@@ -1,0 +1,420 @@
+"""Pre-flight necessary condition, independent of the network (METHOD §3.5).
+
+If k is C^1 and k(x, h(x)) = 0 on X, then on the output manifold y = h(xhat) and for every v
+in ker dh(xhat), v^T D v = v^T (He{P Jf} + 2 lam P) v: no k in it. So
+
+    q(xhat) = lam_max(Z^T (He{P Jf(xhat)} + 2 lam P) Z),   Z an orthonormal basis of ker dh,
+
+must be <= 0 on {xhat in X : h(xhat) in Y} for ANY gain to pass MPDI and BC together. A
+single point with q > 0 proves that no gain can (VIOLATED, with the witness); PROVED needs a
+sound upper bound <= 0 (vertex enclosures of Jf on sub-boxes, then the interval prover).
+Also reported: the rate cap for gains with exact BC and, for linear h, the residual eps_bar
+that any gain satisfying the MPDI everywhere must pay (chords along ker C).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import torch
+
+from certify.checks.metric import (
+    enclosure_vertices,
+    kernel_basis,
+    kernel_values,
+    output_matrix,
+    sub_boxes,
+)
+from certify.kernels import lam_max
+from certify.progress import NullProgress, Progress
+from certify.results import NecessaryResult, Status
+from certify.settings import VerifySettings
+from certify.system import System, validate_metric
+
+_F64 = torch.float64
+_NULL_PROGRESS = NullProgress()
+
+
+# ----------------------------------------------------------------------------------------
+# the kernel quantities, batched
+# ----------------------------------------------------------------------------------------
+
+def _S(system: System, P: torch.Tensor, lam: float, x: torch.Tensor, with_lam: bool = True
+       ) -> torch.Tensor:
+    PJ = P @ system.jac_f(x)
+    S = 0.5 * (PJ + PJ.transpose(-1, -2))
+    return S + 2.0 * lam * P if with_lam else S
+
+
+def q_values(system: System, P: torch.Tensor, lam: float, x: torch.Tensor,
+             Z: torch.Tensor | None) -> torch.Tensor:
+    """q(x) [B] (differentiable). Z: constant kernel basis (linear h) or None (nonlinear h).
+
+    Nonlinear h: with the projector Pi onto ker dh(x), q = lam_max(Pi S Pi - c (I - Pi)),
+    c > ||S||, which equals the kernel-restricted lam_max; NaN where dh loses rank.
+    """
+    S = _S(system, P, lam, x)
+    if Z is not None:
+        return lam_max(Z.T @ S @ Z)
+    Jh = system.jac_h(x)  # [B, p, n]
+    G = Jh @ Jh.transpose(-1, -2)
+    n = system.n
+    eye = torch.eye(n, dtype=_F64)
+    try:
+        Pi = eye - Jh.transpose(-1, -2) @ torch.linalg.solve(G, Jh)
+    except RuntimeError:
+        return torch.full((x.shape[0],), float("nan"), dtype=_F64)
+    c = torch.linalg.matrix_norm(S).detach() + 1.0
+    return lam_max(Pi @ S @ Pi - c[:, None, None] * (eye - Pi))
+
+
+def _kernel_bases(system: System, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-point kernel bases for nonlinear h: Z [B, n, n-p] and a validity mask [B]."""
+    Jh = system.jac_h(x)
+    _, sv, Vh = torch.linalg.svd(Jh, full_matrices=True)
+    p = Jh.shape[1]
+    ok = sv[:, -1] > 1e-9 * (1.0 + sv[:, 0])
+    return Vh[:, p:, :].transpose(-1, -2), ok
+
+
+def rate_values(system: System, P: torch.Tensor, x: torch.Tensor, Z: torch.Tensor | None
+                ) -> torch.Tensor:
+    """-lam_max(Z^T He{P Jf} Z, Z^T P Z) / 2 at x [B] (the largest rate any exact-BC gain
+    could have at that point); NaN where the kernel basis is unavailable."""
+    S0 = _S(system, P, 0.0, x, with_lam=False)
+    if Z is not None:
+        A, Bm = Z.T @ S0 @ Z, Z.T @ P @ Z
+        L = torch.linalg.cholesky(Bm)
+        Li = torch.linalg.inv(L)
+        return -0.5 * lam_max(Li @ A @ Li.T)
+    Zb, ok = _kernel_bases(system, x)
+    A = Zb.transpose(-1, -2) @ S0 @ Zb
+    Bm = Zb.transpose(-1, -2) @ P @ Zb
+    L, info = torch.linalg.cholesky_ex(Bm)
+    Li = torch.linalg.inv(torch.where((info == 0)[:, None, None], L,
+                                      torch.eye(L.shape[-1], dtype=_F64)))
+    r = -0.5 * lam_max(Li @ A @ Li.transpose(-1, -2))
+    return torch.where(ok & (info == 0), r, torch.full_like(r, float("nan")))
+
+
+# ----------------------------------------------------------------------------------------
+# search over the manifold {x in X : h(x) in Y}
+# ----------------------------------------------------------------------------------------
+
+def _grid(system: System, points: int) -> torch.Tensor:
+    """Odd tensor grid over X with the centre lines exactly on it."""
+    n = system.n
+    per = max(3, int(round(points ** (1.0 / n))) | 1)
+    k = torch.arange(per, dtype=_F64) / (per - 1)
+    axes = []
+    for a, b in system.X:
+        ax = float(a) + (float(b) - float(a)) * k
+        ax[per // 2] = 0.5 * (float(a) + float(b))
+        ax[-1] = float(b)
+        axes.append(ax)
+    return torch.cartesian_prod(*axes).reshape(-1, n)
+
+
+def _on_manifold(system: System, x: torch.Tensor) -> torch.Tensor:
+    Y = torch.as_tensor(system.Y, dtype=_F64)
+    hx = system.h(x)
+    return ((hx >= Y[:, 0]) & (hx <= Y[:, 1])).all(-1)
+
+
+def _maximise(system: System, fn, x0: torch.Tensor, steps: int = 150
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Projected Adam ascent of fn over X from x0 [B, n], staying where h(x) in Y.
+
+    Returns the best point seen per start and fn there (float64). A step that leaves
+    h(x) in Y is refused for that start (the start keeps its point).
+    """
+    X = torch.as_tensor(system.X, dtype=_F64)
+    lo, hi = X[:, 0], X[:, 1]
+    width = hi - lo
+    x = x0.clone()
+    m = torch.zeros_like(x)
+    v = torch.zeros_like(x)
+    with torch.no_grad():
+        best_v = fn(x)
+    best_v = torch.where(torch.isfinite(best_v), best_v, torch.full_like(best_v, -math.inf))
+    best_x = x.clone()
+    for it in range(1, steps + 1):
+        xr = x.clone().requires_grad_(True)
+        val = fn(xr)
+        fin = torch.isfinite(val)
+        (g,) = torch.autograd.grad(torch.where(fin, val, 0.0).sum(), xr)
+        with torch.no_grad():
+            better = fin & (val > best_v)
+            best_v = torch.where(better, val, best_v)
+            best_x[better] = x[better]
+            g = torch.nan_to_num(g * width, nan=0.0, posinf=0.0, neginf=0.0)
+            m.mul_(0.9).add_(0.1 * g)
+            v.mul_(0.999).add_(0.001 * g * g)
+            mh, vh = m / (1 - 0.9 ** it), v / (1 - 0.999 ** it)
+            lr = 0.02 * (1.0 - 0.95 * it / steps)
+            cand = torch.maximum(torch.minimum(x + lr * width * mh / (vh.sqrt() + 1e-12), hi), lo)
+            ok = _on_manifold(system, cand)
+            x = torch.where(ok[:, None], cand, x)
+    with torch.no_grad():
+        val = fn(x)
+        val = torch.where(torch.isfinite(val), val, torch.full_like(val, -math.inf))
+        better = val > best_v
+        best_x[better] = x[better]
+        best_v = torch.where(better, val, best_v)
+    return best_x, best_v
+
+
+def _search(system: System, fn, x: torch.Tensor, vals: torch.Tensor, starts: int, seed: int
+            ) -> tuple[float, torch.Tensor]:
+    """Best of grid values and a multi-start ascent from the top grid points + random ones."""
+    vals = torch.where(torch.isfinite(vals), vals, torch.full_like(vals, -math.inf))
+    k = min(starts, len(vals))
+    centre = torch.as_tensor(system.X.mean(1), dtype=_F64)
+    diam = float(np.linalg.norm(system.X[:, 1] - system.X[:, 0]))
+    fin = vals[torch.isfinite(vals)]
+    scale = 1.0 + (float(fin.abs().max()) if len(fin) else 0.0)
+    # rank by value, ties broken towards the centre of X (a witness that reads best)
+    key = vals - 1e-10 * scale * torch.linalg.vector_norm(x - centre, dim=1) / diam
+    top = torch.topk(key, k).indices
+    gen = torch.Generator().manual_seed(seed)
+    rnd = x[torch.randint(len(x), (max(1, starts // 2),), generator=gen)]
+    bx, bv = _maximise(system, fn, torch.cat([x[top], rnd]))
+    allv = torch.cat([vals[top], bv])
+    allx = torch.cat([x[top], bx])
+    best = float(allv.max())
+    # among (numerically) tied maxima, the point nearest the centre of X reads best
+    tied = allv >= best - 1e-12 * (1.0 + abs(best))
+    dist = torch.where(tied, torch.linalg.vector_norm(allx - centre, dim=1),
+                       torch.full_like(allv, math.inf))
+    i = int(torch.argmin(dist))
+    return float(allv[i]), allx[i]
+
+
+# ----------------------------------------------------------------------------------------
+# price in residual (linear h): chords along ker C
+# ----------------------------------------------------------------------------------------
+
+def residual_price(system: System, P: torch.Tensor, lam: float, directions: torch.Tensor,
+                   bases: torch.Tensor, samples: int = 201) -> tuple[float, list[float] | None]:
+    """max over chords z + s v in X (v in ker C unit, h(z) in Y) of the best sub-segment
+    integral of v^T (He{P Jf} + 2 lam P) v, divided by 2 ||P v||.
+
+    If D <= 0 held on all of X x Y, eps_bar would be at least this (METHOD §3.5); trapezoid
+    quadrature on `samples` points per chord. Returns (price, [chord start..end as x0, x1]).
+    """
+    X = torch.as_tensor(system.X, dtype=_F64)
+    best, where = 0.0, None
+    for v in directions:  # a handful of kernel directions
+        v = v / torch.linalg.vector_norm(v)
+        a = (X[:, 0] - bases) / v  # inf/nan where v_i = 0: masked just below
+        b = (X[:, 1] - bases) / v
+        lo_s = torch.where(v.abs() > 1e-15, torch.minimum(a, b), torch.full_like(a, -math.inf))
+        hi_s = torch.where(v.abs() > 1e-15, torch.maximum(a, b), torch.full_like(a, math.inf))
+        s0, s1 = lo_s.max(1).values, hi_s.min(1).values  # [Nz]
+        frac = torch.linspace(0.0, 1.0, samples, dtype=_F64)
+        s = s0[:, None] + (s1 - s0)[:, None] * frac[None]  # [Nz, S]
+        pts = bases[:, None, :] + s[..., None] * v  # [Nz, S, n]
+        pts = torch.maximum(torch.minimum(pts, X[:, 1]), X[:, 0])
+        S = _S(system, P, lam, pts.reshape(-1, system.n))
+        qv = torch.einsum("i,bij,j->b", v, S, v).reshape(len(bases), samples)
+        ds = ((s1 - s0) / (samples - 1))[:, None]
+        seg = 0.5 * (qv[:, 1:] + qv[:, :-1]) * ds
+        cum = torch.cat([torch.zeros(len(bases), 1, dtype=_F64), seg.cumsum(1)], 1)
+        run_min, arg_min = torch.cummin(cum, dim=1)
+        gain = cum - run_min  # best segment ending at each sample
+        j = torch.argmax(gain, dim=1)
+        g = gain[torch.arange(len(bases)), j]
+        i_best = int(torch.argmax(g))
+        val = float(g[i_best]) / (2.0 * float(torch.linalg.vector_norm(P @ v)))
+        if val > best:
+            jb = int(j[i_best])
+            ib = int(arg_min[i_best, jb])
+            best = val
+            where = pts[i_best, ib].tolist() + pts[i_best, jb].tolist()
+    return best, where
+
+
+# ----------------------------------------------------------------------------------------
+# sound upper bound
+# ----------------------------------------------------------------------------------------
+
+def vertex_upper_bound(system: System, P: np.ndarray, lam: float, subdivisions: int | None = None
+                       ) -> float | None:
+    """Sound bound on max q over the manifold (linear h): q is lam_max of an affine function
+    of Jf, hence convex in Jf, so on each sub-box it is at most its value at the vertices of
+    the interval enclosure of Jf. Sub-boxes whose h-enclosure misses Y are dropped. A margin
+    of 64 n u (||S|| + 1) covers LAPACK's eigenvalue error and the rounding in S."""
+    if not system.h_is_linear:
+        return None
+    Z = kernel_basis(output_matrix(system))
+    n = system.n
+    if Z.shape[1] == 0:
+        return -math.inf
+    per = subdivisions or max(1, int(4096 ** (1.0 / n)))
+    lo, hi = sub_boxes(system, per)
+    if len(lo) == 0:
+        return -math.inf
+    relevant = np.repeat((np.abs(Z).sum(1) > 0)[None, :], n, axis=0)
+    try:
+        verts = enclosure_vertices(system, lo, hi, relevant)
+    except ValueError:
+        return None
+    vals = kernel_values(verts.all, P, Z, lam)
+    if not np.all(np.isfinite(vals)):
+        return None
+    Snorm = np.abs(P).sum() * np.abs(verts.all).max(initial=0.0) + 2 * abs(lam) * np.abs(P).sum()
+    return float(vals.max() + 64 * n * np.finfo(float).eps * (Snorm + 1.0))
+
+
+# ----------------------------------------------------------------------------------------
+# the check
+# ----------------------------------------------------------------------------------------
+
+def _fmt(v: list[float] | np.ndarray | torch.Tensor) -> str:
+    return "(" + ", ".join(f"{float(a):.4g}" for a in v) + ")"
+
+
+def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
+                    settings: VerifySettings | None = None, *,
+                    progress: Progress = _NULL_PROGRESS, proof_seconds: float = 10.0,
+                    grid_points: int = 200_000) -> NecessaryResult:
+    """Network-independent pre-flight (METHOD §3.5) for metric P and rate lam.
+
+    VIOLATED when some point of {xhat in X : h(xhat) in Y} has q > 0 (witness xhat and
+    y = h(xhat), re-evaluated in float64); PROVED when a sound upper bound is <= 0; else
+    UNKNOWN. Works for any n and p (nonlinear h: sampled side and rate cap only, unless the
+    prover can bound it). `explanation` says in words what it means for the user.
+    """
+    t0 = time.perf_counter()
+    settings = settings or VerifySettings()
+    Pn = validate_metric(system.P if P is None else P, system.n, "necessary condition")
+    if not (isinstance(lam, (int, float)) and math.isfinite(lam) and lam > 0):
+        raise ValueError(f"lam must be a finite number > 0; got {lam!r}")
+    Pt = torch.as_tensor(Pn, dtype=_F64)
+    task = "necessary condition"
+    progress.start(task, total=4)
+    linear = system.h_is_linear
+    C = output_matrix(system) if linear else None
+    Zn = kernel_basis(C) if linear else None
+    if linear and Zn.shape[1] == 0:
+        progress.finish(task)
+        return NecessaryResult(
+            Status.PROVED, "dh has full column rank: the output sees every direction, the "
+            "kernel condition is empty", -math.inf, -math.inf, None, None, None, None,
+            explanation="The output determines every direction of the state locally, so the "
+            "boundary condition puts no constraint on the contraction condition: this "
+            "pre-flight cannot fail.", seconds=time.perf_counter() - t0)
+    Z = torch.as_tensor(Zn, dtype=_F64) if linear else None
+    x = _grid(system, min(grid_points, settings.grid_points))
+    x = x[_on_manifold(system, x)]
+    if len(x) == 0:
+        progress.finish(task)
+        return NecessaryResult(Status.PROVED, "no point of X has h(x) in Y: the condition is "
+                               "vacuous", -math.inf, -math.inf, None, None, None, None,
+                               explanation="No state in X produces an output in Y, so there "
+                               "is nothing to check.", seconds=time.perf_counter() - t0)
+    fq = lambda z: q_values(system, Pt, lam, z, Z)  # noqa: E731
+    with torch.no_grad():
+        qg = fq(x)
+    q_max, xw = _search(system, fq, x, qg, starts=16, seed=settings.seed)
+    progress.update(task)
+    with torch.no_grad():  # the witness, re-evaluated alone in float64
+        q_w = float(fq(xw[None])[0])
+        y_w = system.h(xw[None])[0]
+    q_max = q_w if math.isfinite(q_w) else q_max
+    # rate cap: min over the manifold of the pointwise largest rate
+    fr = lambda z: -rate_values(system, Pt, z, Z)  # noqa: E731
+    with torch.no_grad():
+        rg = fr(x)
+    if linear:
+        neg_cap, _ = _search(system, fr, x, rg, starts=8, seed=settings.seed + 1)
+    else:
+        rg = torch.where(torch.isfinite(rg), rg, torch.full_like(rg, -math.inf))
+        neg_cap = float(rg.max())
+    rate_cap = 0.0 - neg_cap if math.isfinite(neg_cap) else None
+    progress.update(task)
+    price, chord = None, None
+    if linear:
+        dirs = [Z[:, j] for j in range(Z.shape[1])]
+        with torch.no_grad():
+            S_w = Z.T @ _S(system, Pt, lam, xw[None])[0] @ Z
+            _, U = torch.linalg.eigh(S_w)
+        dirs.append(Z @ U[:, -1])
+        sel = torch.linspace(0, len(x) - 1, min(len(x), 2000)).long()
+        with torch.no_grad():
+            price, chord = residual_price(system, Pt, lam, torch.stack(dirs), x[sel])
+    progress.update(task)
+    ytol = 1e-12 * (1.0 + float(np.abs(Pn).max()) * (1.0 + 2 * lam))
+    upper: float | None = None
+    if q_max > ytol:
+        status = Status.VIOLATED
+        msg = (f"q = {q_max:.6g} > 0 at xhat = {_fmt(xw)}, y = {_fmt(y_w)}: no C^1 gain meets "
+               "the MPDI and the boundary condition together with this P and lam")
+    else:
+        upper = vertex_upper_bound(system, Pn, lam)
+        if upper is None or upper > 0:
+            try:
+                from certify.prover import bound_manifold_quantity
+            except ImportError:  # pragma: no cover - the prover is part of the package
+                bound_manifold_quantity = None
+            if bound_manifold_quantity is not None:
+                up2, _ = bound_manifold_quantity(system, Pn, lam, seconds=proof_seconds)
+                if up2 is not None and (upper is None or up2 < upper):
+                    upper = up2
+        if upper is not None and upper <= 0:
+            status = Status.PROVED
+            msg = (f"q <= {upper:.4g} on all of {{xhat in X : h(xhat) in Y}} (sound bound); "
+                   f"largest value found {q_max:.4g}")
+        else:
+            status = Status.UNKNOWN
+            msg = (f"largest q found {q_max:.4g} <= 0, but no sound bound <= 0 "
+                   f"(best {upper if upper is not None else 'none'}); raise proof_seconds")
+    progress.update(task)
+    progress.finish(task, msg)
+    expl = _explain(status, Pn, lam, q_max, xw, y_w, rate_cap, price, upper, system)
+    return NecessaryResult(
+        status=status, message=msg, q_max=float(q_max),
+        q_upper=None if upper is None else float(upper),
+        witness=xw.tolist(), witness_y=y_w.tolist(),
+        rate_cap=None if rate_cap is None else float(rate_cap),
+        residual_price=None if price is None else float(price),
+        explanation=expl, seconds=time.perf_counter() - t0,
+    )
+
+
+def _explain(status: Status, P: np.ndarray, lam: float, q_max: float, xw: torch.Tensor,
+             yw: torch.Tensor, rate_cap: float | None, price: float | None,
+             upper: float | None, system: System) -> str:
+    """One paragraph, in words, of what the pre-flight means for the user."""
+    Pdesc = "P = I" if np.allclose(P, np.eye(len(P))) else "the given metric P"
+    cap = ""
+    if rate_cap is not None:
+        cap = (f" Any gain that satisfies the boundary condition exactly can contract at rate "
+               f"at most {rate_cap:.4g}" + (" (that is, not at all)" if rate_cap <= 0 else "")
+               + ".")
+    if status is Status.VIOLATED:
+        txt = (f"With {Pdesc} and lam = {lam:g}, no continuously differentiable gain can "
+               f"satisfy both the contraction condition D <= 0 and the boundary condition "
+               f"k(x, h(x)) = 0 on this box, whatever the network. At xhat = {_fmt(xw)} "
+               f"(y = {_fmt(yw)}) the output cannot see some state direction; along it D <= 0 "
+               f"reduces to a quantity that does not involve the gain at all, and that "
+               f"quantity is {q_max:.4g} > 0.{cap}")
+        if price is not None and price > 0:
+            diam = float(np.linalg.norm(system.X[:, 1] - system.X[:, 0]))
+            txt += (f" A gain that does satisfy D <= 0 everywhere must break the boundary "
+                    f"condition by eps_bar >= {price:.4g}, which adds at least "
+                    f"{price / (2 * lam):.4g} to the guaranteed error bound (the box diameter "
+                    f"is {diam:.4g}), so such a certificate would say little.")
+        txt += (" Remedies: search a metric P that passes this test (certify check --metric), "
+                "lower lam below the rate cap, or use a box that avoids the witness.")
+        return txt
+    if status is Status.PROVED:
+        return (f"With {Pdesc} and lam = {lam:g} the network-independent obstruction is absent: "
+                f"on every state whose output lies in Y, the directions the output cannot see "
+                f"already contract (sound bound {upper:.4g} <= 0). Whether the trained gain "
+                f"meets the contraction condition is the MPDI check's job.{cap}")
+    return (f"No point violating the necessary condition was found (largest value "
+            f"{q_max:.4g}), but it could not be proved everywhere within the budget; the MPDI "
+            f"check decides for the network itself.{cap}")
