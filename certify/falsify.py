@@ -164,7 +164,7 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
     x = torch.cat([seeds, rand]) if starts > 0 else seeds[:0]
     history: list[float] = []
     if len(x) and steps > 0:
-        x, v = _ascent(fn, x, lo_t, hi_t, steps, history)
+        x, v = projected_ascent(fn, x, lo_t, hi_t, steps, history)
         cand_pts = torch.cat([cand_pts, x])
         cand_vals = torch.cat([cand_vals, v])
     finite = torch.isfinite(cand_vals) | (cand_vals == math.inf)
@@ -180,9 +180,16 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
     )
 
 
-def _ascent(fn: ScoreFn, x0: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, steps: int,
-            history: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Batched projected Adam ascent; returns the best point seen per start and its value."""
+def projected_ascent(fn: ScoreFn, x0: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+                     steps: int, history: list[float] | None = None,
+                     feasible: Callable[[torch.Tensor], torch.Tensor] | None = None,
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched projected Adam ascent from x0 [B, d]; the best point seen per start and its value.
+
+    Steps are projected onto the box; where `feasible` (a [B, d] -> [B] bool mask) refuses the
+    new point, that start keeps its old one (e.g. to stay on an output manifold).
+    """
+    history = [] if history is None else history
     width = hi - lo
     x = x0.clone().requires_grad_(True)
     m = torch.zeros_like(x0)
@@ -208,8 +215,11 @@ def _ascent(fn: ScoreFn, x0: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, s
             mhat = m / (1 - 0.9**it)
             vhat = v / (1 - 0.999**it)
             lr = lr0 * (1.0 - 0.9 * it / steps)
-            x += lr * width * mhat / (vhat.sqrt() + 1e-12)
-            x.copy_(torch.maximum(torch.minimum(x, hi), lo))
+            cand = torch.maximum(torch.minimum(x + lr * width * mhat / (vhat.sqrt() + 1e-12), hi),
+                                 lo)
+            if feasible is not None:
+                cand = torch.where(feasible(cand)[:, None], cand, x)
+            x.copy_(cand)
         if it % 10 == 0:
             history.append(float(best_v.max()))
     with torch.no_grad():

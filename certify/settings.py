@@ -28,12 +28,12 @@ class VerifySettings:
     top_counterexamples: int = 5
     proof_seconds: float = 60.0  # branch-and-bound budget for the MPDI proof
     max_boxes: int = 2_000_000  # branch-and-bound budget in sub-boxes
-    rate_bisection_steps: int = 6  # bisection steps for the proved lam_cert
+    rate_seconds: float = 20.0  # branch-and-bound budget for the proved lam_cert
     residual_seconds: float = 10.0
     lipschitz_seconds: float = 10.0
     noise: float = 0.15  # vbar: bound on ||v(t)||_2 of the measurement noise
     sim_time: float = 10.0
-    sim_dt: float = 1e-3
+    sim_dt: float = 2e-3
     sim_initial_conditions: int = 6
     seed: int = 0
     required: tuple[str, ...] = ("mpdi",)  # checks whose failure means exit 1
@@ -47,9 +47,9 @@ class VerifySettings:
 
 _INT_MIN = {
     "grid_points": 1, "adversarial_starts": 0, "adversarial_steps": 0, "top_counterexamples": 0,
-    "max_boxes": 1, "rate_bisection_steps": 0, "sim_initial_conditions": 1, "seed": 0,
+    "max_boxes": 1, "sim_initial_conditions": 1, "seed": 0,
 }
-_POS_FLOAT = {"proof_seconds", "residual_seconds", "lipschitz_seconds", "sim_time", "sim_dt"}
+_POS_FLOAT = {"proof_seconds", "rate_seconds", "residual_seconds", "lipschitz_seconds", "sim_time", "sim_dt"}
 _NONNEG_FLOAT = {"noise"}
 
 

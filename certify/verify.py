@@ -65,7 +65,8 @@ def verify(checkpoint: Checkpoint, settings: VerifySettings | None = None, *,
         checks["mpdi"] = timed("mpdi", check_mpdi, problem, settings, progress=progress,
                                figures=figures)
     if wanted("rate"):
-        checks["rate"] = timed("rate", check_rate, problem, settings, progress=progress)
+        checks["rate"] = timed("rate", check_rate, problem, settings, progress=progress,
+                               mpdi=checks.get("mpdi"))
     if wanted("residual"):
         checks["residual"] = timed("residual", check_residual, problem, settings,
                                    progress=progress)

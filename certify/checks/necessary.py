@@ -27,6 +27,7 @@ from certify.checks.metric import (
     output_matrix,
     sub_boxes,
 )
+from certify.falsify import projected_ascent
 from certify.kernels import lam_max
 from certify.progress import NullProgress, Progress
 from certify.results import NecessaryResult, Status
@@ -46,6 +47,14 @@ def _S(system: System, P: torch.Tensor, lam: float, x: torch.Tensor, with_lam: b
     PJ = P @ system.jac_f(x)
     S = 0.5 * (PJ + PJ.transpose(-1, -2))
     return S + 2.0 * lam * P if with_lam else S
+
+
+def manifold_quantity(system: System, P, lam: float, x: torch.Tensor) -> torch.Tensor:
+    """q(xhat) [B] at points x [B, n], for any h (constant kernel basis when h is linear)."""
+    Z = None
+    if system.h_is_linear:
+        Z = torch.as_tensor(kernel_basis(output_matrix(system)), dtype=_F64)
+    return q_values(system, torch.as_tensor(P, dtype=_F64), lam, x, Z)
 
 
 def q_values(system: System, P: torch.Tensor, lam: float, x: torch.Tensor,
@@ -125,45 +134,10 @@ def _on_manifold(system: System, x: torch.Tensor) -> torch.Tensor:
 
 def _maximise(system: System, fn, x0: torch.Tensor, steps: int = 150
               ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Projected Adam ascent of fn over X from x0 [B, n], staying where h(x) in Y.
-
-    Returns the best point seen per start and fn there (float64). A step that leaves
-    h(x) in Y is refused for that start (the start keeps its point).
-    """
+    """Projected ascent of fn over X from x0 [B, n], refusing steps that leave h(x) in Y."""
     X = torch.as_tensor(system.X, dtype=_F64)
-    lo, hi = X[:, 0], X[:, 1]
-    width = hi - lo
-    x = x0.clone()
-    m = torch.zeros_like(x)
-    v = torch.zeros_like(x)
-    with torch.no_grad():
-        best_v = fn(x)
-    best_v = torch.where(torch.isfinite(best_v), best_v, torch.full_like(best_v, -math.inf))
-    best_x = x.clone()
-    for it in range(1, steps + 1):
-        xr = x.clone().requires_grad_(True)
-        val = fn(xr)
-        fin = torch.isfinite(val)
-        (g,) = torch.autograd.grad(torch.where(fin, val, 0.0).sum(), xr)
-        with torch.no_grad():
-            better = fin & (val > best_v)
-            best_v = torch.where(better, val, best_v)
-            best_x[better] = x[better]
-            g = torch.nan_to_num(g * width, nan=0.0, posinf=0.0, neginf=0.0)
-            m.mul_(0.9).add_(0.1 * g)
-            v.mul_(0.999).add_(0.001 * g * g)
-            mh, vh = m / (1 - 0.9 ** it), v / (1 - 0.999 ** it)
-            lr = 0.02 * (1.0 - 0.95 * it / steps)
-            cand = torch.maximum(torch.minimum(x + lr * width * mh / (vh.sqrt() + 1e-12), hi), lo)
-            ok = _on_manifold(system, cand)
-            x = torch.where(ok[:, None], cand, x)
-    with torch.no_grad():
-        val = fn(x)
-        val = torch.where(torch.isfinite(val), val, torch.full_like(val, -math.inf))
-        better = val > best_v
-        best_x[better] = x[better]
-        best_v = torch.where(better, val, best_v)
-    return best_x, best_v
+    return projected_ascent(fn, x0, X[:, 0], X[:, 1], steps,
+                            feasible=lambda x: _on_manifold(system, x))
 
 
 def _search(system: System, fn, x: torch.Tensor, vals: torch.Tensor, starts: int, seed: int

@@ -15,13 +15,19 @@ from certify.falsify import maximize_over_box
 from certify.kernels import pointwise_rate
 from certify.problem import Problem
 from certify.progress import NullProgress, Progress
-from certify.results import RateResult, Status
+from certify.results import MpdiResult, RateResult, Status
 from certify.settings import VerifySettings
 
 
 def check_rate(problem: Problem, settings: VerifySettings, *,
-               progress: Progress | None = None, prove: bool = True) -> RateResult:
-    """Bracket lam_cert: sampled upper value and, when `prove`, a proved lower bound."""
+               progress: Progress | None = None, prove: bool = True,
+               mpdi: MpdiResult | None = None) -> RateResult:
+    """Bracket lam_cert: sampled upper value and, when `prove`, a proved lower bound.
+
+    A PROVED MPDI at the design lam already proves lam_cert >= lam; the rate's own branch and
+    bound (budget `rate_seconds`) can only raise that. No proof is attempted when sampling
+    already shows a rate <= 0 (then no bound exists whatever the proof says).
+    """
     progress = progress or NullProgress()
     t0 = time.perf_counter()
     n, P = problem.n, problem.P_t
@@ -40,13 +46,15 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
     worst_cex = worst[0] if worst else None
     if worst_cex is not None:
         worst_cex.value = sampled_upper  # the pointwise rate at that point
-    proved_lower = None
-    if prove and search.nonfinite == 0:
+    proved_lower = problem.lam if mpdi is not None and mpdi.status == Status.PROVED else None
+    if prove and search.nonfinite == 0 and sampled_upper > 0:
         from certify.prover import prove_rate
 
-        outcome = prove_rate(problem, seconds=settings.proof_seconds, max_boxes=settings.max_boxes,
+        outcome = prove_rate(problem, seconds=settings.rate_seconds, max_boxes=settings.max_boxes,
                              progress=progress)
-        proved_lower = outcome.lower
+        if outcome.lower is not None and outcome.lower == outcome.lower:
+            proved_lower = outcome.lower if proved_lower is None else max(proved_lower,
+                                                                          outcome.lower)
     seconds = time.perf_counter() - t0
     if search.nonfinite:
         return RateResult(Status.UNKNOWN, "the rate is NaN/Inf at some grid points",
