@@ -72,7 +72,13 @@ def lam_max(S: torch.Tensor) -> torch.Tensor:
     if n == 2:
         a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
         return 0.5 * (a + c) + torch.hypot(0.5 * (a - c), b)
-    return torch.linalg.eigvalsh(S)[..., -1]
+    finite = torch.isfinite(S).all(dim=-1).all(dim=-1)
+    if bool(finite.all()):
+        return torch.linalg.eigvalsh(S)[..., -1]
+    # LAPACK fails on NaN/Inf input: evaluate the finite ones, NaN for the rest
+    safe = torch.where(finite[..., None, None], S, torch.zeros_like(S))
+    return torch.where(finite, torch.linalg.eigvalsh(safe)[..., -1],
+                       torch.full_like(S[..., 0, 0], float("nan")))
 
 
 def generalized_lam_max(S: torch.Tensor, P: torch.Tensor) -> torch.Tensor:

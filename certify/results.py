@@ -74,7 +74,7 @@ class RateResult:
     message: str
     lam_design: float
     sampled_upper: float  # min over sampled points of the pointwise rate (>= lam_cert)
-    proved_lower: float | None  # proved by bisection on lam with the D <= 0 prover
+    proved_lower: float | None  # proved: MPDI at the design lam, or B&B on the rate itself
     worst: Counterexample | None = None
     seconds: float = 0.0
 

@@ -223,7 +223,7 @@ def _row_rate(r: Any, s: dict) -> tuple[Side, Side, str, list]:
     proved = _side("\u03bb_cert \u2265 (proved)", r.proved_lower,
                    "MPDI not proved at any \u03bb > 0", signed=True)
     setting = (f"design \u03bb = {fmt(r.lam_design)}; "
-               f"{fmt(s.get('rate_bisection_steps'))} bisection steps")
+               f"B&B budget {fmt(s.get('rate_seconds'))} s")
     nums = [("lam_design", fmt(r.lam_design, 6)), ("sampled upper", fmt(r.sampled_upper, 6)),
             ("proved lower", fmt(r.proved_lower, 6))]
     return sampled, proved, setting, nums
@@ -662,7 +662,7 @@ def sections(cert: Certificate) -> list[Section]:
             "at all.")
         sec.facts = [("Design \u03bb", fmt(r.lam_design)),
                      ("\u03bb_cert \u2264 (sampled)", fmt(r.sampled_upper, 6, signed=True)),
-                     ("\u03bb_cert \u2265 (proved by bisection)",
+                     ("\u03bb_cert \u2265 (proved, branch and bound)",
                       fmt_none(r.proved_lower, "not proved", 6, signed=True)),
                      ("Bracket", lam_cert_text(cert))]
         if r.worst is not None:

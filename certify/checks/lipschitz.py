@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from certify import sdp
+from certify.falsify import maximize_over_box
 from certify.kernels import gain_terms
 from certify.network import GainNetwork
 from certify.problem import Problem
@@ -79,66 +80,30 @@ def structural_local_naive(problem: Problem) -> float | None:
 
 
 def dk_dy_norms(problem: Problem, z: torch.Tensor) -> torch.Tensor:
-    """||dk/dy(xhat, y)||_2 at z = (xhat, y) [B, n+p] -> [B] (differentiable)."""
+    """||dk/dy(xhat, y)||_2 at z = (xhat, y) [B, n+p] -> [B] (differentiable; NaN stays NaN)."""
     n = problem.n
     J = gain_terms(problem.system, problem.network, z[:, :n], z[:, n:], with_dy=True).dk_dy
     if J.shape[-1] == 1:
         return torch.linalg.vector_norm(J[..., 0], dim=-1)
-    return torch.linalg.matrix_norm(J, ord=2)
+    finite = torch.isfinite(J).all(dim=-1).all(dim=-1)
+    safe = torch.where(finite[:, None, None], J, torch.zeros_like(J))  # SVD fails on NaN
+    return torch.where(finite, torch.linalg.matrix_norm(safe, ord=2),
+                       torch.full_like(J[:, 0, 0], float("nan")))
 
 
 def sampled_lower(problem: Problem, points: int = 20_000, starts: int = 16, steps: int = 60,
-                  seed: int = 0, chunk: int = 65_536) -> tuple[float, list[float]]:
-    """max ||dk/dy||_2 over a grid of X x Y, then projected Adam ascent from the best points.
+                  seed: int = 0) -> tuple[float, list[float]]:
+    """max ||dk/dy||_2 over a grid of X x Y, then projected ascent from the best points.
 
     Every value is a float64 evaluation at a concrete point: a lower bound on the supremum.
     """
     box = np.vstack([problem.system.X, problem.system.Y])
-    lo = torch.as_tensor(box[:, 0], dtype=_F64)
-    hi = torch.as_tensor(box[:, 1], dtype=_F64)
-    d = len(lo)
-    per = max(2, int(round(points ** (1.0 / d))))
-    axes = [torch.linspace(float(a), float(b), per, dtype=_F64) for a, b in box]
-    grid = torch.cartesian_prod(*axes).reshape(-1, d)
-    vals = []
-    with torch.no_grad():
-        for s in range(0, len(grid), chunk):
-            vals.append(dk_dy_norms(problem, grid[s:s + chunk]))
-    v = torch.cat(vals)
-    v = torch.where(torch.isfinite(v), v, torch.full_like(v, -math.inf))
-    gen = torch.Generator().manual_seed(seed)
-    top = torch.topk(v, min(starts, len(v))).indices
-    rnd = lo + (hi - lo) * torch.rand(max(1, starts // 2), d, generator=gen, dtype=_F64)
-    x = torch.cat([grid[top], rnd])
-    best_x, best_v = grid[int(torch.argmax(v))].clone(), float(v.max())
-    m = torch.zeros_like(x)
-    s2 = torch.zeros_like(x)
-    width = hi - lo
-    for it in range(1, steps + 1):
-        xr = x.clone().requires_grad_(True)
-        val = dk_dy_norms(problem, xr)
-        fin = torch.isfinite(val)
-        (g,) = torch.autograd.grad(torch.where(fin, val, 0.0).sum(), xr)
-        with torch.no_grad():
-            vv = torch.where(fin, val, torch.full_like(val, -math.inf))
-            i = int(torch.argmax(vv))
-            if float(vv[i]) > best_v:
-                best_v, best_x = float(vv[i]), x[i].clone()
-            g = torch.nan_to_num(g * width)
-            m.mul_(0.9).add_(0.1 * g)
-            s2.mul_(0.999).add_(0.001 * g * g)
-            mh, sh = m / (1 - 0.9 ** it), s2 / (1 - 0.999 ** it)
-            lr = 0.02 * (1.0 - 0.9 * it / steps)
-            x = torch.maximum(torch.minimum(x + lr * width * mh / (sh.sqrt() + 1e-12), hi), lo)
-    with torch.no_grad():
-        fin_v = dk_dy_norms(problem, x)
-        fin_v = torch.where(torch.isfinite(fin_v), fin_v, torch.full_like(fin_v, -math.inf))
-        i = int(torch.argmax(fin_v))
-        if float(fin_v[i]) > best_v:
-            best_v, best_x = float(fin_v[i]), x[i].clone()
-        # re-evaluate the reported point alone, in float64
-        best_v = float(dk_dy_norms(problem, best_x[None])[0])
-    return best_v, best_x.tolist()
+    out = maximize_over_box(lambda z: dk_dy_norms(problem, z), box[:, 0], box[:, 1],
+                            grid_points=points, starts=starts, steps=steps, top_k=1, seed=seed,
+                            task="Lipschitz grid")
+    if not math.isfinite(out.best_value):
+        return float("nan"), out.best_point.tolist()
+    return float(out.best_value), out.best_point.tolist()
 
 
 def lipsdp_for(problem: Problem, metric_weighted: bool = False,
@@ -225,6 +190,8 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
         parts.append(f"interval prover {local_upper:.6g} (local)")
     if value is None:
         status, msg = Status.UNKNOWN, "no finite sound bound; " + "; ".join(parts)
+    elif not math.isfinite(sampled):
+        status, msg = Status.UNKNOWN, "dk/dy is NaN/Inf at some points; " + "; ".join(parts)
     elif sampled > value * (1 + 1e-9) + 1e-12:
         status = Status.ERROR
         msg = (f"BUG: sampled ||dk/dy|| = {sampled:.6g} at {where} exceeds the sound bound "

@@ -1,0 +1,146 @@
+"""One contract over every check: result type, JSON round trip, determinism, NaN => never PROVED.
+
+Runs on the 3-state, 2-output spec of conftest, so every check is exercised beyond n=2, p=1.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from certify import checkpoint
+from certify.certificate import Certificate
+from certify.checks.bounds import check_bounds
+from certify.checks.lipschitz import check_lipschitz
+from certify.checks.mpdi import check_mpdi
+from certify.checks.necessary import check_necessary
+from certify.checks.rate import check_rate
+from certify.checks.residual import check_residual
+from certify.checks.simulation import check_simulation
+from certify.problem import Problem
+from certify.results import RESULT_TYPES, Status, from_jsonable, to_jsonable
+from certify.settings import VerifySettings
+from certify.verify import verify
+
+from .conftest import random_network
+
+SETTINGS = VerifySettings(grid_points=4000, adversarial_starts=6, adversarial_steps=20,
+                          proof_seconds=5, rate_seconds=3, residual_seconds=3,
+                          lipschitz_seconds=3, sim_time=0.5, sim_dt=0.01,
+                          sim_initial_conditions=2)
+
+
+def _problem(system, structure="direct", nan=False):
+    net = random_network(3, 2, hidden=(5,), structure=structure, seed=11, scale=0.3)
+    with torch.no_grad():
+        net.K.copy_(torch.tensor([[2.0, 0.0], [0.5, 0.0], [0.0, 1.5]], dtype=torch.float64))
+        if nan:
+            net.layers[0].weight[0, 0] = float("nan")
+    return Problem(system, net, 0.1, system.P)
+
+
+def _run_all(problem):
+    s = SETTINGS
+    out = {
+        "necessary": check_necessary(problem.system, problem.P, problem.lam, s),
+        "mpdi": check_mpdi(problem, s),
+        "residual": check_residual(problem, s),
+        "lipschitz": check_lipschitz(problem, s),
+    }
+    out["rate"] = check_rate(problem, s, mpdi=out["mpdi"])
+    lam_cert = out["rate"].proved_lower
+    out["bounds"] = check_bounds(problem, lam_cert=lam_cert, eps_bar=out["residual"].upper,
+                                 L=out["lipschitz"].value, vbar=s.noise)
+    out["simulation"] = check_simulation(problem, out["bounds"], s, certified=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def results(request):
+    from certify.system import System
+
+    from .conftest import SPEC_3X2
+
+    system = System.from_text(SPEC_3X2, origin="contract spec")
+    return {s: _run_all(_problem(system, s)) for s in ("direct", "structural")}
+
+
+@pytest.mark.parametrize("structure", ["direct", "structural"])
+@pytest.mark.parametrize("name", sorted(RESULT_TYPES.keys() - {"metric"}))
+def test_result_type_and_json_round_trip(results, structure, name):
+    result = results[structure][name]
+    assert isinstance(result, RESULT_TYPES[name])
+    assert isinstance(result.status, Status) and result.message
+    data = json.loads(json.dumps(to_jsonable(result), allow_nan=False))
+    back = from_jsonable(RESULT_TYPES[name], data)
+    assert to_jsonable(back) == to_jsonable(result)
+
+
+def test_structural_residual_is_exactly_zero(results):
+    res = results["structural"]["residual"]
+    assert res.structural and res.upper == 0.0 and res.status == Status.PROVED
+
+
+def test_sampled_side_never_exceeds_proved_side(results):
+    for per in results.values():
+        m = per["mpdi"]
+        if m.upper is not None:
+            assert m.lower <= m.upper + 1e-9
+        r = per["rate"]
+        if r.proved_lower is not None:
+            assert r.proved_lower <= r.sampled_upper + 1e-9
+        lip = per["lipschitz"]
+        if lip.value is not None:
+            assert lip.sampled <= lip.value + 1e-9
+        res = per["residual"]
+        if res.upper is not None:
+            assert res.sampled <= res.upper + 1e-12
+
+
+def test_nan_weights_are_never_proved(system3):
+    problem = _problem(system3, nan=True)
+    for name, result in _run_all(problem).items():
+        if name == "necessary":  # independent of the network
+            continue
+        assert result.status != Status.PROVED, (name, result.message)
+
+
+def test_same_seed_same_certificate(tmp_path, system3):
+    path = tmp_path / "c.ckpt"
+    problem = _problem(system3)
+    checkpoint.save(path, system=system3, network=problem.network, lam=problem.lam)
+    ck = checkpoint.load(path)
+    a, b = verify(ck, SETTINGS), verify(ck, SETTINGS)
+
+    def numbers(cert: Certificate) -> dict:
+        d = cert.to_dict()
+        for key in ("timings", "created"):
+            d.pop(key)
+        for check in d["checks"].values():
+            check.pop("seconds", None)
+            if isinstance(check.get("proof"), dict):
+                for k in ("seconds", "boxes_per_second", "volume_history", "boxes_processed",
+                          "proved_volume_fraction", "max_depth", "budget_exhausted"):
+                    check["proof"].pop(k, None)
+            if isinstance(check.get("solver"), dict):
+                check.pop("solver")
+        d["figures"].pop("proof_history", None)
+        d["figures"].pop("proof_boxes", None)
+        return d
+
+    assert a.verdict == b.verdict
+    assert numbers(a)["checks"]["mpdi"]["lower"] == numbers(b)["checks"]["mpdi"]["lower"]
+    assert numbers(a)["checks"]["necessary"] == numbers(b)["checks"]["necessary"]
+    assert numbers(a)["checks"]["residual"]["sampled"] == numbers(b)["checks"]["residual"]["sampled"]
+    again = Certificate.from_dict(json.loads(a.to_json()))
+    assert again.to_dict() == a.to_dict()
+
+
+def test_settings_are_frozen_and_echoed():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        SETTINGS.grid_points = 3  # type: ignore[misc]
+    assert np.isclose(dataclasses.asdict(SETTINGS)["noise"], 0.15)
