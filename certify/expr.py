@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import ast
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol
 
 import sympy
@@ -187,6 +187,59 @@ def evaluate(expr: sympy.Expr, env: Mapping[sympy.Symbol, Any], algebra: Algebra
     if isinstance(expr, sympy.Function) and len(expr.args) == 1:
         return algebra.func(function_name(expr), evaluate(expr.args[0], env, algebra, like))
     raise SpecError(f"cannot evaluate expression node {expr.func.__name__}: {expr}")
+
+
+Compiled = Callable[[Sequence[torch.Tensor]], "torch.Tensor | float"]
+
+
+def compile_torch(expr: sympy.Expr, symbols: Sequence[sympy.Symbol]) -> Compiled:
+    """A closure evaluating `expr` on tensors (one per symbol), built once from the tree.
+
+    Same operations as `evaluate` with `TORCH`, without re-walking the tree on every call
+    (the simulation calls f and h tens of thousands of times on small batches). Constant
+    subtrees are folded to Python floats; the result may be a float for a constant expression.
+    """
+    index = {s: i for i, s in enumerate(symbols)}
+
+    def build(e: sympy.Expr) -> Compiled:
+        if e.is_Symbol:
+            i = index[e]
+            return lambda v: v[i]
+        if not e.free_symbols:
+            c = float(e)
+            return lambda v: c
+        if e.is_Add or e.is_Mul:
+            parts = [build(a) for a in e.args]
+            add = e.is_Add
+
+            def fold(v: Sequence[torch.Tensor]) -> torch.Tensor | float:
+                out = parts[0](v)
+                for part in parts[1:]:
+                    out = out + part(v) if add else out * part(v)
+                return out
+
+            return fold
+        if e.is_Pow:
+            base, exponent = e.args
+            b = build(base)
+            if exponent.is_Integer:
+                k = int(exponent)
+                if k == 2:
+                    return lambda v: b(v) * b(v)
+                return (lambda v: b(v) ** k) if k >= 0 else (lambda v: 1.0 / b(v) ** (-k))
+            if exponent.is_Number:
+                r = float(exponent)
+                return lambda v: b(v) ** r
+            ex = build(exponent)
+            return lambda v: torch.exp(ex(v) * torch.log(b(v)))
+        if isinstance(e, sympy.Function) and len(e.args) == 1:
+            name = function_name(e)
+            fn = (FUNCTIONS if name in FUNCTIONS else DERIVED_FUNCTIONS)[name][1]
+            a = build(e.args[0])
+            return lambda v: fn(a(v))
+        raise SpecError(f"cannot evaluate expression node {e.func.__name__}: {e}")
+
+    return build(expr)
 
 
 class TorchAlgebra:

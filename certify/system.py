@@ -20,7 +20,7 @@ import sympy
 import torch
 
 from certify.errors import SpecError
-from certify.expr import TORCH, evaluate, parse_expression
+from certify.expr import compile_torch, parse_expression
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -159,6 +159,7 @@ class System:
         x = sympy.Matrix(self.symbols)
         self.jf_expr = sympy.Matrix(self.f_expr).jacobian(x)  # n x n
         self.jh_expr = sympy.Matrix(self.h_expr).jacobian(x)  # p x n
+        self._compiled: dict[str, list] = {}
 
     # ----- sizes ------------------------------------------------------------------------
     @property
@@ -175,28 +176,35 @@ class System:
         return all(sympy.diff(e, s) == 0 for e in self.jh_expr for s in self.symbols)
 
     # ----- batched point evaluation ------------------------------------------------------
-    def _eval_list(self, exprs: list[sympy.Expr], x: torch.Tensor) -> torch.Tensor:
+    def _eval_list(self, key: str, exprs: list[sympy.Expr], x: torch.Tensor) -> torch.Tensor:
         if x.ndim != 2 or x.shape[1] != self.n:
             raise ValueError(f"expected states of shape [batch, {self.n}]; got {list(x.shape)}")
-        env = {s: x[:, i] for i, s in enumerate(self.symbols)}
-        like = x[:, 0]
-        return torch.stack([evaluate(e, env, TORCH, like) for e in exprs], dim=-1)
+        compiled = self._compiled.get(key)
+        if compiled is None:
+            compiled = self._compiled[key] = [compile_torch(e, self.symbols) for e in exprs]
+        cols = [x[:, i] for i in range(self.n)]
+        like = cols[0]
+        values = []
+        for fn in compiled:
+            v = fn(cols)
+            values.append(v if isinstance(v, torch.Tensor) else torch.full_like(like, v))
+        return torch.stack(values, dim=-1)
 
     def f(self, x: torch.Tensor) -> torch.Tensor:
         """f(x) for x of shape [B, n] -> [B, n]."""
-        return self._eval_list(self.f_expr, x)
+        return self._eval_list("f", self.f_expr, x)
 
     def h(self, x: torch.Tensor) -> torch.Tensor:
         """h(x) for x of shape [B, n] -> [B, p]."""
-        return self._eval_list(self.h_expr, x)
+        return self._eval_list("h", self.h_expr, x)
 
     def jac_f(self, x: torch.Tensor) -> torch.Tensor:
         """Symbolic Jacobian df/dx at x [B, n] -> [B, n, n]."""
-        return self._eval_list(list(self.jf_expr), x).reshape(-1, self.n, self.n)
+        return self._eval_list("jf", list(self.jf_expr), x).reshape(-1, self.n, self.n)
 
     def jac_h(self, x: torch.Tensor) -> torch.Tensor:
         """Symbolic Jacobian dh/dx at x [B, n] -> [B, p, n]."""
-        return self._eval_list(list(self.jh_expr), x).reshape(-1, self.p, self.n)
+        return self._eval_list("jh", list(self.jh_expr), x).reshape(-1, self.p, self.n)
 
     # ----- presentation ------------------------------------------------------------------
     def summary(self) -> dict[str, Any]:

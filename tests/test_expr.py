@@ -77,3 +77,17 @@ def test_refusal_does_not_execute(tmp_path, monkeypatch):
 
 def test_function_table_covers_whitelist():
     assert set(FUNCTIONS) == {"sin", "cos", "tan", "exp", "log", "sqrt", "tanh", "abs"}
+
+
+@pytest.mark.parametrize("text", ["x + 2*y", "-x**2 + y/4", "sin(x) * exp(-y) + sqrt(y)",
+                                  "abs(x - y) + tanh(x) ** 3 + x**-2", "y**0.5 + pi + 2",
+                                  "3.5"])
+def test_compiled_closure_matches_tree_evaluation(text):
+    from certify.expr import compile_torch
+
+    expr = parse_expression(text, NAMES)
+    xs = torch.tensor([0.7, 1.3, -0.4], dtype=torch.float64)
+    ys = torch.tensor([2.0, 0.5, 1.1], dtype=torch.float64)
+    ref = evaluate(expr, {X: xs, Y: ys}, TORCH, xs)
+    got = compile_torch(expr, [X, Y])([xs, ys])
+    torch.testing.assert_close(torch.as_tensor(got, dtype=torch.float64).expand(3), ref)
