@@ -397,7 +397,6 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     B, d = lo.shape
-    n = system.n
     zc = 0.5 * (lo + hi)
     zr = up(torch.maximum(hi - zc, zc - lo))
     lamC = imul(pc.C, const_lam(2.0 * lam, pc.C))
@@ -765,7 +764,7 @@ def jcl_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Ten
 
 def tm_congruence(pc: Preconditioner, J: TM, lam: float, r: torch.Tensor) -> TM:
     """TM of A = He{Q J M^T} + 2 lam C (exact congruence when P = I)."""
-    B, n = J.c.shape[0], J.c.shape[-1]
+    n = J.c.shape[-1]
     if pc.identity:
         A = J
     else:

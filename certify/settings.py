@@ -49,7 +49,8 @@ _INT_MIN = {
     "grid_points": 1, "adversarial_starts": 0, "adversarial_steps": 0, "top_counterexamples": 0,
     "max_boxes": 1, "sim_initial_conditions": 1, "seed": 0,
 }
-_POS_FLOAT = {"proof_seconds", "rate_seconds", "residual_seconds", "lipschitz_seconds", "sim_time", "sim_dt"}
+_POS_FLOAT = {"proof_seconds", "rate_seconds", "residual_seconds", "lipschitz_seconds",
+              "sim_time", "sim_dt"}
 _NONNEG_FLOAT = {"noise"}
 
 

@@ -120,7 +120,7 @@ def verify(checkpoint: Checkpoint, settings: VerifySettings | None = None, *,
 
 
 def _residual_in_metric(problem: Problem, residual: Any) -> float | None:
-    """A sound eps_bar_P = sup ||P^(1/2) k(x, h(x))|| <= ||P^(1/2)||_2 eps_bar (or 0 if structural)."""
+    """Sound eps_bar_P = sup ||P^(1/2) k(x, h(x))||: 0 when structural, else not computed."""
     if residual is None or residual.upper is None:
         return None
     if residual.structural:

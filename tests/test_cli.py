@@ -8,13 +8,11 @@ import sys
 
 import numpy as np
 import pytest
-import torch
 
 from certify import checkpoint
 from certify.cli import main
 from certify.system import load_system
 
-from .conftest import random_network
 from .planted import lam_cert_linear, linear_problem, planted_problem
 
 FAST_POLICY = """

@@ -39,9 +39,10 @@ def test_jacobians_match_autograd_and_central_differences(system3, structure):
     x, y = _points(system3)
     terms = gain_terms(system3, net, x, y)
     for i in range(len(x)):
-        jx = torch.autograd.functional.jacobian(lambda v: _k(system3, net, v[None], y[i:i + 1])[0],
+        xi, yi = x[i:i + 1], y[i:i + 1]
+        jx = torch.autograd.functional.jacobian(lambda v, yi=yi: _k(system3, net, v[None], yi)[0],
                                                 x[i])
-        jy = torch.autograd.functional.jacobian(lambda v: _k(system3, net, x[i:i + 1], v[None])[0],
+        jy = torch.autograd.functional.jacobian(lambda v, xi=xi: _k(system3, net, xi, v[None])[0],
                                                 y[i])
         torch.testing.assert_close(terms.dk_dx[i], jx, rtol=1e-10, atol=1e-12)
         torch.testing.assert_close(terms.dk_dy[i], jy, rtol=1e-10, atol=1e-12)

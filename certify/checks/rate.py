@@ -62,7 +62,8 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
     if sampled_upper <= 0:
         status, msg = Status.VIOLATED, (
             f"no contraction: at xhat={worst_cex.xhat}, y={worst_cex.y} the pointwise rate is "
-            f"{sampled_upper:.4g} <= 0, so lam_cert <= {sampled_upper:.4g} and no error bound exists")
+            f"{sampled_upper:.4g} <= 0, so lam_cert <= {sampled_upper:.4g} and no error bound "
+            "exists")
     elif proved_lower is not None and proved_lower > 0:
         status, msg = Status.PROVED, (
             f"lam_cert in [{proved_lower:.4g}, {sampled_upper:.4g}] (design lam {problem.lam:g}; "
