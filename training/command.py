@@ -179,6 +179,10 @@ def run_train(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     if output.exists() and output.is_dir():
         raise CertifyError(f"--output {output} is a directory; give a file name like "
                            f"{system.name}.ckpt")
+    if config.preset == "certified":  # counterexample-guided loop (training.certified)
+        from training.certified import run_certified
+
+        return run_certified(args, system, config, out)
     quiet = bool(getattr(args, "quiet", False))
     if not quiet:
         print(f"training {system.name} with preset {config.preset}: lam {config.lam:g}, "

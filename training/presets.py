@@ -164,8 +164,18 @@ def _tiny(system: System) -> dict[str, Any]:
             "adam_iters": 30, "lbfgs_iters": 30}
 
 
+def _certified(system: System) -> dict[str, Any]:
+    """Counterexample-guided certified training (`training.certified`): structural gain
+    (eps_bar = 0), eigenvalue loss with margin in the LMI metric, warm start from the LMI
+    gain; adam_iters are Adam steps per CEGIS round, margin is lam_max(D) <= -margin."""
+    return {"preset": "certified", "points": 4000, "hidden": (16, 16), "adam_iters": 300,
+            "adam_lr": 1e-3, "lbfgs_iters": 0, "loss": "eigen", "margin": 0.2,
+            "structure": "structural", "mu1": 1.0, "mu2": 0.0}
+
+
 # name -> function(system) giving the preset's field values; later phases register more
-PRESETS: dict[str, Callable[[System], dict[str, Any]]] = {"paper": _paper, "tiny": _tiny}
+PRESETS: dict[str, Callable[[System], dict[str, Any]]] = {"paper": _paper, "tiny": _tiny,
+                                                          "certified": _certified}
 
 
 def make_config(system: System, preset: str = "paper", **overrides: Any) -> TrainConfig:

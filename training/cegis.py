@@ -1,0 +1,444 @@
+"""Counterexample-guided certified training: train -> falsify -> prove -> add points -> repeat.
+
+The objective (`CertObjective`) is the eigenvalue loss in the metric P with a margin,
+
+    L = mean_j relu(lam_max(D_j) + margin)  +  lip_weight * (mean_j ||dk/dy_j||_F^(2q))^(1/(2q))
+
+with D = He{P (Jf + dk/dxhat)} + 2 (lam + rate_slack) P. The second term is a mild, sup-leaning
+(q > 1) penalty on the gain's sensitivity to y, the constant L that multiplies the noise in
+the error bound sqrt(kappa(P)) (eps_bar + L vbar) / (2 lam). It reuses the fast float32
+forward-mode trunk of `training.train.Objective` with the y-columns added to the forward
+tangents, and autograd for the small loss head only.
+
+`cegis` runs rounds of: Adam on the collocation set; the verifier's falsifier
+(`certify.checks.mpdi.falsify_mpdi`: grid + adversarial ascent, float64); if nothing is above
+-margin/2, the sound prover (`certify.prover.prove_mpdi`) with a box budget; then the
+counterexamples (with small seeded jitter) and the centres of the prover's unproved leaf
+boxes (lifted to the coordinates the leaf projection drops by a small search) join the
+collocation set. It stops at the first PROVED round or when the round/time budget is spent.
+Nothing here is trusted for the certificate: `certify run` re-verifies the checkpoint.
+
+Seeded and deterministic as long as the in-loop proofs end on their box budget
+(`proof_boxes`), not on the safety time cap `proof_seconds`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from certify.checks.mpdi import falsify_mpdi
+from certify.kernels import mpdi_lam_max, sym
+from certify.network import GainNetwork
+from certify.problem import Problem
+from certify.prover import ProofOutcome, prove_mpdi
+from certify.results import Status
+from certify.settings import VerifySettings
+from certify.system import System
+from training import losses
+from training.collocation import collocation_points
+from training.optim import Adam
+from training.train import LossValues, Objective, _Chunk, _intra_op_threads
+
+Log = Callable[[str], None]
+
+
+# ----- settings and results ---------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CegisSettings:
+    """How the counterexample-guided loop trains and checks (defaults: the certified preset)."""
+
+    margin: float = 0.2  # train lam_max(D) <= -margin on the collocation points
+    mpdi_weight: float = 10.0  # weight of the eigenvalue loss (the constraint, kept dominant)
+    rate_slack: float = 0.01  # train D at lam + rate_slack, so the proved rate clears lam
+    lip_weight: float = 0.05  # weight of the ||dk/dy|| penalty (0: off)
+    lip_power: float = 4.0  # q in (mean ||dk/dy||_F^(2q))^(1/(2q)); 1: RMS, large: sup
+    rounds: int = 8
+    improve_rounds: int = 0  # rounds kept going after the first proof (lowering L); the
+    # result is the last network that was PROVED
+    improve_proof_seconds: float = 10.0  # stop improving once a proof takes longer than this
+    # (a network that is slow to prove is slow for `certify run` too)
+    iters_per_round: int = 400  # Adam steps per round
+    lr: float = 1e-3
+    grid_points: int = 60_000  # falsification grid over X x Y
+    adversarial_starts: int = 32
+    adversarial_steps: int = 60
+    proof_boxes: int = 300_000  # in-loop prover budget (boxes): the deterministic budget
+    proof_seconds: float = 60.0  # in-loop prover safety cap (seconds)
+    budget_seconds: float = 240.0  # wall-clock budget of the whole loop
+    add_per_round: int = 1024  # most new collocation points per round
+    jitter: int = 4  # jittered copies per counterexample
+    jitter_scale: float = 0.02  # jitter std, as a fraction of each box width
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("margin", "mpdi_weight", "rate_slack", "lip_weight", "lr", "jitter_scale",
+                     "proof_seconds", "budget_seconds", "improve_proof_seconds"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"cegis: {name} must be a finite number >= 0; got {v!r}")
+        if not self.lip_power >= 1:
+            raise ValueError(f"cegis: lip_power must be >= 1; got {self.lip_power!r}")
+        for name in ("rounds", "iters_per_round", "grid_points", "proof_boxes",
+                     "add_per_round", "seed", "jitter", "adversarial_starts",
+                     "adversarial_steps"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                raise ValueError(f"cegis: {name} must be an int >= 0; got {v!r}")
+
+
+@dataclass
+class RoundRecord:
+    """What one round did and found."""
+
+    round: int
+    loss: float
+    mpdi: float
+    lip: float  # the penalty's power mean of ||dk/dy||_F on the collocation points
+    lip_max: float  # max ||dk/dy||_F on the collocation points
+    max_lam_found: float  # largest float64 lam_max(D) found by the falsifier (at design lam)
+    status: str  # PROVED / VIOLATED / UNKNOWN / FALSIFIED (counterexample, proof skipped)
+    proved_volume: float | None
+    points: int  # collocation points trained on this round
+    added: int  # points added after this round
+    train_seconds: float
+    falsify_seconds: float
+    proof_seconds: float
+    proof_upper: float | None = None
+
+    def line(self) -> str:
+        vol = "-" if self.proved_volume is None else f"{self.proved_volume:.4f}"
+        return (f"round {self.round:2d}  loss {self.loss:.4g} (mpdi {self.mpdi:.3g})  ||dk/dy|| "
+                f"max {self.lip_max:.4g}  max lam_max(D) found {self.max_lam_found:+.4g}  proof "
+                f"{self.status}  proved volume {vol}  points {self.points} (+{self.added})  "
+                f"train {self.train_seconds:.1f} s  falsify {self.falsify_seconds:.1f} s  "
+                f"prove {self.proof_seconds:.1f} s")
+
+
+@dataclass
+class CegisResult:
+    """The trained network (float64), the metric, and the loop's record."""
+
+    network: GainNetwork
+    P: np.ndarray
+    lam: float
+    status: Status  # PROVED iff the last in-loop proof proved D <= 0 over X x Y at lam
+    rounds: list[RoundRecord]
+    proof: ProofOutcome | None
+    xhat: torch.Tensor  # final collocation set
+    y: torch.Tensor
+    seconds: float
+    settings: CegisSettings
+    notes: list[str] = field(default_factory=list)
+
+    def record(self) -> dict[str, Any]:
+        """Plain data for the checkpoint's training record."""
+        return {"cegis": asdict(self.settings), "status": self.status.value,
+                "rounds": [asdict(r) for r in self.rounds], "seconds": self.seconds,
+                "collocation_points": int(self.xhat.shape[0]), "notes": list(self.notes),
+                "proof_upper": None if self.proof is None else self.proof.upper}
+
+
+# ----- the objective ------------------------------------------------------------------------
+
+
+class CertObjective(Objective):
+    """Eigenvalue loss in the metric P with margin, plus the ||dk/dy|| penalty.
+
+    The trunk runs forward mode over all n + p input columns (the parent's buffers are
+    rebuilt for that); the head is differentiated by autograd on [N, n, n] matrices.
+    """
+
+    def __init__(self, system: System, net: GainNetwork, xhat: torch.Tensor, y: torch.Tensor,
+                 *, lam: float, P: torch.Tensor, margin: float, lip_weight: float = 0.0,
+                 lip_power: float = 1.0, mpdi_weight: float = 1.0, mu_bc: float = 1.0,
+                 workers: int = 2) -> None:
+        weights = losses.LossWeights(mu1=1.0, mu2=float(mu_bc), rho=(1.0,) * system.n)
+        super().__init__(system, net, xhat, y, lam=lam, P=P, weights=weights, loss="eigen",
+                         margin=margin, workers=workers)
+        self.lip_weight, self.lip_power = float(lip_weight), float(lip_power)
+        self.mpdi_weight = float(mpdi_weight)
+        n, p = system.n, system.p
+        dt = net.layers[0].weight.dtype
+        self.K_t = net.K.detach().to(dt)
+        self.r_all = (y.to(torch.float64) - system.h(xhat.to(torch.float64))).to(dt)
+        self.m = n + p  # forward tangents for every input column (xhat and y)
+        widths = [n + p, *[layer.weight.shape[0] for layer in net.layers]]
+        self.chunks = [_Chunk(ch.Z, ch.C, widths, self.m, not self.structural)
+                       for ch in self.chunks]
+        self.last_lip = 0.0
+        self.last_lip_max = 0.0  # max ||dk/dy||_F over the collocation points
+
+    def _head(self, val: torch.Tensor, tan: torch.Tensor, k_bc: torch.Tensor | None,
+              grad: bool) -> tuple[float, float, list[torch.Tensor] | None]:
+        n, p, N = self.n, self.p, self.N
+        val_l = val.detach().requires_grad_(grad)
+        tan_l = tan.detach().requires_grad_(grad)
+        kbc_l = None if k_bc is None else k_bc.detach().requires_grad_(grad)
+        with torch.enable_grad():
+            if self.structural:
+                G = val_l.view(N, n, p)
+                dG = tan_l.view(self.m, N, n, p)  # [j, b, i, q] = dG_iq / dz_j
+                M = torch.einsum("jbiq,bq->bij", dG[:n], self.r)
+                if self.Hx is not None:
+                    M = M - G @ self.Hx
+                dky = torch.einsum("jbiq,bq->bij", dG[n:], self.r) + G + self.K_t
+            else:
+                M = tan_l[:n].permute(1, 2, 0)
+                dky = tan_l[n:].permute(1, 2, 0) + self.K_t
+            D = self.D0 + sym(M if self.P_is_identity else self.P @ M)
+            mpdi = losses.eigen_loss(D, self.margin, reduce="sum")
+            total = self.mpdi_weight * mpdi / N
+            lip = torch.zeros((), dtype=D.dtype)
+            if self.lip_weight > 0:
+                s = (dky * dky).sum(dim=(1, 2))  # ||dk/dy||_F^2 per point
+                q = self.lip_power
+                scale = s.detach().max().clamp_min(1e-30)  # for a stable power mean
+                lip = torch.sqrt(scale) * ((s / scale) ** q).mean() ** (1.0 / (2.0 * q))
+                total = total + self.lip_weight * lip
+            bc = torch.zeros((), dtype=D.dtype)
+            if kbc_l is not None:
+                bc = (kbc_l * kbc_l).sum()
+                total = total + self.weights.mu2 * bc / N
+            self.last_lip = float(lip.detach())
+            self.last_lip_max = float(torch.sqrt((dky * dky).sum(dim=(1, 2)).max()).detach())
+            if not grad:
+                return float(mpdi), float(bc), None
+            inputs = [val_l, tan_l] + ([kbc_l] if kbc_l is not None else [])
+            grads = torch.autograd.grad(total, inputs, allow_unused=True)
+        grads = [torch.zeros_like(x) if g is None else g for x, g in zip(inputs, grads)]
+        return float(mpdi), float(bc), grads
+
+    def evaluate(self, grad: bool = True) -> LossValues:
+        v = super().evaluate(grad)
+        total = self.mpdi_weight * v.mpdi + self.weights.mu2 * v.bc \
+            + self.lip_weight * self.last_lip
+        return LossValues(total=total, mpdi=v.mpdi, bc=v.bc)
+
+
+# ----- networks -----------------------------------------------------------------------------
+
+
+def warm_start_network(system: System, hidden: tuple[int, ...], *, K: Any = None,
+                       structure: str = "structural", seed: int = 0) -> GainNetwork:
+    """A float64 network whose MLP output is exactly zero (last layer zero) and whose linear
+    injection buffer is K: its gain is exactly K (y - h(xhat)) (K = None: zero gain).
+
+    The hidden layers keep a seeded random initialisation so that training can move them.
+    """
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))
+        net = GainNetwork(system.n, system.p, hidden, structure=structure).double()
+    with torch.no_grad():
+        net.layers[-1].weight.zero_()
+        net.layers[-1].bias.zero_()
+        if K is not None:
+            net.K.copy_(torch.as_tensor(np.asarray(K, dtype=np.float64)))
+    return net
+
+
+def _copy_net(net: GainNetwork, dtype: torch.dtype, K: torch.Tensor | None = None
+              ) -> GainNetwork:
+    out = GainNetwork.from_architecture(net.architecture())
+    out.load_state_dict({k: v.detach().clone() for k, v in net.state_dict().items()})
+    out = out.to(dtype)
+    if K is not None:
+        with torch.no_grad():
+            out.K.copy_(K.to(dtype))
+    return out
+
+
+# ----- points from the verifier ---------------------------------------------------------
+
+
+def jittered(points: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, copies: int,
+             scale: float, generator: torch.Generator) -> torch.Tensor:
+    """`points` [m, d] and `copies` Gaussian perturbations of each (std scale * width),
+    clipped to the box -> [m (1 + copies), d]."""
+    if copies <= 0 or points.shape[0] == 0:
+        return points
+    w = (hi - lo) * scale
+    noise = torch.randn(copies, *points.shape, generator=generator, dtype=points.dtype) * w
+    extra = (points.unsqueeze(0) + noise).reshape(-1, points.shape[1])
+    extra = torch.minimum(torch.maximum(extra, lo), hi)
+    return torch.cat([points, extra])
+
+
+def unproved_points(problem: Problem, outcome: ProofOutcome, lam: float, *, limit: int,
+                    per_leaf: int = 16, generator: torch.Generator) -> torch.Tensor:
+    """Centres of the prover's unproved leaves (status unknown/violated) as points of X x Y.
+
+    The prover reports its leaves projected on the first two coordinates; the other
+    coordinates are chosen by a small seeded search (`per_leaf` samples each) for the largest
+    lam_max(D) at that centre. The `limit` worst points are returned, [m, n + p].
+    """
+    boxes = outcome.boxes or {}
+    status = boxes.get("status", [])
+    keep = [i for i, s in enumerate(status) if s != "proved"]
+    s = problem.system
+    full = np.concatenate([s.X, s.Y], 0)
+    lo_all = torch.as_tensor(full[:, 0], dtype=torch.float64)
+    hi_all = torch.as_tensor(full[:, 1], dtype=torch.float64)
+    d = full.shape[0]
+    if not keep or limit <= 0:
+        return torch.empty(0, d, dtype=torch.float64)
+    lo2 = torch.as_tensor(np.asarray(boxes["lo"], dtype=np.float64)[keep])
+    hi2 = torch.as_tensor(np.asarray(boxes["hi"], dtype=np.float64)[keep])
+    centres = 0.5 * (lo2 + hi2)  # [m, 2]
+    m = centres.shape[0]
+    proj = min(2, d)
+    pts = lo_all + (hi_all - lo_all) * torch.rand(m, per_leaf, d, generator=generator,
+                                                  dtype=torch.float64)
+    pts[:, :, :proj] = centres[:, None, :proj]
+    flat = pts.reshape(-1, d)
+    n = problem.n
+    with torch.no_grad():
+        v = mpdi_lam_max(s, problem.network, problem.P_t, lam, flat[:, :n], flat[:, n:])
+    v = torch.nan_to_num(v, nan=math.inf).reshape(m, per_leaf)
+    best = torch.argmax(v, dim=1)
+    chosen = pts[torch.arange(m), best]
+    vals = v[torch.arange(m), best]
+    order = torch.argsort(vals, descending=True)[:limit]
+    return chosen[order]
+
+
+# ----- the loop ---------------------------------------------------------------------------
+
+
+def cegis(system: System, network: GainNetwork, P: np.ndarray, lam: float, *,
+          settings: CegisSettings | None = None, points: int = 4000,
+          log: Log | None = None) -> CegisResult:
+    """Counterexample-guided training of `network` (its structure, widths and K buffer are
+    kept; K is not trained) for D <= 0 over X x Y at rate `lam` in metric `P`.
+
+    Returns the float64 network of the last round with the loop's record. `status` is PROVED
+    only when `prove_mpdi` proved the MPDI for that network (a sound proof; `certify run`
+    re-checks it anyway).
+    """
+    with _intra_op_threads(1):
+        return _cegis(system, network, P, lam, settings or CegisSettings(), points, log)
+
+
+def _cegis(system: System, network: GainNetwork, P: np.ndarray, lam: float,
+           cs: CegisSettings, points: int, log: Log | None) -> CegisResult:
+    t_start = time.perf_counter()
+    say = log or (lambda _msg: None)
+    P = np.asarray(P, dtype=np.float64)
+    P_t = torch.as_tensor(P)
+    K64 = network.K.detach().to(torch.float64).clone()
+    net32 = _copy_net(network, torch.float32)
+    net32.train()
+    params: list[torch.Tensor] = []
+    for layer in net32.layers:
+        params += [layer.weight, layer.bias]
+    for prm in params:
+        prm.requires_grad_(True)
+    opt = Adam(params, lr=cs.lr)
+    xhat, y = collocation_points(system, points, cs.seed)
+    gen = torch.Generator().manual_seed(cs.seed + 104729)
+    box = np.concatenate([system.X, system.Y], 0)
+    lo = torch.as_tensor(box[:, 0], dtype=torch.float64)
+    hi = torch.as_tensor(box[:, 1], dtype=torch.float64)
+    n = system.n
+    fsettings = VerifySettings(grid_points=max(1, cs.grid_points),
+                               adversarial_starts=cs.adversarial_starts,
+                               adversarial_steps=cs.adversarial_steps, top_counterexamples=64,
+                               seed=cs.seed)
+    rounds: list[RoundRecord] = []
+    notes: list[str] = []
+    best: tuple[GainNetwork, ProofOutcome] | None = None  # the last PROVED network
+    last_net, last_proof, last_status = None, None, Status.UNKNOWN
+    proved_rounds = 0
+    for rnd in range(1, cs.rounds + 1):
+        # --- train ---
+        t0 = time.perf_counter()
+        obj = CertObjective(system, net32, xhat, y, lam=lam + cs.rate_slack, P=P_t,
+                            margin=cs.margin, lip_weight=cs.lip_weight,
+                            lip_power=cs.lip_power, mpdi_weight=cs.mpdi_weight)
+        try:
+            for _ in range(cs.iters_per_round):
+                obj.evaluate(grad=True)
+                opt.step()
+            values = obj.evaluate(grad=False)
+            lip, lip_max = obj.last_lip, obj.last_lip_max
+        finally:
+            obj.close()
+        t_train = time.perf_counter() - t0
+        net64 = _copy_net(net32, torch.float64, K64).eval().requires_grad_(False)
+        problem = Problem(system, net64, lam, P)
+        # --- falsify ---
+        t0 = time.perf_counter()
+        search = falsify_mpdi(problem, fsettings)
+        t_fals = time.perf_counter() - t0
+        d = lo.numel()
+        top = torch.as_tensor(np.asarray(search.top_points, dtype=np.float64)).reshape(-1, d)
+        topv = torch.as_tensor(np.asarray(search.top_values, dtype=np.float64)).reshape(-1)
+        new: list[torch.Tensor] = []
+        proof: ProofOutcome | None = None
+        t_proof, vol, upper = 0.0, None, None
+        if search.nonfinite or search.best_value > -0.5 * cs.margin:
+            bad = top[topv > -0.5 * cs.margin] if topv.numel() else top
+            new.append(jittered(bad, lo, hi, cs.jitter, cs.jitter_scale, gen))
+            status = Status.VIOLATED if search.best_value > 0 else Status.UNKNOWN
+            rstatus = "VIOLATED" if search.best_value > 0 else "FALSIFIED"
+        else:
+            t0 = time.perf_counter()
+            remaining = cs.budget_seconds - (time.perf_counter() - t_start)
+            proof = prove_mpdi(problem, seconds=max(1.0, min(cs.proof_seconds, remaining)),
+                               max_boxes=cs.proof_boxes, seeds=top)
+            t_proof = time.perf_counter() - t0
+            status, vol = proof.status, proof.stats.proved_volume_fraction
+            rstatus, upper = proof.status.value, proof.upper
+            if proof.status is Status.VIOLATED and proof.counterexample is not None:
+                c = proof.counterexample
+                pt = torch.tensor([c.xhat + c.y], dtype=torch.float64)
+                new.append(jittered(pt, lo, hi, cs.jitter, cs.jitter_scale, gen))
+            elif proof.status is Status.UNKNOWN:
+                new.append(unproved_points(problem, proof, lam, limit=cs.add_per_round,
+                                           generator=gen))
+        added = torch.cat(new)[: cs.add_per_round] if new else torch.empty(0, d)
+        if added.shape[0]:
+            xhat = torch.cat([xhat, added[:, :n]])
+            y = torch.cat([y, added[:, n:]])
+        rec = RoundRecord(round=rnd, loss=values.total, mpdi=values.mpdi, lip=lip,
+                          lip_max=lip_max, max_lam_found=float(search.best_value),
+                          status=rstatus, proved_volume=vol, points=int(obj.N),
+                          added=int(added.shape[0]), train_seconds=t_train,
+                          falsify_seconds=t_fals, proof_seconds=t_proof, proof_upper=upper)
+        rounds.append(rec)
+        say(rec.line())
+        last_net, last_proof, last_status = net64, proof, status
+        if status is Status.PROVED and proof is not None:
+            slow = t_proof > cs.improve_proof_seconds
+            if best is None or not slow:
+                best = (net64, proof)
+            proved_rounds += 1
+            if proved_rounds > cs.improve_rounds:
+                break
+            if slow:
+                keep = "it" if best[0] is net64 else "the previous PROVED network"
+                notes.append(f"stopped improving after round {rnd}: its proof took "
+                             f"{t_proof:.1f} s > {cs.improve_proof_seconds:g} s; keeping {keep}")
+                say(notes[-1])
+                break
+        if time.perf_counter() - t_start > cs.budget_seconds:
+            notes.append(f"time budget {cs.budget_seconds:g} s spent after round {rnd}")
+            say(notes[-1])
+            break
+    if best is not None:
+        net_out, proof_out, status_out = best[0], best[1], Status.PROVED
+        if last_status is not Status.PROVED:
+            notes.append("the last rounds did not prove; returning the last PROVED network")
+    else:
+        net_out, proof_out, status_out = last_net, last_proof, last_status
+    return CegisResult(network=net_out, P=P, lam=float(lam), status=status_out, rounds=rounds,
+                       proof=proof_out, xhat=xhat, y=y, seconds=time.perf_counter() - t_start,
+                       settings=cs, notes=notes)
