@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from certify.parallel import parallel_chunks
 from certify.progress import NullProgress, Progress
 
 ScoreFn = Callable[[torch.Tensor], torch.Tensor]  # [B, d] float64 -> [B]
@@ -65,18 +66,21 @@ def grid_chunk(lo: torch.Tensor, hi: torch.Tensor, shape: list[int], start: int,
 
 
 def screen_tolerance(fn: ScoreFn, screen: ScoreFn, lo: torch.Tensor, hi: torch.Tensor,
-                     seed: int, samples: int = 4096) -> float:
-    """8x the largest |screen - fn| seen on random points (plus a floor): the re-check band."""
+                     seed: int, threshold: float = 0.0, samples: int = 4096
+                     ) -> tuple[float, float]:
+    """The re-check band: 8x the largest |screen - fn| seen on random points (plus a floor);
+    and the fraction of those points that would fall in the band or above the threshold."""
     gen = torch.Generator().manual_seed(seed + 7919)
     pts = lo + (hi - lo) * torch.rand(samples, len(lo), generator=gen, dtype=torch.float64)
     exact = fn(pts)
     approx = screen(pts).to(torch.float64)
     ok = torch.isfinite(exact) & torch.isfinite(approx)
     if not bool(ok.any()):
-        return math.inf
+        return math.inf, 1.0
     err = torch.abs(exact - approx)[ok].max().item()
     scale = torch.abs(exact[ok]).max().item()
-    return 8.0 * err + 1e-6 * (1.0 + scale)
+    tol = 8.0 * err + 1e-6 * (1.0 + scale)
+    return tol, float((~ok | (approx > threshold - tol)).double().mean())
 
 
 def _distinct_top(points: torch.Tensor, values: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
@@ -121,40 +125,49 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
     above = 0
     nonfinite = 0
     progress.start(task, total=total)
-    tol = 0.0
     with torch.no_grad():
+        tol = 0.0
         if screen is not None:
-            tol = screen_tolerance(fn, screen, lo_t, hi_t, seed)
-        for start in range(0, total, chunk):
-            stop = min(total, start + chunk)
-            pts = grid_chunk(lo_t, hi_t, shape, start, stop)
-            if screen is None:
-                vals = fn(pts)
-                bad = ~torch.isfinite(vals)
-                if bool(bad.any()):
-                    nonfinite += int(bad.sum())
+            tol, near_fraction = screen_tolerance(fn, screen, lo_t, hi_t, seed, threshold)
+            if near_fraction > 0.25:  # most points need the float64 re-check: skip the screen
+                screen = None
+
+        def sweep(start: int) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+            """Top candidates, count above threshold and non-finite count of one chunk."""
+            pts = grid_chunk(lo_t, hi_t, shape, start, min(total, start + chunk))
+            with torch.no_grad():
+                if screen is None:
+                    vals = fn(pts)
+                    bad = ~torch.isfinite(vals)
                     vals = torch.where(bad, torch.full_like(vals, math.inf), vals)
-                above += int((vals > threshold).sum())
-                tv, ti = torch.topk(vals, min(keep, len(vals)))
-            else:
-                approx = screen(pts).to(torch.float64)
-                approx = torch.where(torch.isfinite(approx), approx,
-                                     torch.full_like(approx, math.inf))
-                near = approx > threshold - tol
-                if bool(near.any()):
-                    exact = fn(pts[near])
-                    bad = ~torch.isfinite(exact)
-                    nonfinite += int(bad.sum())
-                    above += int((exact > threshold).sum() + bad.sum())
-                _, ti = torch.topk(approx, min(keep, len(approx)))
-                tv = fn(pts[ti])
-                tv = torch.where(torch.isfinite(tv), tv, torch.full_like(tv, math.inf))
-            cand_pts = torch.cat([cand_pts, pts[ti]])
-            cand_vals = torch.cat([cand_vals, tv])
-            if len(cand_vals) > 4 * keep:
-                tv, ti = torch.topk(cand_vals, keep)
-                cand_pts, cand_vals = cand_pts[ti], tv
-            progress.update(task, advance=stop - start)
+                    n_above, n_bad = int((vals > threshold).sum()), int(bad.sum())
+                    tv, ti = torch.topk(vals, min(keep, len(vals)))
+                else:
+                    approx = screen(pts).to(torch.float64)
+                    approx = torch.where(torch.isfinite(approx), approx,
+                                         torch.full_like(approx, math.inf))
+                    near = approx > threshold - tol
+                    n_above = n_bad = 0
+                    if bool(near.any()):
+                        exact = fn(pts[near])
+                        bad = ~torch.isfinite(exact)
+                        n_bad = int(bad.sum())
+                        n_above = int((exact > threshold).sum()) + n_bad
+                    _, ti = torch.topk(approx, min(keep, len(approx)))
+                    tv = fn(pts[ti])
+                    tv = torch.where(torch.isfinite(tv), tv, torch.full_like(tv, math.inf))
+            progress.update(task, advance=len(pts))
+            return pts[ti], tv, n_above, n_bad
+
+        with parallel_chunks() as pool:
+            for pts, tv, n_above, n_bad in pool.map(sweep, range(0, total, chunk)):
+                above += n_above
+                nonfinite += n_bad
+                cand_pts = torch.cat([cand_pts, pts])
+                cand_vals = torch.cat([cand_vals, tv])
+                if len(cand_vals) > 4 * keep:
+                    tv, ti = torch.topk(cand_vals, keep)
+                    cand_pts, cand_vals = cand_pts[ti], tv
     grid_best = float(cand_vals.max()) if len(cand_vals) else -math.inf
     gen = torch.Generator().manual_seed(seed)
     seeds, _ = _distinct_top(cand_pts, cand_vals, lo_t, hi_t, max(1, starts // 2), 0.02)

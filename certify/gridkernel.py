@@ -42,13 +42,15 @@ class GridKernel:
         z = z.to(self.dtype)
         B = z.shape[0]
         pre = torch.addmm(self.b[0], self.W[0], z.T)  # [h, B]
-        tang = self.W[0][:, :n].T[:, :, None].expand(n, -1, B)  # [n, h, B]
+        tang = self.W[0][:, :n, None].expand(-1, n, B)  # [h, n, B]: d pre / d xhat
         for W, b in zip(self.W[1:], self.b[1:]):
             t = torch.tanh(pre)
-            s = torch.addcmul(torch.ones_like(t), t, t, value=-1.0)
-            tang = torch.matmul(W, tang * s)  # [n, h', B]
+            s = t * t
+            s.neg_().add_(1.0)  # tanh' = 1 - tanh^2
+            scaled = (tang * s[:, None, :]).reshape(-1, n * B)
+            tang = torch.mm(W, scaled).view(W.shape[0], n, B)  # one product for all tangents
             pre = torch.addmm(b, W, t)
-        dk_dx = tang.permute(2, 1, 0)  # [B, n_out, n]
+        dk_dx = tang.permute(2, 0, 1)  # [B, n_out, n]
         xhat = z[:, :n]
         Jf = problem.system.jac_f(xhat)
         if self.has_K:

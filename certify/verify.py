@@ -15,6 +15,7 @@ import torch
 
 from certify.certificate import Certificate, decide_verdict
 from certify.checkpoint import Checkpoint, versions
+from certify.parallel import torch_threads
 from certify.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import Status
@@ -27,6 +28,12 @@ MAP_Y_SAMPLES = 41  # total samples over Y (and the other states) per map pixel
 def verify(checkpoint: Checkpoint, settings: VerifySettings | None = None, *,
            progress: Progress | None = None) -> Certificate:
     """Check a loaded checkpoint and return its Certificate (see METHOD.md §3)."""
+    settings = settings or VerifySettings()
+    with torch_threads(1):  # see certify.parallel: chunk workers beat intra-op threads here
+        return _verify(checkpoint, settings, progress or NullProgress())
+
+
+def _verify(checkpoint: Checkpoint, settings: VerifySettings, progress: Progress) -> Certificate:
     from certify.checks.bounds import check_bounds
     from certify.checks.lipschitz import check_lipschitz
     from certify.checks.mpdi import check_mpdi
@@ -36,8 +43,6 @@ def verify(checkpoint: Checkpoint, settings: VerifySettings | None = None, *,
     from certify.checks.simulation import check_simulation
     from certify.prover import bound_dk_dy
 
-    settings = settings or VerifySettings()
-    progress = progress or NullProgress()
     problem = checkpoint.problem
     torch.manual_seed(settings.seed)
     checks: dict[str, Any] = {}
