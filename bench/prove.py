@@ -20,6 +20,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from certify.checks.mpdi import joint_box
+from certify.falsify import maximize_over_box
+from certify.gridkernel import GridKernel
 from certify.kernels import mpdi_lam_max
 from certify.network import GainNetwork
 from certify.problem import Problem
@@ -34,36 +37,22 @@ K_VDP = [[8.1278], [47.7998]]
 
 def sampled_max(problem: Problem, lam: float, grid: int = 60, refine: int = 64
                 ) -> tuple[float, np.ndarray]:
-    """Max of lam_max(D) on a grid, refined by projected gradient ascent from the top points."""
-    s = problem.system
-    box = np.concatenate([s.X, s.Y], 0)
-    axes = [torch.linspace(float(a), float(b), grid, dtype=torch.float64) for a, b in box]
-    Z = torch.cartesian_prod(*axes)
-    n = s.n
-    vals = torch.cat([mpdi_lam_max(s, problem.network, problem.P_t, lam, z[:, :n], z[:, n:])
-                      for z in Z.split(65536)])
-    top = Z[torch.topk(vals, refine).indices].clone()
-    lo = torch.as_tensor(box[:, 0])
-    hi = torch.as_tensor(box[:, 1])
-    step = 0.05 * (hi - lo)
-    x = top.clone().requires_grad_(True)
-    net = problem.network
-    for it in range(200):
-        v = mpdi_lam_max(s, net, problem.P_t, lam, x[:, :n], x[:, n:])
-        g, = torch.autograd.grad(v.sum(), x)
-        with torch.no_grad():
-            x += step * torch.sign(g) * (0.97 ** it)
-            x.copy_(torch.maximum(torch.minimum(x, hi), lo))
-    with torch.no_grad():
-        v = mpdi_lam_max(s, net, problem.P_t, lam, x[:, :n], x[:, n:])
-    i = int(torch.argmax(v))
-    best = max(float(v[i]), float(vals.max()))
-    return best, x[i].detach().numpy()
+    """Max of lam_max(D) found by the falsifier (grid of grid^3 points + ascent from `refine`)."""
+    lo, hi = joint_box(problem)
+    out = maximize_over_box(GridKernel(problem, lam), lo, hi, grid_points=grid ** 3,
+                            starts=refine, steps=150, top_k=1)
+    return out.best_value, out.best_point
 
 
-def true_instance(margin: float = 0.02, seed: int = 0, scale: float = 0.3) -> Problem:
+#: lam found by `true_instance(retune=True)` for margin 0.02, seed 0, scale 0.3 (2 minutes of
+#: bisection on sampled maxima); `main` re-measures the sampled max at it and prints it.
+LAM_TUNED = 1.0991818614444298
+
+
+def true_instance(margin: float = 0.02, seed: int = 0, scale: float = 0.3,
+                  retune: bool = False) -> Problem:
     """vdp with the LMI metric and gain plus a small random 5x30 network, lam tuned so that
-    the sampled max of lam_max(D) is -margin."""
+    the sampled max of lam_max(D) is -margin (the stored LAM_TUNED unless `retune`)."""
     torch.manual_seed(seed)
     s = load_system("vdp")
     net = GainNetwork(2, 1, (30,) * 5, K=torch.tensor(K_VDP))
@@ -71,6 +60,8 @@ def true_instance(margin: float = 0.02, seed: int = 0, scale: float = 0.3) -> Pr
         net.layers[-1].weight.mul_(scale)
         net.layers[-1].bias.zero_()
     P = np.array(P_VDP)
+    if not retune and (margin, seed, scale) == (0.02, 0, 0.3):
+        return Problem(s, net, LAM_TUNED, P)
     prob = Problem(s, net, 1.0, P)
     # lam_max(D) is increasing in lam: bisection on a fixed point set (grid + refined points)
     _, where = sampled_max(prob, 1.0, grid=40, refine=32)
@@ -97,12 +88,13 @@ def main() -> None:
     ap.add_argument("--plain-seconds", type=float, default=60.0)
     ap.add_argument("--margin", type=float, default=0.02)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--retune", action="store_true", help="re-tune lam by bisection (2 min)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
     t = time.perf_counter()
-    prob = true_instance(args.margin)
+    prob = true_instance(args.margin, retune=args.retune)
     m, where = sampled_max(prob, prob.lam, grid=80, refine=64)
     print(json.dumps({"instance": "vdp-5x30-true", "lam": prob.lam, "sampled_max": m,
                       "argmax": where.tolist(), "setup_seconds": time.perf_counter() - t}),

@@ -36,6 +36,7 @@ import torch
 from certify.checks.mpdi import falsify_mpdi
 from certify.kernels import mpdi_lam_max, sym
 from certify.network import GainNetwork
+from certify.parallel import torch_threads
 from certify.problem import Problem
 from certify.prover import ProofOutcome, prove_mpdi
 from certify.results import Status
@@ -44,7 +45,7 @@ from certify.system import System
 from training import losses
 from training.collocation import collocation_points
 from training.optim import Adam
-from training.train import LossValues, Objective, _Chunk, _intra_op_threads
+from training.train import LossValues, Objective, _Chunk
 
 Log = Callable[[str], None]
 
@@ -323,7 +324,7 @@ def cegis(system: System, network: GainNetwork, P: np.ndarray, lam: float, *,
     only when `prove_mpdi` proved the MPDI for that network (a sound proof; `certify run`
     re-checks it anyway).
     """
-    with _intra_op_threads(1):
+    with torch_threads(1):
         return _cegis(system, network, P, lam, settings or CegisSettings(), points, log)
 
 

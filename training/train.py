@@ -21,9 +21,8 @@ h and dh/dx for the structural gain) is computed once, in float64, before traini
 
 from __future__ import annotations
 
-import contextlib
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -33,6 +32,7 @@ import torch
 from certify.checkpoint import versions
 from certify.kernels import sym
 from certify.network import GainNetwork
+from certify.parallel import torch_threads
 from certify.progress import NullProgress, Progress
 from certify.system import System
 from training import losses
@@ -340,21 +340,6 @@ def _new_network(system: System, config: TrainConfig) -> GainNetwork:
     return net.to(getattr(torch, config.dtype))
 
 
-@contextlib.contextmanager
-def _intra_op_threads(count: int) -> Iterator[None]:
-    """Run with `count` intra-op torch threads, restoring the caller's setting afterwards.
-
-    Training uses one intra-op thread plus its own chunk workers: on a shared machine
-    OpenMP's spinning barriers made two intra-op threads five times slower.
-    """
-    before = torch.get_num_threads()
-    torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
 def train(system: System, config: TrainConfig | None = None, *,
           progress: Progress | None = None,
           network: GainNetwork | None = None) -> TrainResult:
@@ -365,7 +350,7 @@ def train(system: System, config: TrainConfig | None = None, *,
     same thread count). `network`, if given, is the starting point (e.g. a warm start; its
     structure and widths win over the config's). Raises `SettingsError` for bad settings.
     """
-    with _intra_op_threads(1):
+    with torch_threads(1):
         return _train(system, config, progress=progress, network=network)
 
 
