@@ -16,9 +16,11 @@ from typing import Any
 
 
 class Status(str, enum.Enum):
-    """How a check ended. Only PROVED counts as a pass; UNKNOWN is never a pass."""
+    """How a check ended. PROVED is a sound result; PASSED means sampled evidence (simulation)
+    found no problem, which is never called a proof; UNKNOWN is never a pass."""
 
     PROVED = "PROVED"
+    PASSED = "PASSED"
     VIOLATED = "VIOLATED"
     UNKNOWN = "UNKNOWN"
     SKIPPED = "SKIPPED"

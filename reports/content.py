@@ -32,6 +32,7 @@ CHECK_TITLES = {
 
 STATUS_COLOURS = {  # text colour, background
     "PROVED": ("#14532d", "#dcfce7"),
+    "PASSED": ("#1e3a8a", "#dbeafe"),
     "VIOLATED": ("#7f1d1d", "#fee2e2"),
     "UNKNOWN": ("#78350f", "#fef3c7"),
     "SKIPPED": ("#374151", "#e5e7eb"),
@@ -610,7 +611,7 @@ class Section:
 
     @property
     def tone(self) -> str:
-        return {"PROVED": "good", "VIOLATED": "bad", "ERROR": "bad",
+        return {"PROVED": "good", "PASSED": "good", "VIOLATED": "bad", "ERROR": "bad",
                 "UNKNOWN": "warn"}.get(self.status, "")
 
 

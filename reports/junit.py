@@ -1,6 +1,7 @@
 """JUnit XML: one test case per check, so CI systems show the certificate natively.
 
-PROVED passes; VIOLATED is a <failure>; ERROR is an <error>; SKIPPED is <skipped>;
+PROVED and PASSED (evidence only) pass; VIOLATED is a <failure>; ERROR is an <error>;
+SKIPPED is <skipped>;
 UNKNOWN is a <failure> by default (the policy `unknown="error"` reports it as an <error>,
 to tell "could not decide" from "proved false" on dashboards). Every failure carries the
 numbers of both sides. The gate itself is the exit code; JUnit reports every check,

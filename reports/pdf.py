@@ -428,7 +428,8 @@ def render_pdf(cert: Certificate, figures: list[RenderedFigure] | None = None) -
         left, right = pairs[:half], pairs[half:] + [("", "")] * (2 * half - len(pairs))
         doc.table(["Setting", "Value", "Setting", "Value"],
                   [[a, b, c, d] for (a, b), (c, d) in zip(left, right)], [1.3, 1, 1.3, 1])
-        doc.para("Only PROVED counts as a pass; UNKNOWN is never a pass. "
+        doc.para("Only PROVED counts as a proof (PASSED: a simulation found no breach, evidence "
+                 "only); UNKNOWN is never a pass. "
                  f"Certificate schema {cert.schema} v{cert.schema_version}.", 7.8, MUTED)
         doc.flush()
     return buf.getvalue()

@@ -126,7 +126,7 @@ def test_linear_gain_stays_below_the_bound():
     bounds = check_bounds(problem, lam_cert=0.5, eps_bar=0.0, L=1.0, vbar=0.15)
     assert bounds.status == Status.PROVED
     res = check_simulation(problem, bounds, fast(), certified=True)
-    assert res.status == Status.PROVED, res.message
+    assert res.status == Status.PASSED, res.message
     bounded = [r for r in res.runs if r.noise == "bounded"]
     assert len(bounded) == 4 and bounded[0].label.startswith("source x0")
     for run in bounded:
@@ -209,7 +209,7 @@ def test_exits_are_compared_only_inside_the_window():
     assert run2.exit_time is not None and run2.exit_time > 0.05
     assert "the plant state x left X" in run2.exit_reason
     assert run2.max_ratio is not None and not run2.breach
-    assert res2.status == Status.PROVED, res2.message
+    assert res2.status == Status.PASSED, res2.message
 
 
 def test_local_lipschitz_adds_the_measured_output_condition():
@@ -236,7 +236,7 @@ def test_three_states_two_outputs(system3):
     assert bounds.status == Status.PROVED and bounds.theorem3.applicable is False
     res = check_simulation(problem, bounds, fast(sim_time=1.0, sim_initial_conditions=3),
                            certified=False)
-    assert res.status in (Status.PROVED, Status.VIOLATED, Status.UNKNOWN)
+    assert res.status in (Status.PASSED, Status.VIOLATED, Status.UNKNOWN)
     assert len(res.runs) == 4
     for run in res.runs:
         assert len(run.x0) == 3 and len(run.x[0]) == 3 and len(run.xhat[0]) == 3
@@ -279,5 +279,5 @@ xhat0 = [0.0, 0.0, 0.0]
     problem = Problem(system, linear_gain_net(3, 2, Kc), 0.5, np.eye(3))
     bounds = check_bounds(problem, lam_cert=0.5, eps_bar=0.0, L=1.0, vbar=0.2)
     res = check_simulation(problem, bounds, fast(sim_time=3.0), certified=True)
-    assert res.status == Status.PROVED, res.message
+    assert res.status == Status.PASSED, res.message
     assert all(not r.breach for r in res.runs)

@@ -303,7 +303,7 @@ def check_simulation(problem: Problem, bounds: BoundsResult | None,
                f"nothing was compared. {exit_text}.{src_text}")
     else:
         worst = max((run.max_ratio for run in runs if run.max_ratio is not None), default=0.0)
-        status = Status.PROVED
+        status = Status.PASSED  # evidence, not proof
         late = f"; after one time constant 1/(2 lam_cert): {late_ratio:.3g}" \
             if late_ratio is not None else ""
         msg = (f"no breach: in {compared} bounded-noise runs ({vtext}, RK4 dt = {dt:g}) the "
