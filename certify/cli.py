@@ -79,27 +79,17 @@ def cmd_systems(args: argparse.Namespace) -> int:
     return 0
 
 
-def _parse_matrix(text: str | None, what: str) -> Any:
-    if text is None:
-        return None
-    try:
-        value = json.loads(text)
-    except json.JSONDecodeError:
-        raise CertifyError(f"{what} must be a matrix like [[a, b], [b, c]]; got {text!r}") from None
-    return value
-
-
 def cmd_check(args: argparse.Namespace) -> int:
     from certify.checks.metric import synthesize_metric
     from certify.checks.necessary import check_necessary
-    from certify.system import load_system, validate_metric
+    from certify.system import load_system, parse_metric, validate_metric
 
     system = load_system(args.system)
     lam = system.lam if args.lam is None else args.lam
     if not lam > 0:
         raise CertifyError(f"--lam must be > 0; got {lam}")
     P = system.P if args.metric is None else validate_metric(
-        _parse_matrix(args.metric, "--metric"), system.n, "--metric")
+        parse_metric(args.metric, system.n), system.n, "--metric")
     result = check_necessary(system, P, lam)
     out: dict[str, Any] = {"necessary": result}
     print(f"pre-flight necessary condition for {system.name}, lam={lam:g}, P={P.tolist()}:")

@@ -7,7 +7,9 @@ built-ins live in `certify/systems/*.toml`; users pass a path to their own file.
 
 from __future__ import annotations
 
+import ast
 import functools
+import json
 import re
 import sys
 from dataclasses import dataclass, field
@@ -19,7 +21,7 @@ import numpy as np
 import sympy
 import torch
 
-from certify.errors import SpecError
+from certify.errors import SettingsError, SpecError
 from certify.expr import compile_torch, parse_expression
 
 if sys.version_info >= (3, 11):
@@ -233,3 +235,34 @@ def load_system(name_or_path: str | Path) -> System:
         return System.from_text(text, origin=f"spec {path.name}")
     raise SpecError(f"unknown system '{key}' (built-ins: {', '.join(builtin_names())}; "
                     "or give the path of a .toml spec)")
+
+
+def parse_metric(text: str, n: int | None = None) -> tuple[tuple[float, ...], ...]:
+    """'[[a,b],[b,c]]' -> a validated symmetric positive definite matrix (JSON or a Python
+    literal; never evaluated as code)."""
+    try:
+        value: Any = json.loads(text)
+    except (json.JSONDecodeError, TypeError):
+        try:
+            value = ast.literal_eval(str(text))
+        except (ValueError, SyntaxError, TypeError, MemoryError, RecursionError):
+            raise SettingsError(f"--metric must be a matrix like [[1, 0], [0, 1]]; got "
+                                f"{text!r}") from None
+    ok = isinstance(value, (list, tuple)) and len(value) > 0 and all(
+        isinstance(row, (list, tuple)) and len(row) == len(value)
+        and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in row)
+        for row in value)
+    if not ok:
+        raise SettingsError(f"--metric must be a square matrix of numbers like "
+                            f"[[1, 0], [0, 1]]; got {text!r}")
+    arr = np.asarray(value, dtype=np.float64)
+    if n is not None and arr.shape != (n, n):
+        raise SettingsError(f"--metric must be {n}x{n} for this system; got "
+                            f"{arr.shape[0]}x{arr.shape[1]}")
+    if not np.all(np.isfinite(arr)):
+        raise SettingsError(f"--metric has a non-finite entry; got {text!r}")
+    if not np.allclose(arr, arr.T, rtol=0, atol=1e-12 * max(1.0, float(np.abs(arr).max()))):
+        raise SettingsError(f"--metric must be symmetric; got {text!r}")
+    if float(np.linalg.eigvalsh((arr + arr.T) / 2).min()) <= 0:
+        raise SettingsError(f"--metric must be positive definite; got {text!r}")
+    return tuple(tuple(float(v) for v in row) for row in arr)

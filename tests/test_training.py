@@ -14,10 +14,10 @@ from certify import checkpoint
 from certify.errors import CertifyError, SettingsError
 from certify.kernels import contraction_matrix, gain_terms
 from certify.network import GainNetwork
-from certify.system import load_system
+from certify.system import load_system, parse_metric
 from training import losses
 from training.collocation import collocation_points
-from training.command import add_train_arguments, parse_hidden, parse_metric, run_train
+from training.command import add_train_arguments, parse_hidden, run_train
 from training.optim import LBFGS, Adam
 from training.presets import TrainConfig, make_config
 from training.train import Objective, _new_network, train

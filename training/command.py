@@ -7,8 +7,6 @@ values raise `CertifyError` subclasses, which the CLI turns into one line and ex
 from __future__ import annotations
 
 import argparse
-import ast
-import json
 import sys
 import time
 from pathlib import Path
@@ -18,7 +16,7 @@ import numpy as np
 
 from certify import checkpoint
 from certify.errors import CertifyError, SettingsError
-from certify.system import load_system
+from certify.system import load_system, parse_metric
 from training.presets import PRESETS, make_config
 from training.train import train
 
@@ -34,37 +32,6 @@ def parse_hidden(text: str) -> tuple[int, ...]:
         raise SettingsError(f"--hidden must be comma-separated positive layer widths like "
                             f"30,30,30; got {text!r}")
     return widths
-
-
-def parse_metric(text: str, n: int | None = None) -> tuple[tuple[float, ...], ...]:
-    """'[[a,b],[b,c]]' -> a validated symmetric positive definite matrix (JSON or a Python
-    literal; never evaluated as code)."""
-    try:
-        value: Any = json.loads(text)
-    except (json.JSONDecodeError, TypeError):
-        try:
-            value = ast.literal_eval(str(text))
-        except (ValueError, SyntaxError, TypeError, MemoryError, RecursionError):
-            raise SettingsError(f"--metric must be a matrix like [[1, 0], [0, 1]]; got "
-                                f"{text!r}") from None
-    ok = isinstance(value, (list, tuple)) and len(value) > 0 and all(
-        isinstance(row, (list, tuple)) and len(row) == len(value)
-        and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in row)
-        for row in value)
-    if not ok:
-        raise SettingsError(f"--metric must be a square matrix of numbers like "
-                            f"[[1, 0], [0, 1]]; got {text!r}")
-    arr = np.asarray(value, dtype=np.float64)
-    if n is not None and arr.shape != (n, n):
-        raise SettingsError(f"--metric must be {n}x{n} for this system; got "
-                            f"{arr.shape[0]}x{arr.shape[1]}")
-    if not np.all(np.isfinite(arr)):
-        raise SettingsError(f"--metric has a non-finite entry; got {text!r}")
-    if not np.allclose(arr, arr.T, rtol=0, atol=1e-12 * max(1.0, float(np.abs(arr).max()))):
-        raise SettingsError(f"--metric must be symmetric; got {text!r}")
-    if float(np.linalg.eigvalsh((arr + arr.T) / 2).min()) <= 0:
-        raise SettingsError(f"--metric must be positive definite; got {text!r}")
-    return tuple(tuple(float(v) for v in row) for row in arr)
 
 
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
