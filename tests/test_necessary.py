@@ -11,6 +11,8 @@ from certify.errors import SpecError
 from certify.results import NecessaryResult, Status, from_jsonable, to_jsonable
 from certify.system import System, load_system
 
+from .conftest import SPEC_3X2
+
 
 def test_vdp_identity_metric_fails_with_known_numbers():
     lam = 2.5
@@ -48,21 +50,9 @@ def test_vertex_bound_is_an_upper_bound():
     assert ub >= 6.0  # the true max q
 
 
-SPEC_3X2_LIN = """
-name = "three-linear-h"
-states = ["a", "b", "c"]
-outputs = ["ya", "yc"]
-f = ["b - a**3", "-a - 0.5*b + sin(c)", "-2*c + a*b"]
-h = ["a", "c + 0.1*a"]
-[box]
-X = [[-1, 1], [-1.5, 1.5], [-1, 1]]
-Y = [[-1.2, 1.2], [-1.3, 1.3]]
-"""
-
-
 def test_three_states_two_outputs():
     """ker C = span(e_b); with P = I, q = df_b/db + 2 lam = -0.5 + 2 lam everywhere."""
-    system = System.from_text(SPEC_3X2_LIN, origin="test")
+    system = System.from_text(SPEC_3X2, origin="test")  # h linear: ker C = span(e_b)
     bad = check_necessary(system, np.eye(3), 0.5, grid_points=20_000)
     assert bad.status is Status.VIOLATED
     assert bad.q_max == pytest.approx(0.5, abs=1e-9)
@@ -77,7 +67,7 @@ def test_three_states_two_outputs():
 def test_three_states_nonlinear_output():
     """h = (a + 0.2 b^2, c): ker dh = span((-0.4 b, 1, 0)); at b = 0 it is e_b again, where
     q = -0.5 + 2 lam = 0.5 > 0 (P = I, lam = 0.5): a witness must be found."""
-    spec = SPEC_3X2_LIN.replace('h = ["a", "c + 0.1*a"]', 'h = ["a + 0.2*b**2", "c"]')
+    spec = SPEC_3X2.replace('h = ["a", "c + 0.1*a"]', 'h = ["a + 0.2*b**2", "c"]')
     spec = spec.replace("[-1.2, 1.2], [-1.3, 1.3]", "[-1.5, 1.5], [-1.3, 1.3]")
     system = System.from_text(spec, origin="test")
     assert not system.h_is_linear
