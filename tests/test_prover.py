@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -67,10 +66,8 @@ def test_linear_ground_truth_mpdi(P: np.ndarray | None) -> None:
 @pytest.mark.parametrize("kind", ["corner", "edge", "blob"])
 def test_planted_violations_are_found(kind: str) -> None:
     prob = planted_problem(kind)
-    t = time.perf_counter()
-    out = prove_mpdi(prob, seconds=20.0)
+    out = prove_mpdi(prob, seconds=20.0)  # speed is measured in bench/prove.py, not here
     assert out.status is Status.VIOLATED, out.message
-    assert time.perf_counter() - t < 10.0
     cex = out.counterexample
     assert cex is not None and cex.value > 0
     # the violating set is tiny: random sampling hardly ever sees it
