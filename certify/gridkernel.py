@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from certify.kernels import lam_max, mpdi_lam_max, sym
+from certify.kernels import contraction_matrix, lam_max, mpdi_lam_max
 from certify.problem import Problem
 
 
@@ -55,4 +55,4 @@ class GridKernel:
         Jf = problem.system.jac_f(xhat)
         if self.has_K:
             dk_dx = dk_dx - self.K @ problem.system.jac_h(xhat)
-        return lam_max(sym(self.P @ (Jf + dk_dx)) + 2.0 * self.lam * self.P)
+        return lam_max(contraction_matrix(Jf, dk_dx, self.P, self.lam))

@@ -98,8 +98,8 @@ def closed_loop_jacobian(system: System, net: GainNetwork, xhat: torch.Tensor,
 def mpdi_lam_max(system: System, net: GainNetwork, P: torch.Tensor, lam: float,
                  xhat: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """lam_max(D(xhat, y)) for a batch -> [B]."""
-    J = closed_loop_jacobian(system, net, xhat, y)
-    return lam_max(sym(P @ J) + 2.0 * lam * P)
+    terms = gain_terms(system, net, xhat, y, with_dy=False)
+    return lam_max(contraction_matrix(system.jac_f(xhat), terms.dk_dx, P, lam))
 
 
 def pointwise_rate(system: System, net: GainNetwork, P: torch.Tensor, xhat: torch.Tensor,

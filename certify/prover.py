@@ -220,7 +220,7 @@ def bound_dk_dy(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_0
     return out.upper if math.isfinite(out.upper) else None
 
 
-def _kernel_basis(C: np.ndarray) -> tuple[np.ndarray, float]:
+def kernel_basis_with_error(C: np.ndarray) -> tuple[np.ndarray, float]:
     """Orthonormal basis Z of ker C (float) and a bound eps on its distance to an exact one."""
     p, n = C.shape
     U_, sv, Vt = np.linalg.svd(C)
@@ -254,7 +254,7 @@ def bound_manifold_quantity(system: System, P: np.ndarray | torch.Tensor, lam: f
     n = system.n
     x0 = torch.zeros(1, n, dtype=torch.float64)
     C = system.jac_h(x0)[0].numpy()
-    Z, eps = _kernel_basis(C)
+    Z, eps = kernel_basis_with_error(C)
     if Z.shape[1] == 0:
         return float("-inf"), None
     Zt = torch.as_tensor(Z, dtype=torch.float64)

@@ -68,6 +68,11 @@ def _is_identity(P: np.ndarray) -> bool:
     return bool(np.array_equal(P, np.eye(P.shape[0])))
 
 
+def _not_applicable(name: str, formula: str, reason: str) -> BoundResult:
+    return BoundResult(name=name, applicable=False, reason=reason, rate=None, gain=None,
+                       bias=None, bias_per_unit_noise=None, formula=formula)
+
+
 def _theorem3(P: np.ndarray, lam: float | None, eps: float | None, L: float | None,
               vbar: float, common: list[str]) -> BoundResult:
     name = "theorem3"
@@ -75,8 +80,7 @@ def _theorem3(P: np.ndarray, lam: float | None, eps: float | None, L: float | No
                "eta = lam_cert - 2 (source, Theorem 3, P = I)")
 
     def no(reason: str) -> BoundResult:
-        return BoundResult(name=name, applicable=False, reason=reason, rate=None, gain=None,
-                           bias=None, bias_per_unit_noise=None, formula=formula)
+        return _not_applicable(name, formula, reason)
 
     if common:
         return no("; ".join(common))
@@ -101,8 +105,7 @@ def _iss(name: str, lam: float | None, c0: float | None, c1: float | None, vbar:
     """ISS bound with W' <= -2 lam W + c0 + c1 vbar; ||e|| <= W / sqrt(lam_min(P))."""
 
     def no(reason: str) -> BoundResult:
-        return BoundResult(name=name, applicable=False, reason=reason, rate=None, gain=None,
-                           bias=None, bias_per_unit_noise=None, formula=formula)
+        return _not_applicable(name, formula, reason)
 
     if common:
         return no("; ".join(common))

@@ -20,6 +20,7 @@ import torch
 
 from certify import sdp
 from certify.intervals import h_enclosure, jacobian_f_enclosure
+from certify.prover import kernel_basis_with_error
 from certify.results import MetricResult, Status
 from certify.system import System
 
@@ -40,10 +41,8 @@ def output_matrix(system: System) -> np.ndarray:
 
 
 def kernel_basis(C: np.ndarray) -> np.ndarray:
-    """Orthonormal basis of ker C as columns [n, n - rank] (SVD, relative tolerance 1e-12)."""
-    _, sv, Vt = np.linalg.svd(C)
-    rank = int((sv > 1e-12 * max(1.0, float(sv.max(initial=0.0)))).sum())
-    return Vt[rank:].T.copy()
+    """Orthonormal basis of ker C as columns [n, n - rank] (see `kernel_basis_with_error`)."""
+    return kernel_basis_with_error(C)[0]
 
 
 def sub_boxes(system: System, per_dim: int, manifold: bool = True

@@ -30,6 +30,7 @@ from certify.checks.metric import (
 from certify.falsify import projected_ascent
 from certify.kernels import lam_max
 from certify.progress import NullProgress, Progress
+from certify.prover import kernel_basis_with_error
 from certify.results import NecessaryResult, Status
 from certify.settings import VerifySettings
 from certify.system import System, validate_metric
@@ -222,7 +223,7 @@ def vertex_upper_bound(system: System, P: np.ndarray, lam: float, subdivisions: 
     of 64 n u (||S|| + 1) covers LAPACK's eigenvalue error and the rounding in S."""
     if not system.h_is_linear:
         return None
-    Z = kernel_basis(output_matrix(system))
+    Z, z_err = kernel_basis_with_error(output_matrix(system))
     n = system.n
     if Z.shape[1] == 0:
         return -math.inf
@@ -239,7 +240,8 @@ def vertex_upper_bound(system: System, P: np.ndarray, lam: float, subdivisions: 
     if not np.all(np.isfinite(vals)):
         return None
     Snorm = np.abs(P).sum() * np.abs(verts.all).max(initial=0.0) + 2 * abs(lam) * np.abs(P).sum()
-    return float(vals.max() + 64 * n * np.finfo(float).eps * (Snorm + 1.0))
+    # 3 z_err ||S||: Z is within z_err of an exact orthonormal kernel basis (as in the prover)
+    return float(vals.max() + 64 * n * np.finfo(float).eps * (Snorm + 1.0) + 3 * z_err * Snorm)
 
 
 # ----------------------------------------------------------------------------------------
