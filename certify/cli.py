@@ -189,37 +189,42 @@ def cmd_train(args: argparse.Namespace) -> int:
     return run_train(args)
 
 
-def print_summary(cert: Any) -> None:
-    """The short terminal table of every check and the verdict line."""
-    from certify.certificate import summary_rows
+def print_summary(cert: Any, out: Any = None) -> None:
+    """The short table of every check (from the reports' content) and the verdict line."""
+    from reports.content import check_rows
 
-    rows = summary_rows(cert)
-    if sys.stdout.isatty():
+    out = out or sys.stdout
+    rows = [{"check": r.name, "label": r.title, "status": r.status,
+             "sampled": r.sampled.value, "proved": r.proved.value, "message": r.message,
+             "required": "yes" if r.required else ""} for r in check_rows(cert)]
+    if out.isatty():
         from rich.console import Console
         from rich.table import Table
 
-        table = Table(title=f"certify: {cert.system['name']} (lam={cert.lam:g})")
+        table = Table(title=f"certify: {cert.system.get('name', '')} (lam={cert.lam:g})")
         for col in ("check", "status", "sampled", "proved", "required"):
             table.add_column(col)
-        colours = {"PROVED": "green", "VIOLATED": "red", "UNKNOWN": "yellow", "ERROR": "red"}
+        colours = {"PROVED": "green", "PASSED": "green", "VIOLATED": "red",
+                   "UNKNOWN": "yellow", "ERROR": "red"}
         for r in rows:
             st = f"[{colours.get(r['status'], 'white')}]{r['status']}[/]"
             table.add_row(r["label"], st, r["sampled"], r["proved"], r["required"])
-        console = Console()
+        console = Console(file=out)
         console.print(table)
         for r in rows:
-            console.print(f"  {r['check']}: {r['message']}", highlight=False)
+            console.print(f"  {r['check']}: {r['message']}", highlight=False, markup=False)
         colour = {"CERTIFIED": "green", "NOT CERTIFIED": "red"}.get(cert.verdict, "yellow")
-        console.print(f"[bold {colour}]{cert.verdict}[/]: {cert.summary}", highlight=False)
+        console.print(f"[bold {colour}]{cert.verdict}[/]: ", end="", highlight=False)
+        console.print(cert.summary, highlight=False, markup=False)
         return
     width = max(len(r["label"]) for r in rows) if rows else 10
-    print(f"{'check':<{width}}  {'status':<9} {'sampled':>11} {'proved':>11}  req")
+    print(f"{'check':<{width}}  {'status':<9} {'sampled':>11} {'proved':>11}  req", file=out)
     for r in rows:
         print(f"{r['label']:<{width}}  {r['status']:<9} {r['sampled']:>11} {r['proved']:>11}  "
-              f"{r['required']}")
+              f"{r['required']}", file=out)
     for r in rows:
-        print(f"  {r['check']}: {r['message']}")
-    print(f"{cert.verdict}: {cert.summary}")
+        print(f"  {r['check']}: {r['message']}", file=out)
+    print(f"{cert.verdict}: {cert.summary}", file=out)
 
 
 # ----- parser ------------------------------------------------------------------------------
