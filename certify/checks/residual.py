@@ -87,7 +87,8 @@ class ResidualCheck(Check):
                    Quantity("Sound bound \u03b5\u0304 \u2264", r.upper, "not established",
                             sig=6),
                    Quantity("Zero by construction", r.structural),
-                   Quantity("Worst x", r.worst)))
+                   Quantity("Worst x", r.worst, "none: zero by construction"
+                            if r.structural else "not found")))
 
 
 CHECK = ResidualCheck()
