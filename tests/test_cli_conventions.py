@@ -19,6 +19,7 @@ from certify.cli import main
 from certify.settings import CHECK_NAMES
 
 from .cli_helpers import FAST_POLICY, run_cli, save_linear
+from .conftest import LINEAR_SPEC
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = str(ROOT / "examples" / "vdp_certified.ckpt")
@@ -131,20 +132,6 @@ def test_bash_completion_completes_commands_and_check_lists(tmp_path):
         text = subprocess.run([sys.executable, "-m", "certify", "completion", shell],
                               capture_output=True, text=True, timeout=120, check=True).stdout
         assert "certify" in text and "--require" in text or "-l require" in text
-
-
-LINEAR_SPEC = """
-name = "linear"
-states = ["x1", "x2"]
-outputs = ["y"]
-f = ["x2", "-2*x1 - 3*x2"]
-h = ["x1"]
-[box]
-X = [[-1, 1], [-1, 1]]
-Y = [[-1, 1]]
-[design]
-lam = 0.5
-"""
 
 
 def test_check_exit_codes_follow_the_spec_as_given(tmp_path, capsys):
