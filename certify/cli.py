@@ -193,7 +193,25 @@ def _internal_error(exc: Exception, args: argparse.Namespace) -> int:
     hint = "" if args.debug else " (re-run with --debug for the traceback)"
     print(f"certify: internal error in {where}: {internal_error_message(exc)}{hint}",
           file=sys.stderr)
+    _junit_for_crash(args, step or f"certify {args.command}", exc)
     return EXIT_INTERNAL_ERROR
+
+
+def _junit_for_crash(args: argparse.Namespace, where: str, exc: Exception) -> None:
+    """Where a JUnit file was asked for, leave one <error> case in it, so that CI shows the
+    crash in its test view instead of a missing file (best effort: stderr has the line)."""
+    path = getattr(args, "junit", None)
+    if not path or path == "-":
+        return
+    try:
+        from certify.checkpoint import atomic_write_bytes
+        from certify.checks.registry import internal_error_message
+        from reports.junit import render_internal_error
+
+        text = render_internal_error(where, internal_error_message(exc), type(exc).__name__)
+        atomic_write_bytes(path, text.encode("utf-8"))
+    except Exception:  # the crash itself may be the file system; the exit code says enough
+        pass
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -111,8 +111,8 @@ def test_escape_outside_every_check_is_exit_4_in_one_line(workdir, capsys, monke
 
     monkeypatch.setattr(verify_mod, "report_maps", boom)
     path = save_linear(workdir / "lin.ckpt")
-    argv = ["run", path, "--json", "c.json", "--quiet"] + (["--debug"] if debug else [])
-    code, out, err = run_cli(capsys, *argv)
+    argv = ["run", path, "--json", "c.json", "--junit", "c.xml", "--quiet"]
+    code, out, err = run_cli(capsys, *argv, *(["--debug"] if debug else []))
     assert code == 4
     line = ("certify: internal error in step 'figures': ValueError: figure grid has the wrong "
             "shape")
@@ -121,7 +121,14 @@ def test_escape_outside_every_check_is_exit_4_in_one_line(workdir, capsys, monke
     else:
         assert err == line + " (re-run with --debug for the traceback)\n"
     assert out == ""  # no verdict is printed for a crash
-    assert not (workdir / "c.json").exists()  # nothing half-written
+    assert not (workdir / "c.json").exists()  # no certificate, nothing half-written
+    # CI's test view shows the crash: one <error> case naming the step, no <failure>
+    cases = _junit_cases(workdir / "c.xml")
+    assert list(cases) == ["figures"]
+    error = cases["figures"].find("error")
+    assert error is not None and error.get("type") == "ValueError"
+    assert "figure grid has the wrong shape" in error.get("message")
+    assert cases["figures"].find("failure") is None
 
 
 def test_escape_while_writing_reports_names_the_step(workdir, capsys, monkeypatch):
