@@ -136,12 +136,11 @@ class ProgressDisplay:
     def _info(self, state: _Task) -> str:
         """A task's status in words: points swept, or volume closed against the budget."""
         f = state.fields
-        if "proved" in f:
-            text = f"{100 * float(f['proved']):.2f}% of the volume closed"
-            boxes = f.get("boxes")
+        if "proved" in f or state.total == 1.0:  # a proof: its total is the box's volume
+            text = f"{100 * float(f.get('proved', 0.0)):.2f}% of the volume closed"
             budget = self.budgets.get(state.name)
-            if boxes is not None:
-                text += f", {int(boxes):,}" + (f" / {budget[1]:,}" if budget else "") + " boxes"
+            text += f", {int(f.get('boxes', 0)):,}" + (f" / {budget[1]:,}" if budget else "") \
+                + " boxes"
             elapsed = time.monotonic() - state.started
             text += f", {elapsed:.0f}" + (f" / {budget[0]:g}" if budget else "") + " s"
             return text
