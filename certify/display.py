@@ -66,7 +66,8 @@ class ProgressDisplay:
         with self._lock:
             self.current_step = name
             self._step_started = time.monotonic()
-            self._tasks.clear()
+            for task in list(self._tasks):  # left over by a step that raised
+                self.finish(task)
             if self.quiet:
                 return
             if self.use_rich:
@@ -98,6 +99,7 @@ class ProgressDisplay:
     # ----- tasks inside a step (the Progress protocol) ---------------------------------
     def start(self, task: str, total: float | None = None) -> None:
         with self._lock:
+            self.finish(task)  # a task started again replaces its row
             state = _Task(task, total)
             self._tasks[task] = state
             if self.use_rich and self._rich is not None:
