@@ -7,8 +7,10 @@ import nox
 nox.options.sessions = ["tests"]
 nox.options.reuse_existing_virtualenvs = True
 
-# The pinned CPU build of PyTorch goes in first: an unpinned `torch` would pull a
-# multi-gigabyte CUDA build. The project's own requirement stays a normal range.
+# torch goes in first, pinned to the version whose CPU wheel this machine holds locally (so
+# the line gets a CPU build here; from the public index it would resolve to the CUDA build).
+# Any recent torch works: elsewhere, install it from PyTorch's CPU index
+# (--index-url https://download.pytorch.org/whl/cpu). The project's requirement is a range.
 TORCH_PIN = "torch==2.13.0"
 
 

@@ -12,18 +12,26 @@ from pathlib import Path
 from typing import Any
 
 from certify.errors import CertifyError
+from certify.figuredata import FigureData
 from certify.results import (
     RESULT_TYPES,
     Status,
-    from_jsonable,
+    result_from_jsonable,
     to_jsonable,
 )
 
 SCHEMA_NAME = "certify-certificate"
-SCHEMA_VERSION = 1
+#: v2: a check may hold a `CheckFailure` record (`"failed": true`) instead of its own
+#: result; a required check in ERROR gives INCONCLUSIVE (v1: NOT CERTIFIED). Figure arrays
+#: are laid out as in v1, so v1 documents are read unchanged.
+SCHEMA_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 
 #: Verdicts, and the exit code of `certify run` for each.
 EXIT_CODES = {"CERTIFIED": 0, "NOT CERTIFIED": 1, "INCONCLUSIVE": 3}
+#: Exit codes that are not verdicts: bad input or usage, and an internal error (a crash).
+EXIT_BAD_INPUT = 2
+EXIT_INTERNAL_ERROR = 4
 
 
 @dataclass
@@ -43,10 +51,13 @@ class Certificate:
     versions: dict[str, str]
     timings: dict[str, float]
     created: str = ""
-    #: arrays for figures (plain lists), keyed by figure name; see the schema document.
-    figures: dict[str, Any] = field(default_factory=dict)
+    #: arrays for figures (plain float lists); see `certify.figuredata` and the schema.
+    figures: FigureData = field(default_factory=FigureData)
     schema: str = SCHEMA_NAME
     schema_version: int = SCHEMA_VERSION
+
+    def __post_init__(self) -> None:
+        self.figures = FigureData.coerce(self.figures)
 
     def status_of(self, name: str) -> Status:
         result = self.checks.get(name)
@@ -62,19 +73,24 @@ class Certificate:
     def from_dict(cls, data: dict[str, Any]) -> Certificate:
         if not isinstance(data, dict) or data.get("schema") != SCHEMA_NAME:
             raise CertifyError("not a certify certificate (schema name missing)")
-        if data.get("schema_version") != SCHEMA_VERSION:
-            raise CertifyError(f"certificate schema version {data.get('schema_version')!r} is "
-                               f"not supported (this certify reads {SCHEMA_VERSION})")
-        checks = {}
-        for name, raw in (data.get("checks") or {}).items():
-            if name not in RESULT_TYPES:
-                raise CertifyError(f"certificate has an unknown check '{name}'")
-            checks[name] = from_jsonable(RESULT_TYPES[name], raw)
-        kwargs = {k: v for k, v in data.items() if k != "checks"}
+        version = data.get("schema_version")
+        if version not in READABLE_VERSIONS:
+            raise CertifyError(f"certificate schema version {version!r} is not supported "
+                               f"(this certify reads versions "
+                               f"{', '.join(map(str, READABLE_VERSIONS))})")
         try:
-            return cls(checks=checks, **kwargs)
-        except TypeError as exc:
-            raise CertifyError(f"malformed certificate ({exc})") from None
+            checks = {}
+            for name, raw in (data.get("checks") or {}).items():
+                if name not in RESULT_TYPES:
+                    raise CertifyError(f"certificate has an unknown check '{name}'")
+                checks[name] = result_from_jsonable(name, raw)
+            kwargs = {k: v for k, v in data.items() if k not in ("checks", "figures")}
+            # a v1 document is read as it is and re-stamped with the current version
+            kwargs["schema_version"] = SCHEMA_VERSION
+            return cls(checks=checks, figures=FigureData.coerce(data.get("figures")),
+                       **kwargs)
+        except (TypeError, KeyError, ValueError, AttributeError) as exc:
+            raise CertifyError(f"malformed certificate ({type(exc).__name__}: {exc})") from None
 
     @classmethod
     def load(cls, path: str | Path) -> Certificate:
@@ -92,57 +108,36 @@ def decide_verdict(checks: dict[str, Any], required: list[str],
                    allow_unknown: bool) -> tuple[str, str]:
     """Verdict and a one-line summary from the required checks' statuses.
 
-    Any required VIOLATED or ERROR -> NOT CERTIFIED; else any required UNKNOWN (or
-    SKIPPED) -> INCONCLUSIVE unless `allow_unknown`; else CERTIFIED.
+    Any required VIOLATED -> NOT CERTIFIED (a counterexample stands on its own); else any
+    required ERROR (the check failed internally: nothing was established either way) ->
+    INCONCLUSIVE, whatever `allow_unknown` says; else any required UNKNOWN (or SKIPPED, not
+    run, not applicable) -> INCONCLUSIVE unless `allow_unknown`; else CERTIFIED. Checks
+    that are not required never change the verdict; one in ERROR is named in the summary.
     """
-    failed = [n for n in required if n in checks and checks[n].status in
-              (Status.VIOLATED, Status.ERROR)]
-    unknown = [n for n in required if n not in checks or checks[n].status in
-               (Status.UNKNOWN, Status.SKIPPED)]
-    if failed:
+    def status(n: str) -> Status | None:
+        return checks[n].status if n in checks else None
+
+    violated = [n for n in required if status(n) == Status.VIOLATED]
+    errors = [n for n in required if status(n) == Status.ERROR]
+    unknown = [n for n in required if status(n) in (None, Status.UNKNOWN, Status.SKIPPED)]
+    other_errors = [n for n in checks if n not in required and status(n) == Status.ERROR]
+    aside = (f"; not required, ended in ERROR: {', '.join(other_errors)}"
+             if other_errors else "")
+    if violated:
         return "NOT CERTIFIED", "failed: " + ", ".join(
-            f"{n} ({checks[n].status.value})" for n in failed)
+            f"{n} ({checks[n].status.value})" for n in violated) + aside
+    if errors:
+        return "INCONCLUSIVE", ("check error: " + ", ".join(errors) + " ended in ERROR "
+                                "(internal failure, see its message)"
+                                + (f"; not established: {', '.join(unknown)}" if unknown
+                                   else "") + aside)
     if unknown and not allow_unknown:
-        return "INCONCLUSIVE", "not established: " + ", ".join(unknown)
+        return "INCONCLUSIVE", "not established: " + ", ".join(unknown) + aside
     note = f" (allowed unknown: {', '.join(unknown)})" if unknown else ""
-    return "CERTIFIED", "all required checks proved: " + ", ".join(required) + note
+    return "CERTIFIED", "all required checks proved: " + ", ".join(required) + note + aside
 
 
 def exit_code(certificate: Certificate) -> int:
-    """0 certified, 1 not certified, 3 inconclusive (2 is for bad input, raised earlier)."""
+    """0 certified, 1 not certified, 3 inconclusive (2 bad input and 4 internal error are
+    decided by the command line before or instead of a certificate)."""
     return EXIT_CODES[certificate.verdict]
-
-
-def _num(value: Any, digits: int = 4) -> str:
-    if value is None:
-        return "—"
-    if isinstance(value, float) and value != value:
-        return "NaN"
-    return f"{value:.{digits}g}" if isinstance(value, (int, float)) else str(value)
-
-
-def summary_rows(certificate: Certificate) -> list[dict[str, str]]:
-    """One row per check: name, status, sampled side, proved side, what it means."""
-    rows = []
-    labels = {
-        "necessary": ("pre-flight q on manifold", "q_max", "q_upper"),
-        "mpdi": ("MPDI max lam_max(D)", "lower", "upper"),
-        "rate": ("certified rate lam_cert", "sampled_upper", "proved_lower"),
-        "residual": ("BC residual eps_bar", "sampled", "upper"),
-        "lipschitz": ("Lipschitz L in y", "sampled", "value"),
-    }
-    for name, result in certificate.checks.items():
-        label, lo_key, hi_key = labels.get(name, (name, None, None))
-        sampled = _num(getattr(result, lo_key, None)) if lo_key else ""
-        proved = _num(getattr(result, hi_key, None)) if hi_key else ""
-        if name == "bounds" and getattr(result, "iss", None) is not None:
-            sampled, proved = "", _num(result.iss.bias) if result.iss.applicable else "—"
-            label = f"ISS error bound at vbar={result.vbar:g}"
-        if name == "simulation":
-            ratios = [r.max_ratio for r in result.runs if r.max_ratio is not None]
-            sampled = _num(max(ratios)) if ratios else "—"
-            label = "simulation error/bound"
-        rows.append({"check": name, "label": label, "status": result.status.value,
-                     "sampled": sampled, "proved": proved, "message": result.message,
-                     "required": "yes" if name in certificate.required else ""})
-    return rows

@@ -11,7 +11,9 @@ import datetime as _dt
 import hashlib
 import os
 import pickle
+import re
 import tempfile
+import warnings
 import zipfile
 from dataclasses import dataclass, field
 from importlib import metadata
@@ -125,22 +127,107 @@ def save(path: str | Path, *, system: System, network: GainNetwork, lam: float,
     return hashlib.sha256(buf.getvalue()).hexdigest()
 
 
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")  # a ZIP entry, or an empty archive
+_SNIFF_BYTES = 4096
+
+
+def _looks_like_text(head: bytes) -> bool:
+    """Whether the first bytes of a file are text (UTF-8, no NUL, mostly printable)."""
+    if b"\x00" in head:
+        return False
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        if exc.start < len(head) - 3:  # not just a character cut at the end of the sample
+            return False
+        text = head[:exc.start].decode("utf-8")
+    printable = sum(ch.isprintable() or ch in "\r\n\t\f" for ch in text)
+    return printable >= 0.95 * max(len(text), 1)
+
+
+def _text_hint(head: bytes) -> str:
+    start = head.lstrip()[:1]
+    if start in (b"{", b"["):
+        return " (it looks like JSON; a saved certificate is re-rendered with 'certify report')"
+    if b"states" in head and b"=" in head:
+        return " (it looks like a system spec; train a checkpoint with 'certify train')"
+    return ""
+
+
+def unreadable_reason(path: Path) -> str | None:
+    """Why `path` cannot be a checkpoint, in the user's words; None if it may be one.
+
+    Looks at the bytes before torch does, so that a text file, an empty or truncated file, a
+    ZIP archive of something else or random bytes are named as such, not by the internals of
+    the ZIP reader ("internal miniz error", "(101)").
+    """
+    size = path.stat().st_size
+    if size == 0:
+        return "not a checkpoint: the file is empty"
+    with open(path, "rb") as fh:
+        head = fh.read(_SNIFF_BYTES)
+    if head.startswith(_ZIP_MAGIC):
+        try:
+            archive = zipfile.ZipFile(path)
+        except (zipfile.BadZipFile, OSError):
+            return (f"truncated or damaged file: the ZIP archive that torch.save writes has no "
+                    f"end record ({size} bytes; was a download or copy cut short?)")
+        with archive:
+            names = archive.namelist()
+            if not any(n == "data.pkl" or n.endswith("/data.pkl") for n in names):
+                listed = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
+                return (f"not a checkpoint: the file is a ZIP archive without the data.pkl "
+                        f"record that torch.save writes (it holds {listed or 'nothing'})")
+            try:
+                broken = archive.testzip()
+            except (zipfile.BadZipFile, OSError, EOFError, ValueError):
+                broken = "?"
+            if broken is not None:
+                return (f"damaged file: the ZIP archive's record {broken!r} fails its "
+                        "checksum or is cut short")
+        return None
+    if head.startswith(b"\x80"):
+        return None  # a pickle (torch's legacy format): torch.load decides, data-only
+    if _looks_like_text(head):
+        return "not a checkpoint: the file is a text file" + _text_hint(head)
+    return ("not a checkpoint: the file is neither a ZIP archive written by torch.save nor a "
+            f"pickle (it starts with bytes {head[:8].hex(' ')})")
+
+
+def _refusal(exc: Exception) -> str:
+    """The reason torch's weights-only loader refused a pickle, in a few words."""
+    detail = str(exc).split("WeightsUnpickler error:", 1)[-1].strip().splitlines()
+    first = next((line.strip() for line in detail if line.strip()), "")
+    named = re.match(r"Unsupported global: GLOBAL (\S+)", first)
+    return (f"it references {named.group(1)}, which only code could rebuild" if named
+            else "it holds Python objects that only code could rebuild")
+
+
 def _read(path: Path) -> dict[str, Any]:
     if not path.exists():
         raise CheckpointError(f"checkpoint {path} not found")
+    if path.is_dir():
+        raise CheckpointError(f"checkpoint {path} is a directory, not a checkpoint file")
     if not path.is_file():
-        raise CheckpointError(f"checkpoint {path} is not a file")
+        raise CheckpointError(f"checkpoint {path} is not a regular file")
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
+        problem = unreadable_reason(path)
+    except OSError as exc:
+        raise CheckpointError(f"checkpoint {path} cannot be read ({exc.strerror or exc})"
+                              ) from None
+    if problem is not None:
+        raise CheckpointError(f"checkpoint {path}: {problem}")
+    try:
+        with warnings.catch_warnings():  # torch warns about pickle protocols: not the user's
+            warnings.simplefilter("ignore")
+            data = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-        raise CheckpointError(f"checkpoint {path} is not a data-only certify checkpoint "
-                              f"(refused to unpickle: {first[:160]})") from None
+        raise CheckpointError(f"checkpoint {path}: not a data-only checkpoint: {_refusal(exc)}"
+                              "; loading it would run code, so it is refused") from None
     except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError, KeyError,
             AttributeError, TypeError, IndexError) as exc:
-        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise CheckpointError(f"checkpoint {path} is not a readable checkpoint ({msg[:160]})"
-                              ) from None
+        raise CheckpointError(f"checkpoint {path}: damaged file: PyTorch cannot read it "
+                              f"({type(exc).__name__}); copy or download it again") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT_NAME:
         raise CheckpointError(f"checkpoint {path} is not a certify checkpoint "
                               f"(format name missing or not '{FORMAT_NAME}')")

@@ -1,263 +1,119 @@
-"""The `certify` command line: systems, check, train, run, report.
+"""The `certify` command line: the parser, the exit codes and the one-line error handling.
 
-Exit codes (DESIGN.md): 0 certified, 1 not certified, 2 bad input or usage, 3 inconclusive.
-Every user error is one line on stderr, prefixed `certify: error:`.
+Exit codes of `certify run`: 0 certified, 1 not certified, 2 bad input or usage, 3
+inconclusive (a required check UNKNOWN, not run, or in ERROR), 4 internal error (an
+exception escaped: one line on stderr naming the step, `--debug` for the traceback).
+A crash never exits 0 or 1. This module imports only the standard library at start-up, so
+`certify --help`, `--version` and `certify systems` answer at once; each command imports
+what it needs (`certify.commands`).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-import time
-from pathlib import Path
 from typing import Any
 
+from certify.certificate import EXIT_BAD_INPUT, EXIT_INTERNAL_ERROR
 from certify.errors import CertifyError
+from certify.settings import CHECK_NAMES
 
-EXIT_BAD_INPUT = 2
+EXIT_CODES_TEXT = ("exit codes of run: 0 certified, 1 not certified, 2 bad input or usage, "
+                   "3 inconclusive (a required check unknown or in ERROR), 4 internal error")
 
+EXAMPLES = """\
+examples:
+  certify systems                                   list the built-in systems
+  certify check vdp                                 pre-flight the spec as given
+  certify train vdp --preset certified -o vdp.ckpt  train a gain network
+  certify run vdp.ckpt --html r.html --junit r.xml  verify, write reports
+  certify run vdp.ckpt --json - --quiet | jq .verdict
+  certify run vdp.ckpt --require mpdi,rate --skip simulation
+  certify report r.json --pdf r.pdf                 re-render without verifying
+  eval "$(certify completion bash)"                 tab completion (bash, zsh, fish)
 
-class CliProgress:
-    """Progress display: rich spinner on a terminal, one plain line per finished step otherwise."""
-
-    def __init__(self, quiet: bool = False) -> None:
-        self.quiet = quiet
-        self.tty = sys.stderr.isatty()
-        self._t: dict[str, float] = {}
-        self._status = None
-        if self.tty and not quiet:
-            from rich.console import Console
-
-            self._console = Console(stderr=True)
-
-    def start(self, task: str, total: float | None = None) -> None:
-        self._t.setdefault(task, time.perf_counter())
-        if self.tty and not self.quiet and self._status is None:
-            self._status = self._console.status(f"{task} ...")
-            self._status.start()
-        elif self._status is not None:
-            self._status.update(f"{task} ...")
-
-    def update(self, task: str, advance: float = 1.0, **fields: object) -> None:
-        if self._status is not None and fields:
-            info = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                             for k, v in fields.items())
-            self._status.update(f"{task}: {info}")
-
-    def finish(self, task: str, message: str = "") -> None:
-        t0 = self._t.pop(task, None)
-        if self.quiet or t0 is None or not message:
-            return
-        line = f"  {task:<12} {message:<9} {time.perf_counter() - t0:7.1f} s"
-        if self._status is not None:
-            self._console.print(line)
-        else:
-            print(line, file=sys.stderr, flush=True)
-
-    def close(self) -> None:
-        if self._status is not None:
-            self._status.stop()
-            self._status = None
+""" + EXIT_CODES_TEXT + "."
 
 
-# ----- commands ----------------------------------------------------------------------------
-def cmd_systems(args: argparse.Namespace) -> int:
-    from certify.system import builtin_names, builtin_text, load_system
+def version() -> str:
+    """The installed distribution's version (the package's own when not installed)."""
+    from importlib import metadata
 
-    if args.name is None:
-        for name in builtin_names():
-            s = load_system(name)
-            print(f"{name:<10} n={s.n} p={s.p}  {s.description}")
-        return 0
-    system = load_system(args.name)
-    if args.name in builtin_names():
-        print(builtin_text(args.name).rstrip())
-    else:
-        print(system.source.rstrip())
-    print(f"# Jf = {system.jf_expr.tolist()}")
-    return 0
-
-
-def cmd_check(args: argparse.Namespace) -> int:
-    from certify.checks.metric import synthesize_metric
-    from certify.checks.necessary import check_necessary
-    from certify.system import load_system, parse_metric, validate_metric
-
-    system = load_system(args.system)
-    lam = system.lam if args.lam is None else args.lam
-    if not lam > 0:
-        raise CertifyError(f"--lam must be > 0; got {lam}")
-    P = system.P if args.metric is None else validate_metric(
-        parse_metric(args.metric, system.n), system.n, "--metric")
-    result = check_necessary(system, P, lam)
-    out: dict[str, Any] = {"necessary": result}
-    print(f"pre-flight necessary condition for {system.name}, lam={lam:g}, P={P.tolist()}:")
-    print(f"  {result.status.value}: {result.message}")
-    if result.rate_cap is not None:
-        print(f"  rate cap for any gain with exact BC: lam_cert <= {result.rate_cap:.4g}")
-    if result.residual_price is not None:
-        print(f"  price in residual if D <= 0 everywhere: eps_bar >= {result.residual_price:.4g}")
-    if result.explanation:
-        print("  " + result.explanation)
-    code = 0
-    if result.status.value != "PROVED" and not args.no_synthesis:
-        print(f"searching a constant metric P (SDP, margin {args.margin:g}) ...")
-        metric = synthesize_metric(system, lam, margin=args.margin)
-        out["metric"] = metric
-        print(f"  {metric.status.value}: {metric.message}")
-        if metric.P is not None:
-            print(f"  P = {json.dumps([[round(v, 6) for v in row] for row in metric.P])}  "
-                  f"(cond {metric.condition_number:.4g})")
-            print(f"  use it: certify check {args.system} --lam {lam:g} --metric "
-                  f"'{json.dumps(metric.P)}'")
-        code = 0 if metric.status.value == "PROVED" else 1
-    elif result.status.value == "VIOLATED":
-        code = 1
-    if args.json:
-        from certify.checkpoint import atomic_write_bytes
-        from certify.results import to_jsonable
-
-        atomic_write_bytes(args.json, json.dumps(to_jsonable(out), indent=1).encode())
-    return code
-
-
-def _flag_settings(args: argparse.Namespace) -> dict[str, Any]:
-    def csv(value: str | None) -> tuple[str, ...] | None:
-        return None if value is None else tuple(x.strip() for x in value.split(",") if x.strip())
-
-    return {
-        "grid_points": args.grid_points, "proof_seconds": args.proof_seconds,
-        "max_boxes": args.max_boxes, "noise": args.noise, "seed": args.seed,
-        "required": csv(args.require), "skip": csv(args.skip),
-        "allow_unknown": True if args.allow_unknown else None, "sim_time": args.sim_time,
-        "adversarial_starts": args.adversarial_starts,
-    }
-
-
-def cmd_run(args: argparse.Namespace) -> int:
-    from certify import checkpoint as ckpt_mod
-    from certify.certificate import exit_code
-    from certify.config import load_settings
-    from certify.verify import verify
-
-    settings, config_path = load_settings(
-        _flag_settings(args), Path(args.config) if args.config else None,
-        use_pyproject=not args.no_config)
-    ckpt = ckpt_mod.load(args.checkpoint)
-    if not args.quiet:
-        print(f"certify run {args.checkpoint}: system {ckpt.problem.system.name}, lam="
-              f"{ckpt.problem.lam:g}, sha256 {ckpt.sha256[:12]}"
-              + (f", policy from {config_path}" if config_path else ""), file=sys.stderr)
-    progress = CliProgress(quiet=args.quiet)
     try:
-        cert = verify(ckpt, settings, progress=progress)
-    finally:
-        progress.close()
-    _write_outputs(cert, args)
-    if not args.quiet:
-        print_summary(cert)
-    else:
-        print(f"{cert.verdict}: {cert.summary}")
-    return exit_code(cert)
+        return metadata.version("certify")
+    except metadata.PackageNotFoundError:  # pragma: no cover - running from a bare tree
+        from certify import __version__
+
+        return __version__
 
 
-def _write_outputs(cert: Any, args: argparse.Namespace) -> None:
-    targets = {k: getattr(args, k, None) for k in ("html", "pdf", "junit", "json")}
-    if not any(targets.values()):
-        return
-    from reports.render import write_reports
-
-    write_reports(cert, **targets)
-
-
-def cmd_report(args: argparse.Namespace) -> int:
-    from certify.certificate import Certificate
-
-    cert = Certificate.load(args.certificate)
-    if not any(getattr(args, k) for k in ("html", "pdf", "junit", "json")):
-        raise CertifyError("nothing to write: give --html, --pdf, --junit or --json")
-    _write_outputs(cert, args)
-    if not args.quiet:
-        print_summary(cert)
-    return 0
-
-
-def cmd_train(args: argparse.Namespace) -> int:
-    from training.command import run_train
-
-    return run_train(args)
-
-
-def print_summary(cert: Any) -> None:
-    """The short terminal table of every check and the verdict line."""
-    from certify.certificate import summary_rows
-
-    rows = summary_rows(cert)
-    if sys.stdout.isatty():
-        from rich.console import Console
-        from rich.table import Table
-
-        table = Table(title=f"certify: {cert.system['name']} (lam={cert.lam:g})")
-        for col in ("check", "status", "sampled", "proved", "required"):
-            table.add_column(col)
-        colours = {"PROVED": "green", "VIOLATED": "red", "UNKNOWN": "yellow", "ERROR": "red"}
-        for r in rows:
-            st = f"[{colours.get(r['status'], 'white')}]{r['status']}[/]"
-            table.add_row(r["label"], st, r["sampled"], r["proved"], r["required"])
-        console = Console()
-        console.print(table)
-        for r in rows:
-            console.print(f"  {r['check']}: {r['message']}", highlight=False)
-        colour = {"CERTIFIED": "green", "NOT CERTIFIED": "red"}.get(cert.verdict, "yellow")
-        console.print(f"[bold {colour}]{cert.verdict}[/]: {cert.summary}", highlight=False)
-        return
-    width = max(len(r["label"]) for r in rows) if rows else 10
-    print(f"{'check':<{width}}  {'status':<9} {'sampled':>11} {'proved':>11}  req")
-    for r in rows:
-        print(f"{r['label']:<{width}}  {r['status']:<9} {r['sampled']:>11} {r['proved']:>11}  "
-              f"{r['required']}")
-    for r in rows:
-        print(f"  {r['check']}: {r['message']}")
-    print(f"{cert.verdict}: {cert.summary}")
-
-
-# ----- parser ------------------------------------------------------------------------------
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # one line, exit 2
         self.exit(EXIT_BAD_INPUT, f"certify: error: {message} (see 'certify --help')\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="certify", description="Train and certify learned contraction "
-                     "observers. Exit codes of run: 0 certified, 1 not certified, 2 bad input, "
-                     "3 inconclusive.")
-    parser.add_argument("--version", action="version", version="certify 0.1.0")
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+def _dispatch(name: str) -> Any:
+    """A command function, imported when the command runs (not when the parser is built)."""
+    def run(args: argparse.Namespace) -> int:
+        from certify import commands
 
-    p = sub.add_parser("systems", help="list built-in systems, or print one spec")
+        return getattr(commands, f"cmd_{name}")(args)
+
+    return run
+
+
+def _report_flags(p: argparse.ArgumentParser, json_help: str) -> None:
+    p.add_argument("--html", metavar="PATH", help="write the HTML report")
+    p.add_argument("--pdf", metavar="PATH", help="write the PDF report")
+    p.add_argument("--json", metavar="PATH", help=json_help)
+    p.add_argument("--junit", metavar="PATH",
+                   help="write JUnit XML (VIOLATED is a <failure>, ERROR an <error>)")
+
+
+def build_parser(with_train: bool = True) -> argparse.ArgumentParser:
+    """The full parser. `with_train=False` leaves out `train`'s own options (they import
+    the training code); `main` builds them only when the command is `train`."""
+    formatter = argparse.RawDescriptionHelpFormatter
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true",
+                        help="on an internal error, print the traceback")
+    parser = _Parser(prog="certify", formatter_class=formatter, epilog=EXAMPLES,
+                     description="Train and certify learned contraction observers.")
+    parser.add_argument("--version", action="version", version=f"certify {version()}")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser,
+                                metavar="COMMAND")
+
+    p = sub.add_parser("systems", parents=[common], help="list built-in systems, or print one")
     p.add_argument("name", nargs="?", help="a built-in name or a spec path")
-    p.set_defaults(func=cmd_systems)
+    p.set_defaults(func=_dispatch("systems"))
 
-    p = sub.add_parser("check", help="pre-flight: necessary condition and metric synthesis")
+    p = sub.add_parser("check", parents=[common], formatter_class=formatter,
+                       help="pre-flight a spec: necessary condition and metric synthesis",
+                       epilog="exit codes: 0 the spec as given passes, 1 it fails (a metric "
+                              "that fixes it is printed when one is found), 2 bad input, "
+                              "3 undecided, 4 internal error.")
     p.add_argument("system", help="built-in name or spec path")
     p.add_argument("--lam", type=float, help="contraction rate (default: the spec's)")
     p.add_argument("--metric", help="metric P as [[a,b],[b,c]] (default: the spec's)")
     p.add_argument("--margin", type=float, default=0.05, help="SDP margin (default 0.05)")
     p.add_argument("--no-synthesis", action="store_true", help="do not search a metric")
-    p.add_argument("--json", help="write the results as JSON")
-    p.set_defaults(func=cmd_check)
+    p.add_argument("--json", metavar="PATH", help="write the results as JSON ('-': stdout)")
+    p.set_defaults(func=_dispatch("check"))
 
-    p = sub.add_parser("train", help="train a gain network and write a checkpoint")
-    from training.command import add_train_arguments
+    p = sub.add_parser("train", parents=[common],
+                       help="train a gain network and write a checkpoint")
+    if with_train:
+        from training.command import add_train_arguments
 
-    add_train_arguments(p)
-    p.set_defaults(func=cmd_train)
+        add_train_arguments(p)
+    p.set_defaults(func=_dispatch("train"))
 
-    p = sub.add_parser("run", help="verify a checkpoint and write the certificate")
-    p.add_argument("checkpoint")
-    for name in ("html", "pdf", "json", "junit"):
-        p.add_argument(f"--{name}", metavar="PATH", help=f"write the {name.upper()} report")
+    names = ", ".join(CHECK_NAMES)
+    p = sub.add_parser("run", parents=[common], formatter_class=formatter,
+                       help="verify a checkpoint and write the certificate",
+                       epilog=f"checks: {names}.\n{EXIT_CODES_TEXT}.")
+    p.add_argument("checkpoint", help="a checkpoint written by 'certify train' (.ckpt)")
+    _report_flags(p, "write the JSON certificate ('-': stdout, the rest goes to stderr)")
     p.add_argument("--grid-points", type=int, help="dense grid size over X x Y (default 1e6)")
     p.add_argument("--proof-seconds", type=float, help="prover time budget (default 60)")
     p.add_argument("--max-boxes", type=int, help="prover sub-box budget")
@@ -265,30 +121,52 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", type=float, help="noise bound vbar (default 0.15)")
     p.add_argument("--sim-time", type=float, help="simulated seconds (default 10)")
     p.add_argument("--seed", type=int, help="random seed (default 0)")
-    p.add_argument("--require", help="comma-separated checks that must pass (default mpdi)")
-    p.add_argument("--skip", help="comma-separated checks not to run")
+    p.add_argument("--require", metavar="CHECKS",
+                   help=f"comma-separated checks that must pass (default mpdi); from: {names}")
+    p.add_argument("--skip", metavar="CHECKS",
+                   help=f"comma-separated checks not to run; from: {names}")
     p.add_argument("--allow-unknown", action="store_true",
-                   help="an UNKNOWN required check does not fail the gate")
-    p.add_argument("--config", help="read [tool.certify] from this file")
+                   help="an UNKNOWN required check does not fail the gate (ERROR still does)")
+    p.add_argument("--config", metavar="PATH", help="read [tool.certify] from this file")
     p.add_argument("--no-config", action="store_true", help="ignore pyproject.toml")
     p.add_argument("--quiet", "-q", action="store_true", help="only the verdict line")
-    p.set_defaults(func=cmd_run)
+    p.set_defaults(func=_dispatch("run"))
 
-    p = sub.add_parser("report", help="re-render reports from a saved JSON certificate")
-    p.add_argument("certificate")
-    for name in ("html", "pdf", "json", "junit"):
-        p.add_argument(f"--{name}", metavar="PATH", help=f"write the {name.upper()} report")
-    p.add_argument("--quiet", "-q", action="store_true")
-    p.set_defaults(func=cmd_report)
+    p = sub.add_parser("report", parents=[common],
+                       help="re-render reports from a saved JSON certificate")
+    p.add_argument("certificate", help="a JSON certificate written by 'certify run --json'")
+    _report_flags(p, "write the JSON certificate again ('-': stdout)")
+    p.add_argument("--quiet", "-q", action="store_true", help="only the verdict line")
+    p.set_defaults(func=_dispatch("report"))
+
+    p = sub.add_parser("completion", parents=[common], formatter_class=formatter,
+                       help="print a shell completion script",
+                       epilog='bash: eval "$(certify completion bash)"\n'
+                              "zsh:  eval \"$(certify completion zsh)\"\n"
+                              "fish: certify completion fish | source")
+    p.add_argument("shell", choices=("bash", "zsh", "fish"))
+    p.set_defaults(func=_dispatch("completion"))
     return parser
 
 
+def _command_of(argv: list[str]) -> str | None:
+    """The sub-command named in argv (the first word that is not an option)."""
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(with_train=_command_of(argv) == "train")
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # usage errors (exit 2), --help and --version (exit 0)
         return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_BAD_INPUT
+    if args.debug:
+        import logging
+
+        logging.basicConfig(stream=sys.stderr, level=logging.WARNING,
+                            format="certify: debug: %(message)s")
+        logging.getLogger("certify").setLevel(logging.DEBUG)
     try:
         return int(args.func(args))
     except CertifyError as exc:
@@ -297,6 +175,43 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("certify: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # a crash: never a verdict
+        return _internal_error(exc, args)
+
+
+def _internal_error(exc: Exception, args: argparse.Namespace) -> int:
+    """One line on stderr naming where it happened and the exception; exit 4."""
+    from certify.checks.registry import internal_error_message
+
+    if args.debug:
+        import traceback
+
+        traceback.print_exception(exc, file=sys.stderr)
+    display = getattr(args, "display", None)
+    step = getattr(display, "current_step", None)
+    where = f"step '{step}'" if step else f"'certify {args.command}'"
+    hint = "" if args.debug else " (re-run with --debug for the traceback)"
+    print(f"certify: internal error in {where}: {internal_error_message(exc)}{hint}",
+          file=sys.stderr)
+    _junit_for_crash(args, step or f"certify {args.command}", exc)
+    return EXIT_INTERNAL_ERROR
+
+
+def _junit_for_crash(args: argparse.Namespace, where: str, exc: Exception) -> None:
+    """Where a JUnit file was asked for, leave one <error> case in it, so that CI shows the
+    crash in its test view instead of a missing file (best effort: stderr has the line)."""
+    path = getattr(args, "junit", None)
+    if not path or path == "-":
+        return
+    try:
+        from certify.checkpoint import atomic_write_bytes
+        from certify.checks.registry import internal_error_message
+        from reports.junit import render_internal_error
+
+        text = render_internal_error(where, internal_error_message(exc), type(exc).__name__)
+        atomic_write_bytes(path, text.encode("utf-8"))
+    except Exception:  # the crash itself may be the file system; the exit code says enough
+        pass
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,4 +1,12 @@
-"""Progress reporting protocol: the core stays silent, callers inject a display."""
+"""Progress reporting protocol: the core stays silent, callers inject a display.
+
+Two levels. A *step* is one unit of `verify()` (a check, the report maps) or of the command
+line (writing the reports); its time is the one the certificate records. A *task* is work
+inside a step (a grid sweep, a branch-and-bound proof) with optional totals and fields
+(`proved` volume fraction, `boxes`). Steps and tasks have separate namespaces, so a check
+named "lipschitz" and its inner task "lipschitz" never collide. A display that does not
+implement the step methods gets them as `start`/`finish` (see `start_step`, `finish_step`).
+"""
 
 from __future__ import annotations
 
@@ -26,3 +34,21 @@ class NullProgress:
 
     def finish(self, task: str, message: str = "") -> None:
         pass
+
+
+def start_step(progress: Progress, name: str) -> None:
+    """Tell `progress` that step `name` begins."""
+    hook = getattr(progress, "start_step", None)
+    if hook is not None:
+        hook(name)
+    else:
+        progress.start(name)
+
+
+def finish_step(progress: Progress, name: str, status: str, seconds: float) -> None:
+    """Tell `progress` that step `name` ended with `status` after `seconds` (the recorded time)."""
+    hook = getattr(progress, "finish_step", None)
+    if hook is not None:
+        hook(name, status, seconds)
+    else:
+        progress.finish(name, status)

@@ -214,6 +214,21 @@ class SimulationResult:
     seconds: float = 0.0
 
 
+@dataclass
+class CheckFailure:
+    """A check that produced no result of its own: it raised (ERROR, with the exception's
+    type and message) or its inputs were missing (SKIPPED, "not applicable" and why).
+
+    `failed` marks the record in JSON, where it stands in place of the check's own result.
+    """
+
+    status: Status
+    message: str
+    error_type: str = ""  # the exception's class name; "" when not applicable
+    seconds: float = 0.0
+    failed: bool = True
+
+
 RESULT_TYPES: dict[str, type] = {
     "mpdi": MpdiResult,
     "rate": RateResult,
@@ -248,6 +263,13 @@ def to_jsonable(obj: Any) -> Any:
 
 
 _SPECIAL = {"NaN": float("nan"), "Infinity": float("inf"), "-Infinity": float("-inf")}
+
+
+def result_from_jsonable(name: str, data: Any) -> Any:
+    """A check's result from its JSON form: its own type, or a `CheckFailure`."""
+    if isinstance(data, dict) and data.get("failed") is True:
+        return from_jsonable(CheckFailure, data)
+    return from_jsonable(RESULT_TYPES[name], data)
 
 
 def from_jsonable(cls: Any, data: Any) -> Any:

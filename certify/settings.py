@@ -14,7 +14,9 @@ from typing import Any
 
 from certify.errors import SettingsError
 
-CHECK_NAMES = ("mpdi", "rate", "residual", "lipschitz", "necessary", "bounds", "simulation")
+#: the checks `verify()` runs (each is `CHECK` in certify/checks/<name>.py), in this order
+#: unless one needs another's result (see certify.checks.registry)
+CHECK_NAMES = ("necessary", "mpdi", "rate", "residual", "lipschitz", "bounds", "simulation")
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,8 @@ from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
 
 from certify.certificate import Certificate
+from certify.figuredata import GridMap
+from certify.results import CheckFailure
 from reports.content import fmt
 
 WIDTH = 7.0  # inches: a full-width figure in both reports
@@ -43,33 +45,29 @@ STATE_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2
 # ----------------------------------------------------------------------------- helpers
 
 def _array(values: Any) -> np.ndarray:
-    """Nested lists with "NaN"/"Infinity" strings (JSON form) or floats to a float array."""
-    special = {"NaN": np.nan, "Infinity": np.inf, "-Infinity": -np.inf}
+    """Typed figure data (float lists, NaN where undefined) to a float array."""
+    return np.asarray(values, dtype=float)
 
-    def conv(v: Any) -> Any:
-        if isinstance(v, list):
-            return [conv(a) for a in v]
-        if isinstance(v, str):
-            return special.get(v, np.nan)
-        return np.nan if v is None else v
 
-    return np.asarray(conv(values), dtype=float)
+def _check(cert: Certificate, name: str) -> Any:
+    """A check's own result, or None (not run, or a `CheckFailure`: nothing to draw)."""
+    r = cert.checks.get(name)
+    return None if r is None or isinstance(r, CheckFailure) else r
 
 
 def _grid(cert: Certificate, key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray,
                                                  list[str]] | None:
     """(x [nx], y [ny], values [ny, nx], axis names) of a figure map, or None if unusable."""
-    data = (cert.figures or {}).get(key)
-    if not isinstance(data, dict):
+    data: GridMap | None = getattr(cert.figures, key, None)
+    if data is None:
         return None
     try:
-        x, y, v = _array(data["x"]), _array(data["y"]), _array(data["values"])
-    except (KeyError, ValueError, TypeError):
+        x, y, v = _array(data.x), _array(data.y), _array(data.values)
+    except (ValueError, TypeError):
         return None
     if v.ndim != 2 or v.shape != (len(y), len(x)) or v.size == 0:
         return None
-    axes = list(data.get("axes") or ["x1", "x2"])
-    return x, y, v, axes
+    return x, y, v, list(data.axes or ["x1", "x2"])
 
 
 def _new(height: float, width: float = WIDTH) -> Figure:
@@ -142,7 +140,7 @@ def fig_mpdi_map(cert: Certificate) -> Figure | None:
     fig = _new(4.3)
     ax = fig.add_subplot()
     _heatmap(fig, ax, x, y, v, label="max over y of \u03bb_max(D)", diverging=True)
-    r = cert.checks.get("mpdi")
+    r = _check(cert, "mpdi")
     if r is not None:
         pts = np.array([c.xhat[:2] for c in r.counterexamples if len(c.xhat) >= 2])
         if len(pts):
@@ -163,12 +161,12 @@ def fig_mpdi_map(cert: Certificate) -> Figure | None:
 
 def fig_prover(cert: Certificate) -> Figure | None:
     """The prover's leaf sub-boxes by status, and proved volume over time."""
-    data = (cert.figures or {}).get("proof_boxes")
-    hist = (cert.figures or {}).get("proof_history")
-    r = cert.checks.get("mpdi")
+    data = cert.figures.proof_boxes
+    hist = cert.figures.proof_history
+    r = _check(cert, "mpdi")
     if not hist and r is not None and r.proof is not None:
         hist = r.proof.volume_history
-    have_boxes = isinstance(data, dict) and data.get("lo") and data.get("hi")
+    have_boxes = data is not None and bool(data.lo) and bool(data.hi)
     if not have_boxes and not hist:
         return None
     panels = int(bool(have_boxes)) + int(bool(hist))
@@ -179,8 +177,8 @@ def fig_prover(cert: Certificate) -> Figure | None:
     if have_boxes:
         ax = axs[i]
         i += 1
-        lo, hi = _array(data["lo"]), _array(data["hi"])
-        status = np.asarray(data.get("status") or ["unknown"] * len(lo))
+        lo, hi = _array(data.lo), _array(data.hi)
+        status = np.asarray(data.status or ["unknown"] * len(lo))
         verts = np.stack([np.stack([lo[:, 0], lo[:, 1]], 1), np.stack([hi[:, 0], lo[:, 1]], 1),
                           np.stack([hi[:, 0], hi[:, 1]], 1), np.stack([lo[:, 0], hi[:, 1]], 1)],
                          axis=1)
@@ -190,7 +188,7 @@ def fig_prover(cert: Certificate) -> Figure | None:
                                          linewidths=edge, rasterized=True))
         ax.set_xlim(lo[:, 0].min(), hi[:, 0].max())
         ax.set_ylim(lo[:, 1].min(), hi[:, 1].max())
-        axes = list(data.get("axes") or ["x1", "x2"])
+        axes = list(data.axes or ["x1", "x2"])
         ax.set_xlabel(axes[0])
         ax.set_ylabel(axes[1] if len(axes) > 1 else "")
         ax.xaxis.set_major_locator(MaxNLocator(5))
@@ -228,7 +226,7 @@ def fig_necessary_map(cert: Certificate) -> Figure | None:
     fig = _new(3.9)
     ax = fig.add_subplot()
     _heatmap(fig, ax, x, y, v, label="q(x\u0302)", diverging=True)
-    r = cert.checks.get("necessary")
+    r = _check(cert, "necessary")
     if r is not None and r.witness is not None and len(r.witness) >= 2:
         ax.scatter([r.witness[0]], [r.witness[1]], marker="*", s=170, c="#fde047",
                    edgecolors="black", linewidths=0.8, zorder=6, clip_on=False,
@@ -249,7 +247,7 @@ def fig_residual_map(cert: Certificate) -> Figure | None:
     if g is None:
         return None
     x, y, v, axes = g
-    r = cert.checks.get("residual")
+    r = _check(cert, "residual")
     if r is not None and r.structural and np.all(v[np.isfinite(v)] == 0):
         return None  # zero by construction: the section says so, a blank map adds nothing
     fig = _new(3.9)
@@ -272,7 +270,7 @@ def fig_residual_map(cert: Certificate) -> Figure | None:
 
 def fig_lipschitz(cert: Certificate) -> Figure | None:
     """LipSDP / local / naive bounds against the sampled lower bound (log scale)."""
-    r = cert.checks.get("lipschitz")
+    r = _check(cert, "lipschitz")
     if r is None:
         return None
     items = [("sampled (lower)", r.sampled, "#6b7280", ""),
@@ -307,7 +305,7 @@ def fig_lipschitz(cert: Certificate) -> Figure | None:
 
 
 def _runs(cert: Certificate) -> list[Any]:
-    r = cert.checks.get("simulation")
+    r = _check(cert, "simulation")
     return [] if r is None else [run for run in r.runs if run.t]
 
 

@@ -10,6 +10,7 @@ import jinja2
 
 from certify.certificate import Certificate
 from reports import content as C
+from reports import sections as S
 from reports.figures import RenderedFigure, render_figures
 
 TEMPLATE_DIR = Path(__file__).parent / "templates"
@@ -30,7 +31,7 @@ def _figure_ctx(fig: RenderedFigure) -> dict[str, Any]:
             "css_height": round(fig.height_in * _CSS_PX_PER_IN)}
 
 
-def _table_ctx(t: C.Table) -> dict[str, Any]:
+def _table_ctx(t: S.Table) -> dict[str, Any]:
     widths = t.widths or [1.0] * len(t.header)
     total = sum(widths)
     return {"title": t.title, "header": t.header, "rows": t.rows, "fixed": t.fixed,
@@ -43,7 +44,7 @@ def context(cert: Certificate, figures: list[RenderedFigure]) -> dict[str, Any]:
     for fig in figures:
         by_section.setdefault(fig.section, []).append(_figure_ctx(fig))
     secs = []
-    for sec in C.sections(cert):
+    for sec in S.sections(cert):
         secs.append({"anchor": sec.anchor, "title": sec.title, "short": sec.short,
                      "status": sec.status,
                      "message": sec.message, "tone": sec.tone, "paragraphs": sec.paragraphs,

@@ -1,15 +1,17 @@
 """JUnit XML: one test case per check, so CI systems show the certificate natively.
 
-PROVED and PASSED (evidence only) pass; VIOLATED is a <failure>; ERROR is an <error>;
-SKIPPED is <skipped>;
+PROVED and PASSED (evidence only) pass; VIOLATED is a <failure>; ERROR (the check failed
+internally: certify's problem, not the network's) is an <error>; SKIPPED is <skipped>;
 UNKNOWN is a <failure> by default (the policy `unknown="error"` reports it as an <error>,
 to tell "could not decide" from "proved false" on dashboards). Every failure carries the
 numbers of both sides. The gate itself is the exit code; JUnit reports every check,
-required or not, and says which are required.
+required or not, and says which are required. When `certify run` stops on an internal error
+(exit 4, no certificate), `render_internal_error` gives the one <error> case CI shows instead.
 """
 
 from __future__ import annotations
 
+import datetime as _dt
 import xml.etree.ElementTree as ET
 
 from certify.certificate import Certificate
@@ -71,5 +73,22 @@ def render_junit(cert: Certificate, *, unknown: str = "failure") -> str:
                        ("unknown_policy", unknown)):
         ET.SubElement(props, "property", {"name": key, "value": value})
     suite.extend(cases)
+    ET.indent(root)
+    return ET.tostring(root, encoding="unicode", xml_declaration=True) + "\n"
+
+
+def render_internal_error(where: str, message: str, error_type: str) -> str:
+    """JUnit XML for a run that stopped on an internal error (exit 4): one <error> case."""
+    suite_attrs = {"name": "certify", "tests": "1", "failures": "0", "errors": "1",
+                   "skipped": "0", "time": "0.000"}
+    root = ET.Element("testsuites", {k: v for k, v in suite_attrs.items() if k != "skipped"})
+    stamp = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    suite = ET.SubElement(root, "testsuite", {**suite_attrs, "timestamp": stamp})
+    case = ET.SubElement(suite, "testcase", {"classname": "certify", "name": where,
+                                             "time": "0.000"})
+    ET.SubElement(case, "error", {"message": f"internal error in {where}: {message}",
+                                  "type": error_type}).text = (
+        "certify stopped on an internal error: no certificate was made. This is a problem "
+        "in certify, not a verdict on the network; re-run with --debug for the traceback.")
     ET.indent(root)
     return ET.tostring(root, encoding="unicode", xml_declaration=True) + "\n"

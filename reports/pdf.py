@@ -23,6 +23,7 @@ from matplotlib.patches import FancyBboxPatch, Rectangle
 
 from certify.certificate import Certificate
 from reports import content as C
+from reports import sections as S
 from reports.figures import RenderedFigure, render_figures
 
 PAGE_W, PAGE_H = 8.27, 11.69  # A4, inches
@@ -356,7 +357,7 @@ def _verdict(doc: _Doc, cert: Certificate) -> None:
     doc.y += h + 0.18
 
 
-def _section(doc: _Doc, sec: C.Section, figures: list[RenderedFigure]) -> None:
+def _section(doc: _Doc, sec: S.Section, figures: list[RenderedFigure]) -> None:
     doc.heading(sec.title, 1, sec.status)
     if sec.message:
         tone = {"good": ("#f0fdf4", "#15803d"), "bad": ("#fef2f2", "#b91c1c"),
@@ -418,7 +419,7 @@ def render_pdf(cert: Certificate, figures: list[RenderedFigure] | None = None) -
         tims += [("", "")] * (n - len(tims))
         doc.table(["Package", "Version", "Step", "Time"],
                   [[a, b, c, d] for (a, b), (c, d) in zip(vers, tims)], [1, 1, 1, 1])
-        for sec in C.sections(cert):
+        for sec in S.sections(cert):
             _section(doc, sec, by_section.get(sec.anchor, []))
         doc.heading("Settings", 1)
         doc.para("The settings this certificate was checked with. Required checks: "

@@ -12,10 +12,7 @@ from pathlib import Path
 
 from certify.certificate import Certificate
 from certify.checkpoint import atomic_write_bytes
-from reports.figures import render_figures
-from reports.html import render_html
 from reports.junit import render_junit
-from reports.pdf import render_pdf
 
 PathLike = str | Path
 
@@ -25,14 +22,22 @@ def render_reports(certificate: Certificate, *, html: bool = False, pdf: bool = 
                    unknown: str = "failure") -> dict[str, bytes]:
     """The requested reports as bytes, keyed 'html' / 'pdf' / 'junit' / 'json'."""
     out: dict[str, bytes] = {}
-    figures = render_figures(certificate) if (html or pdf) else []
+    figures = []
+    if html or pdf:  # matplotlib is imported only when a figure is drawn
+        from reports.figures import render_figures
+
+        figures = render_figures(certificate)
     if json:
         out["json"] = (certificate.to_json() + "\n").encode("utf-8")
     if junit:
         out["junit"] = render_junit(certificate, unknown=unknown).encode("utf-8")
     if html:
+        from reports.html import render_html
+
         out["html"] = render_html(certificate, figures).encode("utf-8")
     if pdf:
+        from reports.pdf import render_pdf
+
         out["pdf"] = render_pdf(certificate, figures)
     return out
 

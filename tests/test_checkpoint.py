@@ -128,7 +128,7 @@ def test_crafted_pickle_is_refused_without_running(tmp_path, container):
     else:
         torch.save({"format": "certify-checkpoint", "x": _Payload(target)}, path)
         assert zipfile.is_zipfile(path)
-    with pytest.raises(CheckpointError, match="refused to unpickle|not a readable"):
+    with pytest.raises(CheckpointError, match="not a data-only checkpoint"):
         checkpoint.load(path)
     assert not target.exists()
 

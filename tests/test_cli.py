@@ -6,31 +6,13 @@ import json
 import subprocess
 import sys
 
-import numpy as np
 import pytest
 
 from certify import checkpoint
-from certify.cli import main
 from certify.system import load_system
 
+from .cli_helpers import FAST_POLICY, A, C, K, run_cli, save_problem
 from .planted import lam_cert_linear, linear_problem, planted_problem
-
-FAST_POLICY = """
-[tool.certify]
-grid_points = 20000
-adversarial_starts = 8
-adversarial_steps = 30
-proof_seconds = 30
-residual_seconds = 5
-lipschitz_seconds = 5
-sim_time = 1.0
-sim_dt = 0.005
-sim_initial_conditions = 2
-"""
-
-A = np.array([[0.0, 1.0], [-2.0, -3.0]])
-C = np.array([[1.0, 0.0]])
-K = np.array([[1.0], [-2.0]])
 
 
 @pytest.fixture
@@ -38,18 +20,6 @@ def workdir(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "pyproject.toml").write_text(FAST_POLICY)
     return tmp_path
-
-
-def save_problem(path, problem):
-    checkpoint.save(path, system=problem.system, network=problem.network, lam=problem.lam,
-                    P=problem.P)
-    return str(path)
-
-
-def run_cli(capsys, *argv):
-    code = main(list(argv))
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def test_systems_lists_and_prints(capsys):

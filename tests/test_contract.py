@@ -14,16 +14,25 @@ import torch
 
 from certify import checkpoint
 from certify.certificate import Certificate
+from certify.checks.base import Presentation, Quantity
 from certify.checks.bounds import check_bounds
 from certify.checks.lipschitz import check_lipschitz
 from certify.checks.mpdi import check_mpdi
 from certify.checks.necessary import check_necessary
 from certify.checks.rate import check_rate
+from certify.checks.registry import get_check, presentation, run_order
 from certify.checks.residual import check_residual
 from certify.checks.simulation import check_simulation
 from certify.problem import Problem
-from certify.results import RESULT_TYPES, Status, from_jsonable, to_jsonable
-from certify.settings import VerifySettings
+from certify.results import (
+    RESULT_TYPES,
+    CheckFailure,
+    Status,
+    from_jsonable,
+    result_from_jsonable,
+    to_jsonable,
+)
+from certify.settings import CHECK_NAMES, VerifySettings
 from certify.verify import verify
 
 from .conftest import random_network
@@ -129,7 +138,7 @@ def test_same_seed_same_certificate(tmp_path, system3):
             if isinstance(check.get("solver"), dict):
                 check.pop("solver")
         d["figures"].pop("proof_history", None)
-        d["figures"].pop("proof_boxes", None)
+        d["figures"].pop("proof_boxes", None)  # the prover's leaves depend on its timing
         return d
 
     assert a.verdict == b.verdict
@@ -145,3 +154,72 @@ def test_settings_are_frozen_and_echoed():
     with pytest.raises(dataclasses.FrozenInstanceError):
         SETTINGS.grid_points = 3  # type: ignore[misc]
     assert np.isclose(dataclasses.asdict(SETTINGS)["noise"], 0.15)
+
+
+# ----------------------------------------------------------------------------- check protocol
+
+_PLAIN = (type(None), bool, int, float, str)
+
+
+def _plain(value) -> bool:
+    if isinstance(value, (list, tuple)):
+        return all(_plain(v) for v in value)
+    return isinstance(value, _PLAIN)
+
+
+@pytest.mark.parametrize("structure", ["direct", "structural"])
+@pytest.mark.parametrize("name", CHECK_NAMES)
+def test_every_registered_check_presents_its_result_as_plain_data(results, structure, name):
+    """Each check object declares its result type and settings, and its presenter returns
+    pure data (labels, numbers, reasons): the reports format it, nothing here imports them."""
+    check = get_check(name)
+    result = results[structure][name]
+    assert check.name == name and check.title
+    assert isinstance(result, check.result_type) and RESULT_TYPES[name] is check.result_type
+    assert set(check.reads) <= set(dataclasses.asdict(SETTINGS)), check.reads
+    assert set(check.needs) | set(check.uses) <= set(CHECK_NAMES)
+    cert = Certificate(verdict="INCONCLUSIVE", summary="", checks={name: result},
+                       required=[], settings=dataclasses.asdict(SETTINGS), system={},
+                       lam=0.1, P=np.eye(3).tolist(), network={}, checkpoint={},
+                       versions={}, timings={})
+    pres = presentation(name, result, cert)
+    assert isinstance(pres, Presentation)
+    quantities = [pres.sampled, pres.proved, *pres.setting, *pres.numbers, *pres.facts]
+    assert all(isinstance(q, Quantity) for q in quantities)
+    for q in quantities:
+        assert _plain(q.value), (name, q)
+    for q in (pres.sampled, pres.proved):  # a missing number in the table says why
+        assert q.value is not None or q.missing, (name, q)
+
+
+def test_run_order_puts_what_a_check_uses_first():
+    order = [c.name for c in run_order()]
+    assert sorted(order) == sorted(CHECK_NAMES)
+    for check in run_order():
+        for dep in (*check.needs, *check.uses):
+            assert order.index(dep) < order.index(check.name), (dep, check.name)
+
+
+def test_failure_record_presents_and_round_trips():
+    failure = CheckFailure(Status.ERROR, "internal error: ValueError: x", "ValueError", 0.5)
+    data = json.loads(json.dumps(to_jsonable(failure)))
+    back = result_from_jsonable("mpdi", data)
+    assert back == failure
+    pres = presentation("mpdi", back, None)
+    assert pres.proved.value is None and pres.proved.missing == "internal error"
+    assert ("Exception", "ValueError") in [(q.label, q.value) for q in pres.facts]
+
+
+def test_maps_are_computed_only_when_asked(tmp_path, system3):
+    path = tmp_path / "c.ckpt"
+    problem = _problem(system3)
+    checkpoint.save(path, system=system3, network=problem.network, lam=problem.lam)
+    ck = checkpoint.load(path)
+    quick = dataclasses.replace(SETTINGS, skip=("lipschitz", "simulation", "rate"))
+    bare = verify(ck, quick, figures=False)
+    assert bare.figures.mpdi_map is None and bare.figures.necessary_map is None
+    assert "figures" not in bare.timings
+    full = verify(ck, quick)
+    assert full.figures.mpdi_map is not None and full.figures.residual_map is not None
+    assert len(full.figures.mpdi_map.values) == len(full.figures.mpdi_map.y)
+    assert bare.checks["mpdi"].lower == full.checks["mpdi"].lower  # same numbers either way

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import re
 import shutil
@@ -25,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import fixtures_certificates as F  # noqa: E402
 
 from certify.certificate import Certificate  # noqa: E402
+from certify.figuredata import FigureData, GridMap  # noqa: E402
 from certify.results import Status  # noqa: E402
 from reports import content as C  # noqa: E402
 from reports import figures as figmod  # noqa: E402
@@ -193,7 +195,8 @@ def test_html_sections_present() -> None:
 
 def test_missing_figure_data_is_skipped() -> None:
     cert = F.violated_vdp_certificate()
-    cert.figures = {"mpdi_map": {"x": [0, 1], "y": [0], "values": [[1.0]]}}  # malformed
+    # malformed: 1 value for a 2 x 1 grid
+    cert.figures = FigureData(mpdi_map=GridMap(x=[0.0, 1.0], y=[0.0], values=[[1.0]]))
     cert.checks["simulation"].runs = []
     doc = render_html(cert)
     p = parse_html(doc)
@@ -209,16 +212,21 @@ def test_round_trip_through_json_gives_the_same_html() -> None:
     assert render_html(again).encode("utf-8") == data["html"]
 
 
-def test_nan_in_figure_arrays_as_float_or_string() -> None:
-    cert = F.inconclusive_certificate()
-    values = cert.figures["necessary_map"]["values"]
-    assert any(v == "NaN" for row in values for v in row)
-    as_float = [[float("nan") if v == "NaN" else v for v in row] for row in values]
-    cert.figures["necessary_map"]["values"] = as_float
-    fig = figmod.fig_necessary_map(cert)
-    assert fig is not None
-    a = figmod._array(values)
-    assert a.shape == (len(values), len(values[0])) and (a != a).any()
+def test_figure_data_is_typed_and_nan_survives_json() -> None:
+    """Figure arrays are floats (NaN where undefined), in memory and after a JSON round trip:
+    the JSON spelling "NaN" is decoded once, by the certificate reader."""
+    cert = F.inconclusive_certificate()  # built from a dict with "NaN" strings
+    values = cert.figures.necessary_map.values
+    assert all(isinstance(v, float) for row in values for v in row)
+    assert any(math.isnan(v) for row in values for v in row)
+    text = cert.to_json()
+    assert '"NaN"' in text  # JSON has no NaN literal
+    again = Certificate.from_dict(json.loads(text))
+    back = again.figures.necessary_map.values
+    assert all(isinstance(v, float) for row in back for v in row)
+    assert [[math.isnan(v) for v in row] for row in back] == \
+        [[math.isnan(v) for v in row] for row in values]
+    assert figmod.fig_necessary_map(again) is not None
 
 
 # ----------------------------------------------------------------------------- PDF
@@ -337,7 +345,7 @@ def test_junit_unknown_policy_error_and_skipped_and_error_statuses() -> None:
 
 def test_write_reports_writes_all_four(tmp_path: Path) -> None:
     cert = F.inconclusive_certificate()
-    cert.figures, cert.checks["simulation"].runs = {}, []  # fewer figures: a quicker test
+    cert.figures, cert.checks["simulation"].runs = FigureData(), []  # fewer figures: quicker
     paths = write_reports(cert, html=tmp_path / "r.html", pdf=tmp_path / "r.pdf",
                           junit=tmp_path / "r.xml", json=tmp_path / "out" / "r.json")
     assert [p.name for p in paths] == ["r.html", "r.pdf", "r.xml", "r.json"]

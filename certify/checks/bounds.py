@@ -19,9 +19,11 @@ Bounds, with e = x - xhat, W = ||P^(1/2) e||, c = ||P^(1/2)||_2 (eps_bar + L vba
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
+from certify.checks.base import Check, Context, Presentation, Quantity
 from certify.errors import SettingsError
 from certify.problem import Problem
 from certify.results import BoundResult, BoundsResult, Status
@@ -302,3 +304,60 @@ def ultimate_bound_per_unit_noise(*, lam_cert: float | None, eps_bar: float | No
     if lam_cert <= 0 or eps_bar < 0 or L < 0 or vbar < 0 or kappa_P < 1:  # type: ignore[operator]
         return None
     return _up(math.sqrt(kappa_P) * (eps_bar + L * vbar) / (2.0 * lam_cert))  # type: ignore[operator]
+
+
+# ----------------------------------------------------------------------------- check protocol
+
+def _bias_quantity(label: str, b: BoundResult | None) -> Quantity:
+    if b is None:
+        return Quantity(label, None, "not computed")
+    if not b.applicable:
+        return Quantity(label, None, "not applicable")
+    return Quantity(label, b.bias)
+
+
+class BoundsCheck(Check):
+    """Theorem 3 as stated and the ISS bounds, from the proved rate, residual and L."""
+
+    name = "bounds"
+    title = "Error bounds (Theorem 3, ISS)"
+    result_type = BoundsResult
+    reads = ("noise",)
+    uses = ("rate", "residual", "lipschitz")
+
+    def run(self, context: Context) -> BoundsResult:
+        rate, res, lip = (context.result(n) for n in ("rate", "residual", "lipschitz"))
+        lam_cert = None
+        if rate is not None:  # a sampled rate <= 0 already rules a bound out; else the proof
+            lam_cert = rate.sampled_upper if rate.sampled_upper <= 0 else rate.proved_lower
+        # sup ||P^(1/2) k(x, h(x))|| is known exactly only when k vanishes there by design
+        eps_bar_P = 0.0 if res is not None and res.structural else None
+        return check_bounds(
+            context.problem, lam_cert=lam_cert, eps_bar=res.upper if res is not None else None,
+            L=lip.value if lip is not None else None, vbar=context.settings.noise,
+            eps_bar_P=eps_bar_P, L_P=lip.lipsdp_P if lip is not None else None,
+            L_is_local=bool(lip is not None and lip.which == "local"))
+
+    def present(self, r: BoundsResult, certificate: Any) -> Presentation:
+        numbers = [Quantity("vbar", r.vbar, sig=6), Quantity("lam_cert", r.lam_cert, sig=6),
+                   Quantity("eps_bar", r.eps_bar, sig=6), Quantity("L", r.L, sig=6)]
+        for b in (r.theorem3, r.iss, r.iss_metric):
+            if b is not None and b.applicable:
+                numbers += [Quantity(f"{b.name} bias", b.bias, sig=6),
+                            Quantity(f"{b.name} rate", b.rate, sig=6),
+                            Quantity(f"{b.name} gain", b.gain, sig=6)]
+            elif b is not None:
+                numbers.append(Quantity(b.name, f"not applicable: {b.reason}"))
+        return Presentation(
+            sampled=_bias_quantity("Theorem 3 (as stated): ultimate bias", r.theorem3),
+            proved=_bias_quantity("ISS bound: ultimate bias", r.iss),
+            setting=(Quantity("v\u0304 =", r.vbar),
+                     Quantity("\u03bb_cert used:", r.lam_cert, "none")),
+            numbers=tuple(numbers),
+            facts=(Quantity("Status", r.status.value), Quantity("Noise level v\u0304", r.vbar),
+                   Quantity("\u03bb_cert used", r.lam_cert, "none: no bound"),
+                   Quantity("\u03b5\u0304 used", r.eps_bar), Quantity("L used", r.L),
+                   Quantity("cond(P)", r.kappa_P)))
+
+
+CHECK = BoundsCheck()

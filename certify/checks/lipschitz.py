@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Any
 
 import numpy as np
 import torch
 
 from certify import sdp
+from certify.checks.base import Check, Context, Presentation, Quantity
 from certify.falsify import maximize_over_box
 from certify.kernels import gain_terms
 from certify.network import GainNetwork
@@ -208,3 +210,48 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
         local_upper=local_upper, value=value, which=which, solver=solver, seconds=seconds,
         lipsdp_P=lipsdp_P,
     )
+
+
+# ----------------------------------------------------------------------------- check protocol
+
+class LipschitzCheck(Check):
+    """L, the Lipschitz constant of k in y: LipSDP, the local interval bound, naive, sampled."""
+
+    name = "lipschitz"
+    title = "Lipschitz constant L"
+    result_type = LipschitzResult
+    reads = ("lipschitz_seconds", "max_boxes", "grid_points", "seed")
+
+    def run(self, context: Context) -> LipschitzResult:
+        from certify.prover import bound_dk_dy
+
+        s = context.settings
+        local = bound_dk_dy(context.problem, seconds=s.lipschitz_seconds, max_boxes=s.max_boxes)
+        return check_lipschitz(context.problem, s, progress=context.progress,
+                               local_upper=local)
+
+    def present(self, r: LipschitzResult, certificate: Any) -> Presentation:
+        s = certificate.settings or {}
+        which = f" ({r.which})" if r.which else ""
+        solver = (r.solver or {}).get("name", "")
+        setting = [Quantity("budget", s.get("lipschitz_seconds"), suffix=" s")]
+        if solver:
+            setting.append(Quantity("LipSDP with", solver))
+        facts = [Quantity("Used", r.value, "no sound bound", suffix=which)]
+        if r.solver:
+            facts += [Quantity(f"LipSDP solver: {k}", v) for k, v in r.solver.items()
+                      if not isinstance(v, (dict, list))]
+        return Presentation(
+            sampled=Quantity("L \u2265 (sampled max \u2016\u2202k/\u2202y\u2016)", r.sampled),
+            proved=Quantity("L \u2264 (bound used)", r.value, "no sound bound", suffix=which),
+            setting=tuple(setting),
+            numbers=(Quantity("LipSDP (verified)", r.lipsdp, "not verified", sig=6),
+                     Quantity("LipSDP raw", r.lipsdp_raw, sig=6),
+                     Quantity("LMI max eigenvalue", r.lipsdp_lmi_max_eig, sig=3, signed=True),
+                     Quantity("local interval bound", r.local_upper, sig=6),
+                     Quantity("naive", r.naive, sig=6), Quantity("sampled", r.sampled, sig=6),
+                     Quantity("used", r.value, sig=6, suffix=which)),
+            facts=tuple(facts))
+
+
+CHECK = LipschitzCheck()

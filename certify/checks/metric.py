@@ -14,11 +14,13 @@ import itertools
 import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
 from certify import sdp
+from certify.checks.base import Check, Presentation, Quantity
 from certify.intervals import h_enclosure, jacobian_f_enclosure
 from certify.prover import kernel_basis_with_error
 from certify.results import MetricResult, Status
@@ -353,3 +355,35 @@ def observer_lmi(system: System, lam: float, *, margin: float = DEFAULT_MARGIN,
            f"vertices of the Jf enclosures on {verts.boxes} sub-boxes (re-checked in numpy)")
     return MetricResult(Status.PROVED, msg, P.tolist(), cond, margin, lam, K=K.tolist(),
                         solver=info, seconds=time.perf_counter() - t0)
+
+
+# ----------------------------------------------------------------------------- check protocol
+
+class MetricCheck(Check):
+    """A constant metric P by SDP. Run by `certify check` (pre-flight), not by `verify()`,
+    whose problem already fixes P; registered so that reports can present its result."""
+
+    name = "metric"
+    title = "Metric P (SDP)"
+    result_type = MetricResult
+
+    def present(self, r: MetricResult, certificate: Any) -> Presentation:
+        solver = r.solver or {}
+        facts = [Quantity("P", r.P), Quantity("cond(P)", r.condition_number),
+                 Quantity("SDP margin", r.margin, signed=True), Quantity("\u03bb", r.lam),
+                 Quantity("Output-injection gain K", r.K)]
+        facts += [Quantity(f"Solver {k}", v) for k, v in solver.items()
+                  if not isinstance(v, (dict, list))]
+        if r.witness is not None:
+            facts += [Quantity("Witness x\u0302 (no constant P works here)", r.witness),
+                      Quantity("Witness y", r.witness_y)]
+        return Presentation(
+            sampled=Quantity("condition number of P", r.condition_number),
+            proved=Quantity("SDP margin", r.margin, signed=True),
+            setting=(Quantity("\u03bb =", r.lam), Quantity("solver", solver.get("name", "SDP"))),
+            numbers=(Quantity("P", r.P, sig=6), Quantity("cond P", r.condition_number, sig=6),
+                     Quantity("margin", r.margin, sig=6)),
+            facts=tuple(facts))
+
+
+CHECK = MetricCheck()

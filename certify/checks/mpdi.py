@@ -13,7 +13,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from certify.checks.base import Check, Context, Presentation, Quantity
 from certify.falsify import SearchOutcome, maximize_over_box
+from certify.figuredata import ProofBoxes
 from certify.gridkernel import GridKernel
 from certify.kernels import mpdi_lam_max
 from certify.problem import Problem
@@ -128,3 +130,66 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
 
 def _fmt(values: list[float]) -> str:
     return "(" + ", ".join(f"{v:.4g}" for v in values) + ")"
+
+
+# ----------------------------------------------------------------------------- check protocol
+
+class MpdiCheck(Check):
+    """The MPDI on X x Y: grid + ascent for counterexamples, then the prover."""
+
+    name = "mpdi"
+    title = "MPDI: D(x\u0302, y) \u2aaf 0"
+    result_type = MpdiResult
+    reads = ("grid_points", "float32_screen", "adversarial_starts", "adversarial_steps",
+             "top_counterexamples", "proof_seconds", "max_boxes", "seed")
+
+    def run(self, context: Context) -> MpdiResult:
+        scratch: dict[str, Any] = {}
+        result = check_mpdi(context.problem, context.settings, progress=context.progress,
+                            figures=scratch)
+        boxes = scratch.get("proof_boxes")
+        if boxes and boxes.get("lo"):
+            context.figures.proof_boxes = ProofBoxes(
+                lo=boxes["lo"], hi=boxes["hi"], status=boxes["status"],
+                axes=list(context.problem.system.states[:2]))
+        context.figures.proof_history = list(scratch.get("proof_history") or [])
+        return result
+
+    def present(self, r: MpdiResult, certificate: Any) -> Presentation:
+        s = certificate.settings or {}
+        why_no_upper = ("not needed: counterexample found" if r.status == Status.VIOLATED
+                        else "no proof attempted")
+        upper = Quantity("sound upper bound on max \u03bb_max(D)", r.upper, why_no_upper,
+                         signed=True)
+        numbers = [Quantity("lower (sampled max lambda_max(D))", r.lower, sig=6, signed=True),
+                   Quantity("upper (proved bound)", r.upper, why_no_upper, sig=6, signed=True),
+                   Quantity("violating fraction of grid", r.violating_fraction),
+                   Quantity("counterexamples", len(r.counterexamples))]
+        facts = [Quantity("Status", r.status.value),
+                 Quantity("Sampled max \u03bb_max(D)", r.lower, sig=6, signed=True),
+                 Quantity("Proved upper bound", r.upper, why_no_upper, sig=6, signed=True),
+                 Quantity("Violating fraction of the grid", 100 * r.violating_fraction,
+                          suffix=" %"),
+                 Quantity("Grid points", r.grid_points),
+                 Quantity("Ascent starts", r.adversarial_starts)]
+        if r.worst is not None:
+            numbers.append(Quantity("worst xhat, y", [*r.worst.xhat, *r.worst.y]))
+            facts += [Quantity("Worst point x\u0302", r.worst.xhat),
+                      Quantity("Worst point y", r.worst.y),
+                      Quantity("\u03bb_max(D) at the worst point", r.worst.value, sig=5,
+                               signed=True)]
+        if r.proof is not None:
+            numbers += [Quantity("boxes processed", r.proof.boxes_processed),
+                        Quantity("proved volume fraction", r.proof.proved_volume_fraction),
+                        Quantity("budget exhausted", r.proof.budget_exhausted)]
+        return Presentation(
+            sampled=Quantity("max \u03bb_max(D) found (grid + ascent)", r.lower, signed=True),
+            proved=upper,
+            setting=(Quantity("grid points \u2265", r.grid_points or s.get("grid_points")),
+                     Quantity("ascent starts", r.adversarial_starts),
+                     Quantity("proof budget", s.get("proof_seconds"), suffix=" s"),
+                     Quantity("box budget", s.get("max_boxes"))),
+            numbers=tuple(numbers), facts=tuple(facts))
+
+
+CHECK = MpdiCheck()

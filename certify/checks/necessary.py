@@ -16,10 +16,12 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Any
 
 import numpy as np
 import torch
 
+from certify.checks.base import Check, Context, Presentation, Quantity
 from certify.checks.metric import (
     enclosure_vertices,
     kernel_basis,
@@ -394,3 +396,43 @@ def _explain(status: Status, P: np.ndarray, lam: float, q_max: float, xw: torch.
     return (f"No point violating the necessary condition was found (largest value "
             f"{q_max:.4g}), but it could not be proved everywhere within the budget; the MPDI "
             f"check decides for the network itself.{cap}")
+
+
+# ----------------------------------------------------------------------------- check protocol
+
+class NecessaryCheck(Check):
+    """The network-independent pre-flight: q <= 0 on the output manifold."""
+
+    name = "necessary"
+    title = "Pre-flight necessary condition"
+    result_type = NecessaryResult
+    reads = ("grid_points", "seed")
+
+    def run(self, context: Context) -> NecessaryResult:
+        p = context.problem
+        return check_necessary(p.system, p.P, p.lam, context.settings,
+                               progress=context.progress)
+
+    def present(self, r: NecessaryResult, certificate: Any) -> Presentation:
+        return Presentation(
+            sampled=Quantity("max q found", r.q_max, signed=True),
+            proved=Quantity("q \u2264 (sound bound)", r.q_upper, "not bounded", signed=True),
+            setting=(Quantity("\u03bb =", certificate.lam),
+                     Quantity("P =", certificate.P, sig=3)),
+            numbers=(Quantity("q_max", r.q_max, sig=6, signed=True),
+                     Quantity("q_upper", r.q_upper, sig=6, signed=True),
+                     Quantity("witness", r.witness), Quantity("rate cap", r.rate_cap, sig=6),
+                     Quantity("residual price", r.residual_price, sig=6)),
+            facts=(Quantity("Status", r.status.value),
+                   Quantity("max q found", r.q_max, sig=6, signed=True),
+                   Quantity("Sound bound q \u2264", r.q_upper, "not bounded", sig=6,
+                            signed=True),
+                   Quantity("Witness x\u0302", r.witness),
+                   Quantity("Witness y = h(x\u0302)", r.witness_y),
+                   Quantity("Rate cap (any gain with exact BC)", r.rate_cap, "not computed",
+                            sig=5, signed=True),
+                   Quantity("Price in residual (\u03b5\u0304 \u2265)", r.residual_price,
+                            "not applicable", sig=5)))
+
+
+CHECK = NecessaryCheck()

@@ -7,9 +7,11 @@ lam_cert (a point where the rate is low); the prover gives a proved lower bound.
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import torch
 
+from certify.checks.base import Check, Context, Presentation, Quantity
 from certify.checks.mpdi import counterexamples_from, joint_box
 from certify.falsify import maximize_over_box
 from certify.kernels import pointwise_rate
@@ -73,3 +75,44 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
         status, msg = Status.UNKNOWN, (
             f"lam_cert <= {sampled_upper:.4g} (sampled); {lower}")
     return RateResult(status, msg, problem.lam, sampled_upper, proved_lower, worst_cex, seconds)
+
+
+# ----------------------------------------------------------------------------- check protocol
+
+class RateCheck(Check):
+    """The certified contraction rate lam_cert, bracketed (a PROVED MPDI is a lower bound)."""
+
+    name = "rate"
+    title = "Certified rate \u03bb_cert"
+    result_type = RateResult
+    reads = ("grid_points", "adversarial_starts", "adversarial_steps", "seed", "rate_seconds",
+             "max_boxes")
+    uses = ("mpdi",)
+
+    def run(self, context: Context) -> RateResult:
+        return check_rate(context.problem, context.settings, progress=context.progress,
+                          mpdi=context.result("mpdi"))
+
+    def present(self, r: RateResult, certificate: Any) -> Presentation:
+        s = certificate.settings or {}
+        lower = Quantity("\u03bb_cert \u2265 (proved)", r.proved_lower,
+                         "MPDI not proved at any \u03bb > 0", signed=True)
+        facts = [Quantity("Design \u03bb", r.lam_design),
+                 Quantity("\u03bb_cert \u2264 (sampled)", r.sampled_upper, sig=6, signed=True),
+                 Quantity("\u03bb_cert \u2265 (proved, branch and bound)", r.proved_lower,
+                          "not proved", sig=6, signed=True)]
+        if r.worst is not None:
+            facts += [Quantity("Sampled side attained at x\u0302", r.worst.xhat),
+                      Quantity("Sampled side attained at y", r.worst.y)]
+        return Presentation(
+            sampled=Quantity("\u03bb_cert \u2264 (sampled)", r.sampled_upper, signed=True),
+            proved=lower,
+            setting=(Quantity("design \u03bb =", r.lam_design),
+                     Quantity("B&B budget", s.get("rate_seconds"), suffix=" s")),
+            numbers=(Quantity("lam_design", r.lam_design, sig=6),
+                     Quantity("sampled upper", r.sampled_upper, sig=6),
+                     Quantity("proved lower", r.proved_lower, sig=6)),
+            facts=tuple(facts))
+
+
+CHECK = RateCheck()

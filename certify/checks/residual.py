@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import torch
 
+from certify.checks.base import Check, Context, Presentation, Quantity
 from certify.falsify import maximize_over_box
 from certify.kernels import gain_terms
 from certify.problem import Problem
@@ -52,3 +54,41 @@ def check_residual(problem: Problem, settings: VerifySettings, *,
                               sampled, None, worst=worst, seconds=time.perf_counter() - t0)
     return ResidualResult(Status.PROVED, f"eps_bar in [{sampled:.4g}, {upper:.4g}]", sampled,
                           float(upper), worst=worst, seconds=time.perf_counter() - t0)
+
+
+# ----------------------------------------------------------------------------- check protocol
+
+class ResidualCheck(Check):
+    """The boundary-condition residual eps_bar = sup_X ||k(x, h(x))||: sampled and proved."""
+
+    name = "residual"
+    title = "Boundary residual \u03b5\u0304"
+    result_type = ResidualResult
+    reads = ("grid_points", "adversarial_starts", "adversarial_steps", "seed",
+             "residual_seconds", "max_boxes")
+
+    def run(self, context: Context) -> ResidualResult:
+        return check_residual(context.problem, context.settings, progress=context.progress)
+
+    def present(self, r: ResidualResult, certificate: Any) -> Presentation:
+        s = certificate.settings or {}
+        label = "\u03b5\u0304 \u2264 (interval B&B)"
+        zero = r.structural and r.upper in (0, 0.0, None)
+        proved = (Quantity(label, 0, suffix=" (by construction)") if zero
+                  else Quantity(label, r.upper, "bound not established"))
+        return Presentation(
+            sampled=Quantity("\u03b5\u0304 \u2265 (sampled + ascent)", r.sampled),
+            proved=proved,
+            setting=(Quantity("budget", s.get("residual_seconds"), suffix=" s over X"),),
+            numbers=(Quantity("sampled", r.sampled, sig=6), Quantity("upper", r.upper, sig=6),
+                     Quantity("structural", r.structural)),
+            facts=(Quantity("Status", r.status.value),
+                   Quantity("Sampled \u03b5\u0304 \u2265", r.sampled, sig=6),
+                   Quantity("Sound bound \u03b5\u0304 \u2264", r.upper, "not established",
+                            sig=6),
+                   Quantity("Zero by construction", r.structural),
+                   Quantity("Worst x", r.worst, "none: zero by construction"
+                            if r.structural else "not found")))
+
+
+CHECK = ResidualCheck()

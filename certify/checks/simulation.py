@@ -16,10 +16,12 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
+from certify.checks.base import Check, Context, Presentation, Quantity
 from certify.checks.bounds import BOUND_NAMES, bound_curve, initial_value
 from certify.errors import SpecError
 from certify.integrate import bounded_noise, gaussian_noise, simulate
@@ -320,3 +322,63 @@ def check_simulation(problem: Problem, bounds: BoundsResult | None,
                f"{late}. {exit_text}.{src_text} Simulation is evidence, not proof.")
     progress.finish("simulation", status.value)
     return SimulationResult(status=status, message=msg, runs=runs, seconds=seconds)
+
+
+# ----------------------------------------------------------------------------- check protocol
+
+class SimulationCheck(Check):
+    """Plant + observer simulated; the error against the proved bound inside its conditions.
+
+    A breach while every input of the bound was proved (the certificate would pass) is a bug
+    in certify: the result is ERROR and the check joins the required ones, so the gate never
+    passes on it.
+    """
+
+    name = "simulation"
+    title = "Simulation vs bound"
+    result_type = SimulationResult
+    reads = ("sim_time", "sim_dt", "sim_initial_conditions", "noise", "seed",
+             "allow_unknown")
+    needs = ("bounds",)
+    uses = ("necessary", "mpdi", "rate", "residual", "lipschitz")
+
+    def run(self, context: Context) -> SimulationResult:
+        from certify.certificate import decide_verdict
+
+        bounds = context.result("bounds")
+        verdict, _ = decide_verdict(context.results, context.required,
+                                    context.settings.allow_unknown)
+        certified = verdict == "CERTIFIED" and bounds.status == Status.PROVED
+        result = check_simulation(context.problem, bounds, context.settings,
+                                  progress=context.progress, certified=certified)
+        if result.status == Status.ERROR and self.name not in context.required:
+            context.required.append(self.name)  # a breached proof is a bug: never certify
+        return result
+
+    def present(self, r: SimulationResult, certificate: Any) -> Presentation:
+        s = certificate.settings or {}
+        ratios = [run.max_ratio for run in r.runs if run.max_ratio is not None]
+        exits = sum(run.exit_time is not None for run in r.runs)
+        breaches = sum(bool(run.breach) for run in r.runs)
+        worst = max(ratios) if ratios else None
+        numbers = [Quantity("runs", len(r.runs)), Quantity("breaches", breaches),
+                   Quantity("exits", exits), Quantity("max error/bound", worst, sig=6)]
+        for run in r.runs:
+            numbers += [Quantity(f"run {run.label}: max error/bound", run.max_ratio),
+                        Quantity(f"run {run.label}: first exit at t =", run.exit_time, "never"),
+                        Quantity(f"run {run.label}: exit reason", run.exit_reason)]
+        return Presentation(
+            sampled=Quantity("max error / bound (valid times)", worst, "no bound to compare"),
+            proved=Quantity("breaches / exits from X, Y",
+                            f"{breaches} breach{'es' if breaches != 1 else ''}, "
+                            f"{exits} of {len(r.runs)} runs exit"),
+            setting=(Quantity("runs", len(r.runs)),
+                     Quantity("T =", s.get("sim_time"), suffix=" s"),
+                     Quantity("dt =", s.get("sim_dt")), Quantity("v\u0304 =", s.get("noise"))),
+            numbers=tuple(numbers),
+            facts=(Quantity("Status", r.status.value), Quantity("Runs", len(r.runs)),
+                   Quantity("Breaches", breaches), Quantity("Runs that exit", exits),
+                   Quantity("Largest error / bound", worst, "no bound to compare")))
+
+
+CHECK = SimulationCheck()

@@ -1,0 +1,8 @@
+"""`python -m certify ...`: the same command line as the `certify` script."""
+
+import sys
+
+from certify.cli import main
+
+if __name__ == "__main__":
+    sys.exit(main())

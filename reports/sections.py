@@ -1,0 +1,314 @@
+"""The report's sections after the checks table: per check, its prose, facts and tables.
+
+Facts come from each check's presenter (`reports.content.check_facts`); what is here is the
+part of a section that is layout and explanation (the theorem statements, the tables of
+counterexamples, prover statistics, Lipschitz bounds, error bounds and simulation runs).
+HTML and PDF lay these `Section`s out the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from certify.certificate import Certificate
+from reports.content import (
+    DASH,
+    check_facts,
+    fmt,
+    fmt_none,
+    fmt_seconds,
+    fmt_vec,
+    lam_cert_text,
+    result,
+    to_float,
+)
+
+THEOREM3_TEXT = (
+    "Theorem 3 of the source (as stated; He{M} = (M + M\u1d40)/2, P = I): if \u03bb > 2, "
+    "\u03b7 = \u03bb \u2212 2 and the noise satisfies \u2016v(t)\u2016 \u2264 v\u0304, then "
+    "\u2016x(t) \u2212 x\u0302(t)\u2016 \u2264 \u2016x(0) \u2212 x\u0302(0)\u2016 "
+    "e^(\u2212\u03b7t) "
+    "+ \u03b5\u0304 / (2\u221a\u03b7) + L v\u0304 / (2\u221a\u03b7). The certificate applies it "
+    "with the certified rate \u03bb_cert, never the design \u03bb.")
+
+ISS_TEXT = (
+    "ISS bound (METHOD \u00a73.7): if D \u2aaf 0 holds for k itself on X \u00d7 Y with metric P, "
+    "and x, x\u0302 stay in X while y and y_e stay in Y, then with W = \u2016P^\u00bd e\u2016: "
+    "W\u2032 \u2264 \u22122\u03bbW + \u2016P^\u00bd\u2016\u2082 (\u03b5\u0304 + L v\u0304), so "
+    "\u2016e(t)\u2016 \u2264 (e^(\u22122\u03bbt) W(0) + (1 \u2212 e^(\u22122\u03bbt)) "
+    "\u2016P^\u00bd\u2016\u2082 (\u03b5\u0304 + L v\u0304) / (2\u03bb)) / \u221a\u03bb_min(P). "
+    "It needs no \u03bb > 2; for P = I and \u03bb > 2 it is never larger than Theorem 3's.")
+
+NECESSARY_TEXT = (
+    "For any C\u00b9 gain with exact boundary condition k(x, h(x)) = 0, on the output manifold "
+    "the MPDI restricted to the kernel of \u2202h/\u2202x\u0302 does not depend on the network: "
+    "q(x\u0302) = \u03bb_max(Z\u1d40 (He{P J_f} + 2\u03bbP) Z), Z an orthonormal basis of "
+    "ker \u2202h/\u2202x\u0302. If q > 0 anywhere, no gain at all satisfies MPDI and boundary "
+    "condition together with this P and \u03bb.")
+
+
+def counterexample_rows(cert: Certificate, limit: int = 10) -> list[list[str]]:
+    r = result(cert, "mpdi")
+    if r is None:
+        return []
+    return [[str(i + 1), fmt_vec(c.xhat, 4), fmt_vec(c.y, 4), fmt(c.value, 5, signed=True)]
+            for i, c in enumerate(r.counterexamples[:limit])]
+
+
+def proof_facts(cert: Certificate) -> list[tuple[str, str]]:
+    r = result(cert, "mpdi")
+    if r is None or r.proof is None:
+        return []
+    p = r.proof
+    return [("Boxes processed", fmt(p.boxes_processed)),
+            ("Boxes per second", fmt(p.boxes_per_second)),
+            ("Prover time", fmt_seconds(p.seconds)),
+            ("Proved volume", f"{100 * (to_float(p.proved_volume_fraction) or 0):.2f} %"),
+            ("Maximum depth", fmt(p.max_depth)),
+            ("Budget exhausted", fmt(p.budget_exhausted)),
+            ("Floating-point soundness", p.rounding or DASH)]
+
+
+def lipschitz_rows(cert: Certificate) -> list[list[str]]:
+    """[bound, value, sound?, note] rows, LipSDP / local / naive / sampled side by side."""
+    r = result(cert, "lipschitz")
+    if r is None:
+        return []
+    used = r.which
+
+    def mark(key: str) -> str:
+        return "used" if key == used else ""
+
+    lmi = fmt(r.lipsdp_lmi_max_eig, 3, signed=True)
+    return [
+        ["LipSDP (verified)", fmt_none(r.lipsdp, "not verified"), "upper, sound",
+         f"raw {fmt(r.lipsdp_raw)}; rebuilt LMI \u03bb_max {lmi}", mark("lipsdp")],
+        ["Local interval bound", fmt_none(r.local_upper, "not computed"), "upper, sound",
+         "sup \u2016\u2202k/\u2202y\u2016\u2082 over X \u00d7 Y (needs y_e \u2208 Y)",
+         mark("local")],
+        ["Naive (product of norms)", fmt(r.naive), "upper, sound", "", mark("naive")],
+        ["Sampled", fmt(r.sampled), "lower", "max \u2016\u2202k/\u2202y\u2016\u2082 found",
+         ""],
+        ["LipSDP for P^\u00bd k", fmt_none(r.lipsdp_P, "not computed"), "upper, sound",
+         "for the P-weighted ISS bound", ""],
+    ]
+
+
+def bound_rows(cert: Certificate) -> list[list[str]]:
+    """[name, applicable, reason, rate, gain, bias, d bias / d vbar] per bound."""
+    r = result(cert, "bounds")
+    if r is None:
+        return []
+    rows = []
+    for b in (r.theorem3, r.iss, r.iss_metric):
+        if b is None:
+            continue
+        rows.append([b.name, "yes" if b.applicable else "no", b.reason,
+                     fmt(b.rate), fmt(b.gain), fmt(b.bias), fmt(b.bias_per_unit_noise)])
+    return rows
+
+
+def simulation_rows(cert: Certificate) -> list[list[str]]:
+    r = result(cert, "simulation")
+    if r is None:
+        return []
+    rows = []
+    for run in r.runs:
+        rows.append([run.label, fmt_vec(run.x0), fmt_vec(run.xhat0), run.noise,
+                     "yes" if run.within_conditions else "no",
+                     fmt_none(run.exit_time, "never") if run.exit_time is not None
+                     else "never",
+                     run.exit_reason or DASH, fmt(run.max_ratio),
+                     "BREACH" if run.breach else "no", fmt(run.mse, 3),
+                     fmt(run.final_error, 3)])
+    return rows
+
+
+SIM_HEADER = ["Run", "x(0)", "x\u0302(0)", "Noise", "Valid", "Exit at", "Exit reason",
+              "Max e/b", "Breach", "MSE", "Final \u2016e\u2016"]
+
+
+# ----------------------------------------------------------------------------- sections
+
+@dataclass
+class Table:
+    """A plain table: header, rows of strings, relative column widths (for the PDF)."""
+
+    header: list[str]
+    rows: list[list[str]]
+    title: str = ""
+    widths: list[float] | None = None
+    fixed: bool = True
+
+
+@dataclass
+class Section:
+    """One report section after the checks table, in the same form for HTML and PDF."""
+
+    anchor: str
+    title: str
+    short: str = ""
+    status: str = ""
+    message: str = ""
+    paragraphs: list[str] = field(default_factory=list)
+    statements: list[str] = field(default_factory=list)
+    facts: list[tuple[str, str]] = field(default_factory=list)
+    tables: list[Table] = field(default_factory=list)
+    bullets: list[str] = field(default_factory=list)
+    bullets_title: str = ""
+    empty: str = ""
+
+    @property
+    def tone(self) -> str:
+        return {"PROVED": "good", "PASSED": "good", "VIOLATED": "bad", "ERROR": "bad",
+                "UNKNOWN": "warn"}.get(self.status, "")
+
+
+def _status(cert: Certificate, name: str) -> str:
+    r = cert.checks.get(name)
+    return "" if r is None else r.status.value
+
+
+def _message(cert: Certificate, name: str) -> str:
+    r = cert.checks.get(name)
+    return "" if r is None else r.message
+
+
+def _without_result(sec: Section, cert: Certificate, name: str, empty: str) -> None:
+    """A section whose check has no result: why (ERROR, not applicable) or `empty`."""
+    if name in cert.checks:
+        sec.facts = check_facts(cert, name)
+    else:
+        sec.empty = empty
+
+
+def sections(cert: Certificate) -> list[Section]:
+    """The report's sections after the checks table (system facts are separate)."""
+    out: list[Section] = []
+
+    sec = Section("mpdi", "MPDI: D(x\u0302, y) \u2aaf 0 on X \u00d7 Y", "MPDI",
+                  _status(cert, "mpdi"),
+                  _message(cert, "mpdi"))
+    sec.paragraphs.append(
+        "D(x\u0302, y) = He{P (J_f(x\u0302) + \u2202k/\u2202x\u0302(x\u0302, y))} + 2\u03bbP must "
+        "be negative semidefinite everywhere on the box. The sampled side (dense grid and "
+        "multi-start gradient ascent) can only find violations: any point with "
+        "\u03bb_max(D) > 0 is a counterexample. The proved side is a sound upper bound from "
+        "interval branch and bound; only it can prove the MPDI.")
+    if result(cert, "mpdi") is not None:
+        sec.facts = check_facts(cert, "mpdi")
+        cex = counterexample_rows(cert)
+        if cex:
+            sec.tables.append(Table(["#", "x\u0302", "y", "\u03bb_max(D)"], cex,
+                                    "Counterexamples (largest first)", [0.6, 3, 2, 1.6]))
+        proof = proof_facts(cert)
+        if proof:
+            sec.tables.append(Table(["Prover statistic", "Value"], [list(p) for p in proof],
+                                    "Proof statistics", [1, 2]))
+    else:
+        _without_result(sec, cert, "mpdi", "The MPDI check was not run.")
+    out.append(sec)
+
+    if "rate" in cert.checks:
+        r = result(cert, "rate")
+        sec = Section("rate", "Certified contraction rate \u03bb_cert", "Rate",
+                      _status(cert, "rate"), _message(cert, "rate"))
+        sec.paragraphs.append(
+            "\u03bb_cert = \u2212max \u03bb_max(He{P (J_f + \u2202k/\u2202x\u0302)}, P) / 2 is the "
+            "largest rate for which the MPDI holds. Every error bound below uses \u03bb_cert "
+            "(it may be below the design \u03bb); if \u03bb_cert \u2264 0 there is no bound "
+            "at all.")
+        sec.facts = check_facts(cert, "rate")
+        if r is not None:
+            sec.facts.append(("Bracket", lam_cert_text(cert)))
+        out.append(sec)
+
+    sec = Section("necessary", "Pre-flight necessary condition (independent of the network)",
+                  "Necessary condition", _status(cert, "necessary"), _message(cert, "necessary"))
+    sec.paragraphs.append(NECESSARY_TEXT)
+    r = result(cert, "necessary")
+    if r is not None:
+        if r.explanation:
+            sec.statements.append(r.explanation)
+        sec.facts = check_facts(cert, "necessary")
+    else:
+        _without_result(sec, cert, "necessary", "The necessary condition was not checked.")
+    out.append(sec)
+
+    if "metric" in cert.checks:
+        sec = Section("metric", "Metric P found by SDP", "Metric", _status(cert, "metric"),
+                      _message(cert, "metric"))
+        sec.facts = check_facts(cert, "metric")
+        out.append(sec)
+
+    sec = Section("residual", "Boundary residual \u03b5\u0304 = sup over X of "
+                              "\u2016k(x, h(x))\u2016", "Residual", _status(cert, "residual"),
+                  _message(cert, "residual"))
+    sec.paragraphs.append(
+        "The boundary condition k(x, h(x)) = 0 says the correction vanishes when the estimate "
+        "is exact; its residual \u03b5\u0304 enters every error bound as a bias.")
+    if result(cert, "residual") is not None:
+        sec.facts = check_facts(cert, "residual")
+    else:
+        _without_result(sec, cert, "residual", "The residual was not checked.")
+    out.append(sec)
+
+    sec = Section("lipschitz", "Lipschitz constant L of k in y", "Lipschitz",
+                  _status(cert, "lipschitz"),
+                  _message(cert, "lipschitz"))
+    r = result(cert, "lipschitz")
+    if r is not None:
+        sec.paragraphs.append(
+            "L bounds how much measurement noise moves the correction, uniformly in "
+            "x\u0302 (an L2 \u2192 L2 constant, so v\u0304 bounds the Euclidean norm of the "
+            "noise). LipSDP is re-verified by rebuilding its LMI at the solver's multipliers; "
+            "the smallest sound upper bound is used downstream. The gap to the sampled lower "
+            f"bound measures how tight it is. Used: {r.which or DASH} = {fmt(r.value)}.")
+        sec.tables.append(Table(["Bound", "Value", "Kind", "Note", "Used"],
+                                lipschitz_rows(cert), "", [1.6, 1.1, 0.9, 2.6, 0.5]))
+        sec.facts = check_facts(cert, "lipschitz")
+    else:
+        _without_result(sec, cert, "lipschitz", "The Lipschitz constant was not computed.")
+    out.append(sec)
+
+    sec = Section("bounds", "Error bounds: Theorem 3 as stated and the ISS bound",
+                  "Bounds", _status(cert, "bounds"), _message(cert, "bounds"))
+    sec.statements = [THEOREM3_TEXT, ISS_TEXT]
+    b = result(cert, "bounds")
+    if b is not None:
+        sec.facts = check_facts(cert, "bounds")
+        rows = bound_rows(cert)
+        if rows:
+            sec.tables.append(Table(["Bound", "Applies", "Why (not)", "Rate", "Gain", "Bias b",
+                                     "db/dv\u0304"], rows, "Conditions and numbers",
+                                    [1.4, 0.7, 3.0, 0.8, 0.8, 0.8, 0.8]))
+        formulas = [(x.name, x.formula) for x in (b.theorem3, b.iss, b.iss_metric)
+                    if x is not None and x.formula]
+        if formulas:
+            sec.tables.append(Table(["Bound", "Formula"], [list(f) for f in formulas],
+                                    "Formulas", [1, 4]))
+        sec.bullets = list(b.validity)
+        sec.bullets_title = ("Validity conditions (each holds up to its first failure time; "
+                             "no bound is claimed after it)")
+    else:
+        _without_result(sec, cert, "bounds", "No bounds were computed.")
+    out.append(sec)
+
+    sec = Section("simulation", "Simulation: plant and observer under noise",
+                  "Simulation", _status(cert, "simulation"), _message(cert, "simulation"))
+    s = result(cert, "simulation")
+    if s is not None:
+        exits = [run for run in s.runs if run.exit_time is not None]
+        sec.paragraphs.append(
+            "Plant and observer simulated from several initial conditions. While the validity "
+            "conditions hold the observed error must stay under the proved bound (a breach is "
+            "a bug in the tool, never a pass). Exits from X or Y (the source's Assumption 1, "
+            "forward invariance) are reported, and runs with Gaussian noise are outside the "
+            "theorem's conditions." + (f" {len(exits)} of {len(s.runs)} runs exit."
+                                       if s.runs else ""))
+        sec.tables.append(Table(SIM_HEADER, simulation_rows(cert), "Runs",
+                                [1.3, 0.95, 0.8, 0.85, 0.65, 0.6, 2.1, 0.7, 0.75, 0.8, 0.8]))
+    else:
+        _without_result(sec, cert, "simulation", "No simulation was run.")
+    out.append(sec)
+    return out
