@@ -7,9 +7,11 @@ bound on the supremum (never a proof of anything about the whole box).
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -99,11 +101,57 @@ def _distinct_top(points: torch.Tensor, values: torch.Tensor, lo: torch.Tensor, 
     return pts[keep], vals[keep]
 
 
+def sweep_range(fn: ScoreFn, screen: ScoreFn | None, lo: torch.Tensor, hi: torch.Tensor,
+                shape: list[int], start: int, stop: int, threshold: float, tol: float,
+                keep: int) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+    """Grid points start..stop-1: their top `keep` candidates (points, float64 values), the
+    count above `threshold` and the non-finite count (see `maximize_over_box`)."""
+    pts = grid_chunk(lo, hi, shape, start, stop)
+    with torch.no_grad():
+        if screen is None:
+            vals = fn(pts)
+            bad = ~torch.isfinite(vals)
+            vals = torch.where(bad, torch.full_like(vals, math.inf), vals)
+            n_above, n_bad = int((vals > threshold).sum()), int(bad.sum())
+            tv, ti = torch.topk(vals, min(keep, len(vals)))
+        else:
+            approx = screen(pts).to(torch.float64)
+            approx = torch.where(torch.isfinite(approx), approx,
+                                 torch.full_like(approx, math.inf))
+            near = approx > threshold - tol
+            n_above = n_bad = 0
+            if bool(near.any()):
+                exact = fn(pts[near])
+                bad = ~torch.isfinite(exact)
+                n_bad = int(bad.sum())
+                n_above = int((exact > threshold).sum()) + n_bad
+            _, ti = torch.topk(approx, min(keep, len(approx)))
+            tv = fn(pts[ti])
+            tv = torch.where(torch.isfinite(tv), tv, torch.full_like(tv, math.inf))
+    return pts[ti], tv, n_above, n_bad
+
+
+def _remote_sweep(remote: tuple[Any, Callable[..., Any], dict[str, Any]], grid: dict[str, Any],
+                  total: int, tol: float, use_screen: bool, progress: Progress,
+                  task: str) -> list[tuple]:
+    """The grid's chunks on `remote`'s executor, a few tasks per worker, flattened in order."""
+    from certify.executor import chunk_ranges
+
+    executor, chunk_fn, payload = remote
+    ranges = chunk_ranges(total, 4 * executor.workers, align=grid["chunk"])
+    parts = executor.map_chunks(chunk_fn, {**payload, "grid": grid},
+                                [(a, b, tol, use_screen) for a, b in ranges])
+    progress.update(task, advance=total)
+    return [r for part in parts for r in part]
+
+
 def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_points: int,
                       starts: int = 32, steps: int = 100, top_k: int = 5, seed: int = 0,
                       threshold: float = 0.0, chunk: int = 8192,
                       screen: ScoreFn | None = None,
-                      progress: Progress | None = None, task: str = "search") -> SearchOutcome:
+                      progress: Progress | None = None, task: str = "search",
+                      remote: tuple[Any, Callable[..., Any], Any] | None = None
+                      ) -> SearchOutcome:
     """Largest value of `fn` over the box [lo, hi]: grid, then projected gradient ascent.
 
     Ascent starts from the best distinct grid points and from seeded random points; steps are
@@ -113,6 +161,12 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
     grid: its error is measured on a calibration sample, every grid point within 8x that error
     of `threshold` (and every top candidate) is re-evaluated with `fn` in float64, so the
     returned values and the count above `threshold` are float64 results, as without it.
+
+    `remote = (executor, chunk_fn, payload)`, with an executor of more than one worker, sweeps
+    the grid there instead of on local threads: `chunk_fn(payload, start, stop, tol,
+    use_screen)` (payload with the grid added under "grid") must return `sweep_range`'s
+    results for [start, stop) in `chunk`-sized pieces (e.g. `certify.remote.mpdi_grid_chunk`);
+    the merge is the same, in grid order, so the outcome is identical.
     """
     progress = progress or NullProgress()
     lo_t = torch.as_tensor(lo, dtype=torch.float64)
@@ -133,34 +187,21 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
                 screen = None
 
         def sweep(start: int) -> tuple[torch.Tensor, torch.Tensor, int, int]:
-            """Top candidates, count above threshold and non-finite count of one chunk."""
-            pts = grid_chunk(lo_t, hi_t, shape, start, min(total, start + chunk))
-            with torch.no_grad():
-                if screen is None:
-                    vals = fn(pts)
-                    bad = ~torch.isfinite(vals)
-                    vals = torch.where(bad, torch.full_like(vals, math.inf), vals)
-                    n_above, n_bad = int((vals > threshold).sum()), int(bad.sum())
-                    tv, ti = torch.topk(vals, min(keep, len(vals)))
-                else:
-                    approx = screen(pts).to(torch.float64)
-                    approx = torch.where(torch.isfinite(approx), approx,
-                                         torch.full_like(approx, math.inf))
-                    near = approx > threshold - tol
-                    n_above = n_bad = 0
-                    if bool(near.any()):
-                        exact = fn(pts[near])
-                        bad = ~torch.isfinite(exact)
-                        n_bad = int(bad.sum())
-                        n_above = int((exact > threshold).sum()) + n_bad
-                    _, ti = torch.topk(approx, min(keep, len(approx)))
-                    tv = fn(pts[ti])
-                    tv = torch.where(torch.isfinite(tv), tv, torch.full_like(tv, math.inf))
-            progress.update(task, advance=len(pts))
-            return pts[ti], tv, n_above, n_bad
+            out = sweep_range(fn, screen, lo_t, hi_t, shape, start, min(total, start + chunk),
+                              threshold, tol, keep)
+            progress.update(task, advance=min(total, start + chunk) - start)
+            return out
 
-        with parallel_chunks() as pool:
-            for pts, tv, n_above, n_bad in pool.map(sweep, range(0, total, chunk)):
+        with contextlib.ExitStack() as stack:
+            if remote is not None and getattr(remote[0], "workers", 1) > 1:
+                grid = {"lo": lo_t.numpy(), "hi": hi_t.numpy(), "shape": shape,
+                        "threshold": threshold, "keep": keep, "chunk": chunk}
+                results: Any = _remote_sweep(remote, grid, total, tol, screen is not None,
+                                             progress, task)
+            else:
+                results = stack.enter_context(parallel_chunks()).map(
+                    sweep, range(0, total, chunk))
+            for pts, tv, n_above, n_bad in results:
                 above += n_above
                 nonfinite += n_bad
                 cand_pts = torch.cat([cand_pts, pts])
