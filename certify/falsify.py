@@ -57,7 +57,7 @@ def grid_shape(lo: np.ndarray, hi: np.ndarray, min_points: int) -> list[int]:
 def grid_chunk(lo: torch.Tensor, hi: torch.Tensor, shape: list[int], start: int,
                stop: int) -> torch.Tensor:
     """Points start..stop-1 of the tensor-product grid (row-major), shape [stop-start, d]."""
-    idx = torch.arange(start, stop, dtype=torch.int64)
+    idx = torch.arange(start, stop, dtype=torch.int64, device=lo.device)
     cols = []
     for j in reversed(range(len(shape))):
         m = shape[j]
@@ -72,8 +72,9 @@ def screen_tolerance(fn: ScoreFn, screen: ScoreFn, lo: torch.Tensor, hi: torch.T
                      ) -> tuple[float, float]:
     """The re-check band: 8x the largest |screen - fn| seen on random points (plus a floor);
     and the fraction of those points that would fall in the band or above the threshold."""
-    gen = torch.Generator().manual_seed(seed + 7919)
-    pts = lo + (hi - lo) * torch.rand(samples, len(lo), generator=gen, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(seed + 7919)  # on the CPU: the same on every device
+    pts = lo + (hi - lo) * torch.rand(samples, len(lo), generator=gen,
+                                      dtype=torch.float64).to(lo.device)
     exact = fn(pts)
     approx = screen(pts).to(torch.float64)
     ok = torch.isfinite(exact) & torch.isfinite(approx)
@@ -150,8 +151,8 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
                       threshold: float = 0.0, chunk: int = 8192,
                       screen: ScoreFn | None = None,
                       progress: Progress | None = None, task: str = "search",
-                      remote: tuple[Any, Callable[..., Any], Any] | None = None
-                      ) -> SearchOutcome:
+                      remote: tuple[Any, Callable[..., Any], Any] | None = None,
+                      device: torch.device | str | None = None) -> SearchOutcome:
     """Largest value of `fn` over the box [lo, hi]: grid, then projected gradient ascent.
 
     Ascent starts from the best distinct grid points and from seeded random points; steps are
@@ -167,15 +168,20 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
     use_screen)` (payload with the grid added under "grid") must return `sweep_range`'s
     results for [start, stop) in `chunk`-sized pieces (e.g. `certify.remote.mpdi_grid_chunk`);
     the merge is the same, in grid order, so the outcome is identical.
+
+    `device`: where the points live (`fn` must accept them there, e.g. a GridKernel of a
+    problem moved with `Problem.on`); random numbers are drawn on the CPU and moved, so the
+    points are the same on every device. Returned arrays are on the CPU.
     """
     progress = progress or NullProgress()
-    lo_t = torch.as_tensor(lo, dtype=torch.float64)
-    hi_t = torch.as_tensor(hi, dtype=torch.float64)
+    device = torch.device("cpu" if device is None else device)
+    lo_t = torch.as_tensor(np.asarray(lo, np.float64), dtype=torch.float64, device=device)
+    hi_t = torch.as_tensor(np.asarray(hi, np.float64), dtype=torch.float64, device=device)
     shape = grid_shape(np.asarray(lo, float), np.asarray(hi, float), grid_points)
     total = int(np.prod(shape))
     keep = max(4 * starts, 4 * top_k, 16)
-    cand_pts = torch.empty(0, len(shape), dtype=torch.float64)
-    cand_vals = torch.empty(0, dtype=torch.float64)
+    cand_pts = torch.empty(0, len(shape), dtype=torch.float64, device=device)
+    cand_vals = torch.empty(0, dtype=torch.float64, device=device)
     above = 0
     nonfinite = 0
     progress.start(task, total=total)
@@ -194,7 +200,7 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
 
         with contextlib.ExitStack() as stack:
             if remote is not None and getattr(remote[0], "workers", 1) > 1:
-                grid = {"lo": lo_t.numpy(), "hi": hi_t.numpy(), "shape": shape,
+                grid = {"lo": lo_t.cpu().numpy(), "hi": hi_t.cpu().numpy(), "shape": shape,
                         "threshold": threshold, "keep": keep, "chunk": chunk}
                 results: Any = _remote_sweep(remote, grid, total, tol, screen is not None,
                                              progress, task)
@@ -204,8 +210,8 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
             for pts, tv, n_above, n_bad in results:
                 above += n_above
                 nonfinite += n_bad
-                cand_pts = torch.cat([cand_pts, pts])
-                cand_vals = torch.cat([cand_vals, tv])
+                cand_pts = torch.cat([cand_pts, pts.to(device)])
+                cand_vals = torch.cat([cand_vals, tv.to(device)])
                 if len(cand_vals) > 4 * keep:
                     tv, ti = torch.topk(cand_vals, keep)
                     cand_pts, cand_vals = cand_pts[ti], tv
@@ -214,7 +220,7 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
     seeds, _ = _distinct_top(cand_pts, cand_vals, lo_t, hi_t, max(1, starts // 2), 0.02)
     n_rand = max(0, starts - len(seeds))
     rand = lo_t + (hi_t - lo_t) * torch.rand(n_rand, len(shape), generator=gen,
-                                             dtype=torch.float64)
+                                             dtype=torch.float64).to(device)
     x = torch.cat([seeds, rand]) if starts > 0 else seeds[:0]
     history: list[float] = []
     if len(x) and steps > 0:
@@ -227,8 +233,9 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
     progress.finish(task)
     return SearchOutcome(
         best_value=float(top_v[0]) if len(top_v) else -math.inf,
-        best_point=top_p[0].numpy() if len(top_p) else (np.asarray(lo) + np.asarray(hi)) / 2,
-        top_points=top_p.numpy(), top_values=top_v.numpy(), grid_points=total,
+        best_point=top_p[0].cpu().numpy() if len(top_p)
+        else (np.asarray(lo) + np.asarray(hi)) / 2,
+        top_points=top_p.cpu().numpy(), top_values=top_v.cpu().numpy(), grid_points=total,
         grid_shape=shape, above_threshold=above, starts=len(x), grid_best_value=grid_best,
         nonfinite=nonfinite, history=history,
     )

@@ -47,10 +47,13 @@ def problem_from_payload(payload: dict[str, Any]) -> Problem:
     return worker_cache("problem:" + key, lambda: _build(payload))
 
 
-def mpdi_payload(problem: Problem, lam: float, float32_screen: bool) -> dict[str, Any]:
-    """What an MPDI grid-sweep task needs besides the grid (plain data, with its digest)."""
+def mpdi_payload(problem: Problem, lam: float, float32_screen: bool,
+                 device: str = "cpu") -> dict[str, Any]:
+    """What an MPDI grid-sweep task needs besides the grid (plain data, with its digest);
+    `device`: where the worker evaluates (its results come back on the CPU)."""
     payload = problem_payload(problem)
-    payload.update(grid_lam=float(lam), float32_screen=bool(float32_screen))
+    payload.update(grid_lam=float(lam), float32_screen=bool(float32_screen),
+                   device=str(device))
     payload["key"] = payload_key(payload)
     return payload
 
@@ -59,8 +62,11 @@ def _grid_kernels(payload: dict[str, Any]) -> tuple[Any, Any]:
     from certify.gridkernel import GridKernel
 
     def build() -> tuple[Any, Any]:
+        from certify.device import resolve_device
+
         problem = problem_from_payload({k: payload[k] for k in
                                         ("spec", "name", "architecture", "state", "lam", "P")})
+        problem = problem.on(resolve_device(payload.get("device", "cpu")))
         exact = GridKernel(problem, payload["grid_lam"])
         screen = (GridKernel(problem, payload["grid_lam"], dtype=torch.float32)
                   if payload["float32_screen"] else None)
@@ -78,10 +84,12 @@ def mpdi_grid_chunk(payload: dict[str, Any], start: int, stop: int, tol: float,
 
     exact, screen = _grid_kernels(payload)
     grid = payload["grid"]  # added by certify.falsify for this sweep
-    lo = torch.as_tensor(grid["lo"], dtype=torch.float64)
-    hi = torch.as_tensor(grid["hi"], dtype=torch.float64)
+    device = exact.P.device
+    lo = torch.as_tensor(grid["lo"], dtype=torch.float64, device=device)
+    hi = torch.as_tensor(grid["hi"], dtype=torch.float64, device=device)
     step = grid["chunk"]
     with torch_threads(1), torch.no_grad():
-        return [sweep_range(exact, screen if use_screen else None, lo, hi, grid["shape"],
-                            s, min(stop, s + step), grid["threshold"], tol, grid["keep"])
-                for s in range(start, stop, step)]
+        parts = [sweep_range(exact, screen if use_screen else None, lo, hi, grid["shape"],
+                             s, min(stop, s + step), grid["threshold"], tol, grid["keep"])
+                 for s in range(start, stop, step)]
+    return [(pts.cpu(), vals.cpu(), above, bad) for pts, vals, above, bad in parts]

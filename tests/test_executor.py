@@ -165,3 +165,20 @@ def test_cuda_without_cuda_is_exit_2(tmp_path, monkeypatch, capsys):
     assert code == 2 and "no CUDA device" in err
     code, _, err = run_cli(capsys, "run", ckpt, "--no-config", "--device", "tpu")
     assert code == 2 and "device must be 'cpu' or 'cuda'" in err
+
+
+def test_device_cpu_explicitly_is_the_same_path(system3):
+    """`device = "cpu"` runs the device-aware grid/ascent path (points made on the device,
+    random numbers drawn on the CPU and moved): same outcome as the default."""
+    from certify.checks.mpdi import falsify_mpdi
+    from certify.device import resolve_device
+    from certify.problem import Problem
+
+    problem = Problem(system=system3, network=random_network(3, 2, seed=7), lam=0.5,
+                      P=system3.P)
+    assert problem.on("cpu") is problem and resolve_device("cpu") == torch.device("cpu")
+    base = dict(grid_points=5000, adversarial_starts=4, adversarial_steps=5)
+    a = falsify_mpdi(problem, VerifySettings(**base))
+    b = falsify_mpdi(problem, VerifySettings(**base, device="cpu"))
+    assert a.best_value == b.best_value and np.array_equal(a.top_points, b.top_points)
+    assert problem.P_t.device.type == "cpu"
