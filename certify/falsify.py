@@ -140,7 +140,9 @@ def _remote_sweep(remote: tuple[Any, Callable[..., Any], dict[str, Any]], grid: 
 
     executor, chunk_fn, payload = remote
     ranges = chunk_ranges(total, 4 * executor.workers, align=grid["chunk"])
-    parts = executor.map_chunks(chunk_fn, {**payload, "grid": grid},
+    grid_payload = {**payload, "grid": grid}
+    grid_payload["key"] = f"{payload.get('key')}:{hash(repr(grid))}"  # one scatter per sweep
+    parts = executor.map_chunks(chunk_fn, grid_payload,
                                 [(a, b, tol, use_screen) for a, b in ranges])
     progress.update(task, advance=total)
     return [r for part in parts for r in part]

@@ -24,6 +24,7 @@ from certify.enclosures import (
     residual_box_upper,
     to_lam_max_D,
 )
+from certify.executor import current_executor
 from certify.intervals import ROUNDING, h_enclosure, up
 from certify.kernels import mpdi_lam_max, pointwise_rate
 from certify.problem import Problem
@@ -107,8 +108,15 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
     pc = make_preconditioner(problem.P_t)
     lo, hi = _root(problem)
     n = problem.n
+    evaluate = _mpdi_evaluator(problem, lam, pc, taylor)
+    executor = current_executor()
+    if executor.workers > 1:  # each round's boxes in chunks on the workers (certify.remote)
+        from certify.remote import distributed_evaluate, mpdi_box_chunk, mpdi_box_payload
+
+        evaluate = distributed_evaluate(executor, mpdi_box_chunk,
+                                        mpdi_box_payload(problem, lam, taylor))
     out = branch_and_bound(
-        lo, hi, _mpdi_evaluator(problem, lam, pc, taylor), threshold=0.0, seconds=seconds,
+        lo, hi, evaluate, threshold=0.0, seconds=seconds,
         max_boxes=max_boxes, batch=batch, progress=progress, task="mpdi proof",
         seeds=_seed_box(seeds, lo.shape[0]), keep_leaves=keep_leaves)
     cex = None

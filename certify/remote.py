@@ -93,3 +93,62 @@ def mpdi_grid_chunk(payload: dict[str, Any], start: int, stop: int, tol: float,
                              s, min(stop, s + step), grid["threshold"], tol, grid["keep"])
                  for s in range(start, stop, step)]
     return [(pts.cpu(), vals.cpu(), above, bad) for pts, vals, above, bad in parts]
+
+
+# ----- branch and bound: one round's boxes in chunks --------------------------------------
+
+def distributed_evaluate(executor: Any, chunk_fn: Any, payload: dict[str, Any], *,
+                         per_worker: int = 2, min_boxes: int = 64) -> Any:
+    """An `evaluate(lo, hi) -> BoxEval` for `certify.bnb.branch_and_bound` that cuts each
+    round's boxes into `executor.workers * per_worker` contiguous chunks, evaluates them with
+    `executor.map_chunks(chunk_fn, payload, ...)` and concatenates the results in order.
+
+    Each box's bound depends only on that box, so the concatenation equals one evaluation of
+    all boxes, and branch and bound takes exactly the same path as in one process.
+    """
+    from certify.bnb import BoxEval
+    from certify.executor import chunk_ranges
+
+    def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+        total = int(lo.shape[0])
+        pieces = executor.workers * per_worker if total >= min_boxes else 1
+        ranges = chunk_ranges(total, pieces)
+        parts = executor.map_chunks(chunk_fn, payload,
+                                    [(lo[a:b].contiguous(), hi[a:b].contiguous())
+                                     for a, b in ranges])
+        if not parts:
+            empty = lo.new_empty(0)
+            return BoxEval(upper=empty, centre_value=empty, score=None)
+        scores = [p.score for p in parts]
+        return BoxEval(upper=torch.cat([p.upper for p in parts]),
+                       centre_value=torch.cat([p.centre_value for p in parts]),
+                       score=None if any(sc is None for sc in scores) else torch.cat(scores))
+
+    return evaluate
+
+
+def mpdi_box_payload(problem: Problem, lam: float, taylor: bool = True) -> dict[str, Any]:
+    """Plain data for `mpdi_box_chunk`: the problem, the rate, the enclosure choice."""
+    payload = problem_payload(problem)
+    payload.update(box_lam=float(lam), taylor=bool(taylor))
+    payload["key"] = payload_key(payload)
+    return payload
+
+
+def mpdi_box_chunk(payload: dict[str, Any], lo: torch.Tensor, hi: torch.Tensor) -> Any:
+    """The MPDI prover's `evaluate` on boxes [lo, hi] (a worker task; picklable): the same
+    evaluator `certify.prover.prove_mpdi` uses in-process, built once per worker."""
+    from certify.parallel import torch_threads
+
+    def build() -> Any:
+        from certify.enclosures import make_preconditioner
+        from certify.prover import _mpdi_evaluator
+
+        problem = problem_from_payload({k: payload[k] for k in
+                                        ("spec", "name", "architecture", "state", "lam", "P")})
+        pc = make_preconditioner(problem.P_t)
+        return _mpdi_evaluator(problem, payload["box_lam"], pc, payload["taylor"])
+
+    evaluate = worker_cache("mpdi-box:" + payload["key"], build)
+    with torch_threads(1), torch.no_grad():
+        return evaluate(lo, hi)

@@ -182,3 +182,57 @@ def test_device_cpu_explicitly_is_the_same_path(system3):
     b = falsify_mpdi(problem, VerifySettings(**base, device="cpu"))
     assert a.best_value == b.best_value and np.array_equal(a.top_points, b.top_points)
     assert problem.P_t.device.type == "cpu"
+
+
+def _vdp_certified():
+    from pathlib import Path
+
+    from certify import checkpoint
+
+    return checkpoint.load(str(Path(__file__).parents[1] / "examples" / "vdp_certified.ckpt"))
+
+
+def test_mpdi_proof_on_dask_equals_serial(dask2):
+    """Same box budget, serial vs 2 Dask workers: the same verdict, the same proved upper
+    bound and best point value, the same number of boxes (a budget-ended proof, so the bound
+    is an intermediate one and every round must have matched)."""
+    from certify.prover import prove_mpdi
+
+    problem = _vdp_certified().problem
+    serial = prove_mpdi(problem, seconds=1e9, max_boxes=5000)
+    with using(dask2):
+        remote = prove_mpdi(problem, seconds=1e9, max_boxes=5000)
+    assert serial.stats.budget_exhausted and remote.stats.budget_exhausted
+    assert serial.status == remote.status
+    assert serial.upper == remote.upper and serial.lower == remote.lower
+    assert serial.stats.boxes_processed == remote.stats.boxes_processed
+    assert serial.boxes == remote.boxes
+
+
+def test_killed_worker_mid_proof_changes_nothing(dask2):
+    """SIGKILL a worker while the MPDI proof runs on 2 workers: PROVED with the same bound."""
+    from certify.prover import prove_mpdi
+    from certify.results import Status
+
+    problem = _vdp_certified().problem
+    serial = prove_mpdi(problem, seconds=1e9, max_boxes=2_000_000)
+    assert serial.status == Status.PROVED
+    victim = list(dask2.worker_pids().values())[1]
+    killed = threading.Event()
+
+    def kill() -> None:
+        os.kill(victim, signal.SIGKILL)
+        killed.set()
+
+    killer = threading.Timer(0.8, kill)
+    killer.start()
+    try:
+        with using(dask2):
+            remote = prove_mpdi(problem, seconds=1e9, max_boxes=2_000_000)
+    finally:
+        killer.cancel()
+    assert killed.is_set()  # the proof outlasted the timer: the kill was mid-proof
+    assert remote.status == Status.PROVED
+    assert remote.upper == serial.upper and remote.stats.boxes_processed == \
+        serial.stats.boxes_processed
+    dask2.client.wait_for_workers(2, timeout=60)
