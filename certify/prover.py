@@ -108,13 +108,8 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
     pc = make_preconditioner(problem.P_t)
     lo, hi = _root(problem)
     n = problem.n
-    evaluate = _mpdi_evaluator(problem, lam, pc, taylor)
-    executor = current_executor()
-    if executor.workers > 1:  # each round's boxes in chunks on the workers (certify.remote)
-        from certify.remote import distributed_evaluate, mpdi_box_chunk, mpdi_box_payload
-
-        evaluate = distributed_evaluate(executor, mpdi_box_chunk,
-                                        mpdi_box_payload(problem, lam, taylor))
+    evaluate = _distributed("mpdi", problem, _mpdi_evaluator(problem, lam, pc, taylor),
+                            lam=lam, taylor=taylor)
     out = branch_and_bound(
         lo, hi, evaluate, threshold=0.0, seconds=seconds,
         max_boxes=max_boxes, batch=batch, progress=progress, task="mpdi proof",
@@ -144,6 +139,47 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
                         stats=out.stats, boxes=out.leaves, message=msg)
 
 
+def _rate_evaluator(problem: Problem, pc: Preconditioner):
+    """Boxes -> sound upper bound of phi = lam_max(He{P J_cl}, P) and phi at the centre."""
+    n = problem.n
+    P = problem.P_t
+
+    def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
+        bb = mpdi_box_bounds(problem, blo, bhi, 0.0, pc=pc)
+        mu = bb.upper
+        ub = torch.where(mu >= 0, up(mu / pc.c_min), up(mu / pc.c_max))
+        ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
+        c = 0.5 * (blo + bhi)
+        val = -2.0 * pointwise_rate(problem.system, problem.network, P, c[:, :n], c[:, n:])
+        return BoxEval(upper=ub, centre_value=val, score=bb.score)
+
+    return evaluate
+
+
+def _residual_evaluator(problem: Problem):
+    """Boxes of X -> sound upper bound of ||k(x, h(x))||_2 and its value at the centre."""
+
+    def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+        ub, cen = residual_box_upper(problem.system, problem.network, lo, hi)
+        ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
+        return BoxEval(upper=ub, centre_value=cen, score=None)
+
+    return evaluate
+
+
+def _distributed(kind: str, problem: Problem, evaluate, **options: object):
+    """`evaluate` itself, or, when the run's executor has several workers, the same
+    evaluator run there on each round's boxes in chunks (`certify.remote`), which gives the
+    same bounds box for box."""
+    executor = current_executor()
+    if executor.workers <= 1:
+        return evaluate
+    from certify.remote import box_payload, distributed_evaluate, prover_box_chunk
+
+    return distributed_evaluate(executor, prover_box_chunk,
+                                box_payload(problem, kind, **options))
+
+
 def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_000_000,
                progress: Progress | None = None, tol: float = 1e-9, rel_tol: float = 1e-3,
                batch: int = 1024) -> RateOutcome:
@@ -160,17 +196,7 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     pc = make_preconditioner(problem.P_t)
     lo, hi = _root(problem)
     n = problem.n
-    P = problem.P_t
-
-    def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
-        bb = mpdi_box_bounds(problem, blo, bhi, 0.0, pc=pc)
-        mu = bb.upper
-        ub = torch.where(mu >= 0, up(mu / pc.c_min), up(mu / pc.c_max))
-        ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
-        c = 0.5 * (blo + bhi)
-        val = -2.0 * pointwise_rate(problem.system, problem.network, P, c[:, :n], c[:, n:])
-        return BoxEval(upper=ub, centre_value=val, score=bb.score)
-
+    evaluate = _distributed("rate", problem, _rate_evaluator(problem, pc))
     out = branch_and_bound(lo, hi, evaluate, threshold=None, tol=tol, rel_tol=rel_tol,
                            seconds=seconds, max_boxes=max_boxes, batch=batch,
                            progress=progress, task="rate proof")
@@ -196,12 +222,7 @@ def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 
         return 0.0, None, ProofStats(rounding="structural network: k(x, h(x)) = 0 exactly")
     s = problem.system
     X = torch.as_tensor(s.X, dtype=torch.float64)
-
-    def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
-        ub, cen = residual_box_upper(s, problem.network, lo, hi)
-        ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
-        return BoxEval(upper=ub, centre_value=cen, score=None)
-
+    evaluate = _distributed("residual", problem, _residual_evaluator(problem))
     out = branch_and_bound(X[:, 0].clone(), X[:, 1].clone(), evaluate, threshold=None,
                            rel_tol=rel_tol, tol=1e-12, seconds=seconds, max_boxes=max_boxes,
                            batch=batch, progress=progress, task="residual bound", project=None)

@@ -127,28 +127,51 @@ def distributed_evaluate(executor: Any, chunk_fn: Any, payload: dict[str, Any], 
     return evaluate
 
 
-def mpdi_box_payload(problem: Problem, lam: float, taylor: bool = True) -> dict[str, Any]:
-    """Plain data for `mpdi_box_chunk`: the problem, the rate, the enclosure choice."""
+def box_payload(problem: Problem, kind: str, **options: Any) -> dict[str, Any]:
+    """Plain data for `prover_box_chunk`: the problem, which prover evaluator (`kind`: mpdi,
+    rate, residual) and its options (mpdi: lam, taylor)."""
+    if kind not in _BOX_EVALUATORS:
+        raise ValueError(f"unknown box evaluator {kind!r}")
     payload = problem_payload(problem)
-    payload.update(box_lam=float(lam), taylor=bool(taylor))
+    payload.update(kind=kind, options=dict(options))
     payload["key"] = payload_key(payload)
     return payload
 
 
-def mpdi_box_chunk(payload: dict[str, Any], lo: torch.Tensor, hi: torch.Tensor) -> Any:
-    """The MPDI prover's `evaluate` on boxes [lo, hi] (a worker task; picklable): the same
-    evaluator `certify.prover.prove_mpdi` uses in-process, built once per worker."""
+def _mpdi(problem: Problem, lam: float, taylor: bool = True) -> Any:
+    from certify.enclosures import make_preconditioner
+    from certify.prover import _mpdi_evaluator
+
+    return _mpdi_evaluator(problem, lam, make_preconditioner(problem.P_t), taylor)
+
+
+def _rate(problem: Problem) -> Any:
+    from certify.enclosures import make_preconditioner
+    from certify.prover import _rate_evaluator
+
+    return _rate_evaluator(problem, make_preconditioner(problem.P_t))
+
+
+def _residual(problem: Problem) -> Any:
+    from certify.prover import _residual_evaluator
+
+    return _residual_evaluator(problem)
+
+
+_BOX_EVALUATORS = {"mpdi": _mpdi, "rate": _rate, "residual": _residual}
+
+
+def prover_box_chunk(payload: dict[str, Any], lo: torch.Tensor, hi: torch.Tensor) -> Any:
+    """A prover's `evaluate` on boxes [lo, hi] (a worker task; picklable): the same evaluator
+    `certify.prover` uses in-process (`_mpdi_evaluator`, `_rate_evaluator`,
+    `_residual_evaluator`), built once per worker process."""
     from certify.parallel import torch_threads
 
     def build() -> Any:
-        from certify.enclosures import make_preconditioner
-        from certify.prover import _mpdi_evaluator
-
         problem = problem_from_payload({k: payload[k] for k in
                                         ("spec", "name", "architecture", "state", "lam", "P")})
-        pc = make_preconditioner(problem.P_t)
-        return _mpdi_evaluator(problem, payload["box_lam"], pc, payload["taylor"])
+        return _BOX_EVALUATORS[payload["kind"]](problem, **payload["options"])
 
-    evaluate = worker_cache("mpdi-box:" + payload["key"], build)
+    evaluate = worker_cache("box:" + payload["key"], build)
     with torch_threads(1), torch.no_grad():
         return evaluate(lo, hi)
