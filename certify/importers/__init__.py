@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from certify.importers.result import ImportedModel, ModelImportError, finish
+from certify.importers.result import ImportedModel, ModelImportError, finish, supported_activations
 
 __all__ = ["ImportedModel", "ModelImportError", "detect_format", "read_model"]
 
@@ -53,8 +53,7 @@ def read_model(path: str | Path, n: int, p: int, *, activation: str | None = Non
         layers = read_state_dict(path)
         if activation is None and len(layers) > 1:
             raise ModelImportError(f"{path}: a state_dict carries no activation; give "
-                                   "--activation NAME (tanh, sigmoid, softplus, silu, elu, "
-                                   "gelu)")
+                                   f"--activation NAME ({', '.join(supported_activations())})")
         found = activation
     else:
         if fmt == "onnx":

@@ -115,8 +115,8 @@ def finish(layers: list[Layer], activation: str | None, *, n: int, p: int,
     if structure is None:
         structure = "direct" if out == n else "structural" if out == n * p else None
     if structure not in wanted or out != wanted[structure]:
-        need = (f"n = {n} (direct) or n*p = {n * p} (structural)" if structure is None
-                else f"{wanted.get(structure)} ({structure})")
+        need = (f"{wanted.get(structure)} ({structure})" if structure is not None
+                else f"n = {n}" if p == 1 else f"n = {n} (direct) or n*p = {n * p} (structural)")
         raise ModelImportError(f"{path}: {last.where}: the output has {out} values; the spec "
                                f"needs {need}")
     if len(layers) > 1 and activation is None:
