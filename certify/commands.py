@@ -172,6 +172,8 @@ def cmd_import(args: argparse.Namespace) -> int:
     if args.system is None:
         raise CertifyError("certify import needs --system SPEC (the system the model observes)")
     check_output_path(args.output, "-o")
+    if os.path.realpath(args.output) == os.path.realpath(args.model):
+        raise CertifyError(f"-o {args.output}: is the model itself; name a new checkpoint")
     from certify.importers.command import run_import
 
     return run_import(args)

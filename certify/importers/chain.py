@@ -73,6 +73,7 @@ class Pre:
     W: np.ndarray
     b: np.ndarray
     node: Node
+    reads: int  # the k of the Post(k) it reads: a layer joins the chain only at position k
 
     @property
     def width(self) -> int:
@@ -173,7 +174,7 @@ class ChainBuilder:
                             f"{h.width}")
         out = Wa.shape[0]
         ba = np.zeros(out) if b is None else self.bias(b, out, node)
-        return Pre(np.ascontiguousarray(Wa), ba, node)
+        return Pre(np.ascontiguousarray(Wa), ba, node, h.k)
 
     def bias(self, b: Const, out: int, node: Node) -> np.ndarray:
         arr = self.finite(b, node)
@@ -212,6 +213,11 @@ class ChainBuilder:
         return Post(len(self.layers), x.pre.width)
 
     def seal(self, pre: Pre) -> None:
+        """Append `pre` as the next layer; it must read the chain's latest value (so a layer
+        read twice, a branch or a skip connection is refused, never silently re-ordered)."""
+        if pre.reads != len(self.layers):
+            self.fail(pre.node, "its output or input is shared with another branch: only a "
+                                "chain of layers is supported")
         self.layers.append(Layer(pre.W, pre.b, str(pre.node)))
 
     # ----- elementwise --------------------------------------------------------------------
@@ -219,7 +225,7 @@ class ChainBuilder:
         """A bias folded into the layer (u + c), else an elementwise sum."""
         for pre, c in ((a, b), (b, a)):
             if isinstance(pre, Pre) and isinstance(c, Const):
-                return Pre(pre.W, pre.b + self.bias(c, pre.width, node), pre.node)
+                return Pre(pre.W, pre.b + self.bias(c, pre.width, node), pre.node, pre.reads)
         return self.binary(node, "add", a, b)
 
     def binary(self, node: Node, op: str, a: Any, b: Any) -> Elem:

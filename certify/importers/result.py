@@ -105,6 +105,10 @@ def finish(layers: list[Layer], activation: str | None, *, n: int, p: int,
     """
     if not layers:
         raise ModelImportError(f"{path}: no linear layer found between the input and output")
+    for before, layer in zip(layers, layers[1:]):
+        if layer.W.shape[1] != before.W.shape[0]:
+            raise ModelImportError(f"{path}: {layer.where}: reads {layer.W.shape[1]} values but "
+                                   f"{before.where} gives {before.W.shape[0]}")
     first, last = layers[0], layers[-1]
     if first.W.shape[1] != n + p:
         raise ModelImportError(f"{path}: {first.where}: the first layer reads "

@@ -146,6 +146,11 @@ def _apply(b: ChainBuilder, node: Any, where: Node, objects: dict[str, Any], pat
             b.fail(where, f"GELU with approximate = '{approx}' is not supported; use the "
                           "exact (erf) GELU")
         return b.unary(where, "gelu", args[0])
+    if kind == "aten::dropout":
+        if _constant(b, args, 2, where) is not False:
+            b.fail(where, "dropout in training mode is not a no-op; save the module after "
+                          ".eval()")
+        return args[0]
     if kind in ("aten::reshape", "aten::view"):
         shape = args[1] if isinstance(args[1], list) else [args[1]]
         if not all(isinstance(v, Const) for v in shape):
