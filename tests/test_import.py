@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from certify import checkpoint
-from certify.importers import read_model
+from certify.importers import ModelImportError, read_model
 from certify.importers import result as import_result
 from certify.importers.result import supported_activations
 from certify.network import GainNetwork
@@ -208,3 +208,13 @@ def test_lam_and_metric_flags_override_the_spec(tmp_path, capsys):
                            "-o", out)
     problem = checkpoint.load(out).problem
     assert code == 0 and problem.lam == 0.5 and problem.P[0, 1] == 0.1
+
+
+@pytest.mark.parametrize("activation", [a for a in TORCH_ACTIVATIONS if a not in AVAILABLE])
+def test_activation_the_verifier_cannot_evaluate_is_refused(tmp_path, activation):
+    """Until the verifier evaluates an activation, a model using it is refused (never read
+    as a tanh network)."""
+    path = export(mlp(activation), tmp_path / "m.onnx", "onnx20",
+                  (torch.zeros(1, 5, dtype=torch.float64),))
+    with pytest.raises(ModelImportError, match=f"'{activation}' cannot be verified"):
+        read_model(path, 3, 2)
