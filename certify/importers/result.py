@@ -25,27 +25,33 @@ class ModelImportError(CertifyError):
     """A model file that cannot be read as a certify gain network (one line, exit 2)."""
 
 
-_NON_C1_NAMES = ("relu", "relu6", "leaky_relu", "prelu", "hardtanh", "hardsigmoid",
-                 "hardswish", "selu", "abs", "clamp", "threshold")
-
-
 def supported_activations() -> tuple[str, ...]:
-    """The activation names this certify can verify (`certify.activations`, else tanh only)."""
-    try:
-        from certify.activations import names
-    except ImportError:
+    """The activations this certify can verify end to end: every name of
+    `certify.activations` once `GainNetwork` takes an `activation`, else tanh only (the
+    verifier's kernels then evaluate tanh, so importing anything else would certify the
+    wrong network)."""
+    import inspect
+
+    if "activation" not in inspect.signature(GainNetwork.__init__).parameters:
         return ("tanh",)
+    from certify.activations import names
+
     return tuple(names())
 
 
 def check_activation(name: str, where: str) -> str:
-    """`name` if certify can verify it; else `ModelImportError` saying why, naming `where`."""
-    if name in supported_activations():
-        return name
-    if name.lower() in _NON_C1_NAMES:
-        raise ModelImportError(f"{where}: {name} is not C^1: {NOT_C1}")
-    raise ModelImportError(f"{where}: activation {name!r} is not available in this certify "
-                           f"(available: {', '.join(supported_activations())})")
+    """The canonical name of activation `name` if certify can verify it; else
+    `ModelImportError` naming `where` and saying why (not C^1, unknown, not yet verifiable)."""
+    from certify.activations import get
+
+    try:
+        canonical = get(name).name
+    except ValueError as exc:
+        raise ModelImportError(f"{where}: {exc}") from None
+    if canonical not in supported_activations():
+        raise ModelImportError(f"{where}: activation {canonical!r} cannot be verified by this "
+                               f"certify yet (verifiable: {', '.join(supported_activations())})")
+    return canonical
 
 
 @dataclass(frozen=True)
