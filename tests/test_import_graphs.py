@@ -119,3 +119,16 @@ def test_torchscript_dropout_in_eval_mode_is_a_no_op(tmp_path):
     model.train()
     with pytest.raises(ModelImportError, match=r"\(aten::dropout\): dropout in training mode"):
         read_model(export(model, tmp_path / "t.pt", "script", ()), 2, 1)
+
+
+def test_structure_for_p_1_and_activation_that_disagrees(tmp_path):
+    path = write(tmp_path / "m.onnx", first_layer() + [
+        helper.make_node("Tanh", ["u"], ["h"], name="act")] + second_layer("h"))
+    assert read_model(path, 2, 1).structure == "direct"  # n = n*p = 2: direct unless asked
+    structural = read_model(path, 2, 1, structure="structural")
+    assert structural.structure == "structural"
+    assert structural.network().architecture()["structure"] == "structural"
+    with pytest.raises(ModelImportError, match=r"uses tanh \(node 'act' \(Tanh\)\); "
+                                               "--activation sigmoid disagrees"):
+        read_model(path, 2, 1, activation="sigmoid")
+    assert read_model(path, 2, 1, activation="Tanh").activation == "tanh"

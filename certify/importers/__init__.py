@@ -11,7 +11,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from certify.importers.result import ImportedModel, ModelImportError, finish, supported_activations
+from certify.importers.result import (
+    ImportedModel,
+    ModelImportError,
+    canonical_activation,
+    finish,
+    supported_activations,
+)
 
 __all__ = ["ImportedModel", "ModelImportError", "detect_format", "read_model"]
 
@@ -47,6 +53,8 @@ def read_model(path: str | Path, n: int, p: int, *, activation: str | None = Non
                                else f"model {path} is not a regular file")
     fmt = detect_format(path)
     notes: list[str] = []
+    if activation is not None:
+        activation = canonical_activation(activation, f"{path}: --activation")
     if fmt == "state_dict":
         from certify.importers.torch_model import read_state_dict
 

@@ -39,15 +39,21 @@ def supported_activations() -> tuple[str, ...]:
     return tuple(names())
 
 
-def check_activation(name: str, where: str) -> str:
-    """The canonical name of activation `name` if certify can verify it; else
-    `ModelImportError` naming `where` and saying why (not C^1, unknown, not yet verifiable)."""
+def canonical_activation(name: str, where: str) -> str:
+    """The registry's name for `name` ('Tanh' -> 'tanh', 'swish' -> 'silu'); refuses non-C^1
+    and unknown names with `certify.activations`' reason, naming `where`."""
     from certify.activations import get
 
     try:
-        canonical = get(name).name
+        return get(name).name
     except ValueError as exc:
         raise ModelImportError(f"{where}: {exc}") from None
+
+
+def check_activation(name: str, where: str) -> str:
+    """The canonical name of activation `name` if certify can verify it; else
+    `ModelImportError` naming `where` and saying why (not C^1, unknown, not yet verifiable)."""
+    canonical = canonical_activation(name, where)
     if canonical not in supported_activations():
         raise ModelImportError(f"{where}: activation {canonical!r} cannot be verified by this "
                                f"certify yet (verifiable: {', '.join(supported_activations())})")
