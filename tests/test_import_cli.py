@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -129,3 +130,37 @@ def test_refusal_from_a_real_process(workdir):
                            "spec.toml"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr.count("\n") == 1 and "node '/1/Relu' (Relu)" in proc.stderr
+
+
+@pytest.mark.parametrize("how", ("onnx17", "script", "state_dict"))
+def test_damaged_model_files_are_bad_input(workdir, capsys, how):
+    """A model file cut short or with flipped bytes (anywhere, including a ZIP's directory)
+    is exit 2 with one line, never a crash."""
+    path = Path(export(mlp("tanh", n=2, p=1, out=2), "m.bin", how, Z))
+    data = path.read_bytes()
+    flags = ("--activation", "tanh") if how == "state_dict" else ()
+    rng = np.random.default_rng(0)
+    variants = [data[: len(data) // 2], data[: len(data) - 30]]
+    for _ in range(12):
+        flipped = np.frombuffer(data, dtype=np.uint8).copy()
+        at = rng.integers(0, len(data), size=8)
+        flipped[at] ^= rng.integers(1, 256, size=8).astype(np.uint8)
+        variants.append(flipped.tobytes())
+    for variant in variants:
+        path.write_bytes(variant)
+        code, out, err = run_cli(capsys, "import", str(path), "--system", "spec.toml", "-o",
+                                 "out.ckpt", *flags)
+        assert code in (0, 2) and err.count("\n") == (code == 2), err
+        assert code == 2 or Path("out.ckpt").exists()
+        Path("out.ckpt").unlink(missing_ok=True)
+
+
+def test_damaged_zip_names_are_bad_input_for_run_too(workdir, capsys):
+    """A ZIP whose directory holds undecodable names (a flipped byte) is refused as damaged by
+    the checkpoint reader as well, not an internal error."""
+    path = Path(export(mlp("tanh", n=2, p=1, out=2), "m.pt", "state_dict", Z))
+    data = bytearray(path.read_bytes())
+    name = data.rindex(b"data.pkl")  # a name in the central directory, at the end
+    data[name] = 0xE9  # not UTF-8 on its own; the entry is flagged as UTF-8
+    path.write_bytes(bytes(data))
+    assert "damaged" in refused(capsys, "run", str(path))

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from certify.importers.chain import ChainBuilder, Const, Node
-from certify.importers.result import ModelImportError
+from certify.importers.result import READ_ERRORS, ModelImportError, first_line
 
 #: ONNX operators that are not C^1 (refused with the reason, not as "unsupported")
 NON_C1_OPS = {"Relu": "ReLU", "LeakyRelu": "leaky ReLU", "PRelu": "PReLU", "Clip": "Clip",
@@ -68,7 +68,8 @@ def load_onnx(path: str | Path) -> Any:
     try:
         model = onnx.load(str(path))
     except Exception as exc:  # protobuf decode errors have no common public base class
-        raise ModelImportError(f"{path}: not an ONNX model ({type(exc).__name__})") from None
+        raise ModelImportError(f"{path}: not an ONNX model, or a damaged one "
+                               f"({type(exc).__name__}{first_line(exc)})") from None
     if not model.graph.node:
         raise ModelImportError(f"{path}: not an ONNX model (no graph nodes)")
     return model
@@ -82,7 +83,11 @@ def read_onnx(path: str | Path, n: int, p: int) -> tuple[ChainBuilder, list]:
     b = ChainBuilder(str(path), n, p)
     initializers = set()
     for init in graph.initializer:
-        b.set(init.name, Const(numpy_helper.to_array(init), init.name))
+        try:
+            b.set(init.name, Const(numpy_helper.to_array(init), init.name))
+        except READ_ERRORS as exc:
+            raise ModelImportError(f"{path}: initializer '{init.name}' cannot be read "
+                                   f"({type(exc).__name__}{first_line(exc)})") from None
         initializers.add(init.name)
     inputs = [vi for vi in graph.input if vi.name not in initializers]
     if len(inputs) not in (1, 2):
@@ -101,7 +106,10 @@ def read_onnx(path: str | Path, n: int, p: int) -> tuple[ChainBuilder, list]:
     producers: dict[str, Node] = {}
     for index, node in enumerate(graph.node):
         where = Node(node.name or f"#{index}", node.op_type)
-        value = _apply(b, node, where)
+        try:
+            value = _apply(b, node, where)
+        except READ_ERRORS as exc:  # malformed attributes or tensors: the file's fault
+            b.fail(where, f"cannot be read ({type(exc).__name__}{first_line(exc)})")
         for out in node.output[:1]:
             b.set(out, value)
             producers[out] = where

@@ -25,6 +25,17 @@ class ModelImportError(CertifyError):
     """A model file that cannot be read as a certify gain network (one line, exit 2)."""
 
 
+#: what reading a malformed node or tensor raises (a model file's fault, not certify's)
+READ_ERRORS = (ValueError, TypeError, KeyError, IndexError, AttributeError, RuntimeError,
+               OSError)
+
+
+def first_line(exc: Exception) -> str:
+    """': <the first line of the exception's message>' (cut at 120 characters), or ''."""
+    text = str(exc).strip().splitlines()
+    return f": {text[0][:120]}" if text else ""
+
+
 def supported_activations() -> tuple[str, ...]:
     """The activations this certify can verify end to end: every name of
     `certify.activations` once `GainNetwork` takes an `activation`, else tanh only (the

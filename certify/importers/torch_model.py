@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from certify.importers.chain import ChainBuilder, Const, Node
-from certify.importers.result import Layer, ModelImportError
+from certify.importers.result import READ_ERRORS, Layer, ModelImportError, first_line
 
 _UNARY = {"aten::tanh": "tanh", "aten::sigmoid": "sigmoid", "aten::silu": "silu",
           "aten::erf": "erf"}
@@ -43,7 +43,7 @@ def is_torchscript(path: Path) -> bool:
     try:
         with zipfile.ZipFile(path) as archive:
             names = archive.namelist()
-    except (zipfile.BadZipFile, OSError):
+    except (zipfile.BadZipFile, OSError, ValueError):  # ValueError: undecodable names
         return False
     return any(n.endswith("/constants.pkl") for n in names) and any("/code/" in n for n in names)
 
@@ -74,7 +74,10 @@ def read_torchscript(path: str | Path, n: int, p: int) -> tuple[ChainBuilder, li
         outs = list(node.outputs())
         where = Node(f"%{outs[0].debugName()}" if outs else node.kind(), node.kind())
         last = where
-        result = _apply(b, node, where, objects, str(path))
+        try:
+            result = _apply(b, node, where, objects, str(path))
+        except READ_ERRORS as exc:  # an attribute or constant that cannot be read
+            b.fail(where, f"cannot be read ({type(exc).__name__}{first_line(exc)})")
         for out in outs[:1]:
             b.set(out.debugName(), result)
     outs = list(graph.outputs())
