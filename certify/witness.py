@@ -153,8 +153,12 @@ def _norm_lower(v: Interval) -> torch.Tensor:
     """Sound lower bound of ||w||_2 over the interval vector v [B, m]."""
     ok = torch.isfinite(v.lo).all(-1) & torch.isfinite(v.hi).all(-1)
     m = torch.where(ok[:, None], v.mig(), torch.zeros_like(v.lo))
+    # scale by a power of two (exact) so that the squares neither overflow nor underflow
+    e = torch.frexp(m.amax(-1, keepdim=True).clamp_min(2.0 ** -1000)).exponent
+    m = torch.ldexp(m, -e)
     s = down(down(m * m).sum(-1) * (1.0 - 2.0 ** -50 * (v.lo.shape[-1] + 2)))
-    out = down(torch.sqrt(s.clamp_min(0.0)))
+    out = torch.ldexp(down(torch.sqrt(s.clamp_min(0.0))), e[:, 0])
+    out = down(out)  # ldexp is exact unless it underflows: one ulp covers that
     return torch.where(ok, out, torch.full_like(out, _NAN))
 
 
@@ -175,6 +179,7 @@ def dk_dy_norm_lower(problem, z: torch.Tensor) -> torch.Tensor:
     Ju = imatmul(J, Interval(u[:, :, None], u[:, :, None]))
     num = _norm_lower(Interval(Ju.lo[..., 0], Ju.hi[..., 0]))
     unorm = up(torch.sqrt(up(up((u * u).sum(-1)) * (1.0 + 2.0 ** -50 * (u.shape[-1] + 2)))))
+    # u has a unit entry, so ||u|| is in [1, sqrt(p)]: no overflow here
     out = down(num / unorm)
     return torch.where(ok, out, torch.full_like(out, _NAN))
 

@@ -86,12 +86,16 @@ def dk_dy_norms(problem: Problem, z: torch.Tensor) -> torch.Tensor:
     """||dk/dy(xhat, y)||_2 at z = (xhat, y) [B, n+p] -> [B] (differentiable; NaN stays NaN)."""
     n = problem.n
     J = gain_terms(problem.system, problem.network, z[:, :n], z[:, n:], with_dy=True).dk_dy
-    if J.shape[-1] == 1:
-        return torch.linalg.vector_norm(J[..., 0], dim=-1)
     finite = torch.isfinite(J).all(dim=-1).all(dim=-1)
     safe = torch.where(finite[:, None, None], J, torch.zeros_like(J))  # SVD fails on NaN
-    return torch.where(finite, torch.linalg.matrix_norm(safe, ord=2),
-                       torch.full_like(J[:, 0, 0], float("nan")))
+    # scale by a power of two per point (exact) so that huge gains do not overflow the norm
+    e = torch.frexp(safe.detach().abs().amax((-1, -2)).clamp_min(2.0 ** -1000)).exponent
+    safe = torch.ldexp(safe, -e[:, None, None])
+    if J.shape[-1] == 1:
+        norm = torch.linalg.vector_norm(safe[..., 0], dim=-1)
+    else:
+        norm = torch.linalg.matrix_norm(safe, ord=2)
+    return torch.where(finite, torch.ldexp(norm, e), torch.full_like(J[:, 0, 0], float("nan")))
 
 
 def sampled_lower(problem: Problem, points: int = 20_000, starts: int = 16, steps: int = 60,
