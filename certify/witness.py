@@ -158,7 +158,7 @@ def _norm_lower(v: Interval) -> torch.Tensor:
     m = torch.ldexp(m, -e)
     s = down(down(m * m).sum(-1) * (1.0 - 2.0 ** -50 * (v.lo.shape[-1] + 2)))
     out = torch.ldexp(down(torch.sqrt(s.clamp_min(0.0))), e[:, 0])
-    out = down(out)  # ldexp is exact unless it underflows: one ulp covers that
+    out = down(out).clamp_min(0.0)  # ldexp is exact unless it underflows: one ulp covers it
     return torch.where(ok, out, torch.full_like(out, _NAN))
 
 
@@ -180,7 +180,7 @@ def dk_dy_norm_lower(problem, z: torch.Tensor) -> torch.Tensor:
     num = _norm_lower(Interval(Ju.lo[..., 0], Ju.hi[..., 0]))
     unorm = up(torch.sqrt(up(up((u * u).sum(-1)) * (1.0 + 2.0 ** -50 * (u.shape[-1] + 2)))))
     # u has a unit entry, so ||u|| is in [1, sqrt(p)]: no overflow here
-    out = down(num / unorm)
+    out = down(num / unorm).clamp_min(0.0)
     return torch.where(ok, out, torch.full_like(out, _NAN))
 
 

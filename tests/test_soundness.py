@@ -7,6 +7,7 @@ a planted real violation still is, with its sound lower bound recorded in the JS
 from __future__ import annotations
 
 import json
+import math
 from fractions import Fraction
 
 import numpy as np
@@ -94,3 +95,51 @@ def test_rayleigh_lower_is_below_every_member_and_nan_never_decides():
     bad = Interval(S.clone(), S.clone())
     bad.hi[0, 1, 2] = float("nan")
     assert torch.isnan(rayleigh_lower(bad)[0])
+
+
+# ----- NaN / Inf never decide anything -------------------------------------------------
+
+def test_nan_weight_in_checkpoint_is_refused_at_load(workdir, capsys):
+    path = save_problem(workdir / "ok.ckpt", linear_problem(A_TIE, C_TIE, np.zeros((2, 1)),
+                                                            lam=0.5))
+    data = torch.load(path, weights_only=True)
+    key = next(k for k in data["state_dict"] if k.endswith("weight"))
+    data["state_dict"][key] = data["state_dict"][key].clone()
+    data["state_dict"][key].view(-1)[0] = float("nan")
+    torch.save(data, workdir / "nan.ckpt")
+    code, out, err = run_cli(capsys, "run", str(workdir / "nan.ckpt"))
+    assert code == 2 and "contains NaN or Inf" in err and err.count("\n") == 1
+
+
+def test_spec_overflowing_inside_the_box_is_refused(workdir, capsys):
+    (workdir / "s.toml").write_text(
+        'name = "t"\nstates = ["x1", "x2"]\noutputs = ["y"]\n'
+        'f = ["-x1 + 1e-300*exp(exp(7*x1))", "-x2"]\nh = ["x1"]\n'
+        "[box]\nX = [[-1.0, 1.0], [-1.0, 1.0]]\nY = [[-1.0, 1.0]]\n[design]\nlam = 0.5\n")
+    code, _, err = run_cli(capsys, "check", "s.toml", "--no-synthesis")
+    assert code == 2 and "is not finite" in err and "x1 in [" in err
+
+
+def test_overflowing_network_is_never_proved(workdir, capsys):
+    """Weights x1e307: D, k and ||dk/dy|| overflow somewhere; nothing is PROVED from Inf and
+    any VIOLATED stands on a finite sound bound."""
+    pr = linear_problem(A_TIE, C_TIE, np.zeros((2, 1)), lam=0.5, hidden=(6, 6))
+    net = pr.network.double()
+    gen = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for layer in net.layers:
+            layer.weight.copy_(torch.randn(layer.weight.shape, generator=gen))
+        net.layers[-1].weight.mul_(1e307)
+    from certify.problem import Problem
+
+    path = save_problem(workdir / "inf.ckpt", Problem(pr.system, net, pr.lam, pr.P))
+    code, out, err = run_cli(capsys, "run", path, "--json", "c.json", "--skip", "simulation",
+                             "--proof-seconds", "2")
+    assert code in (1, 3), out + err
+    checks = json.loads((workdir / "c.json").read_text())["checks"]
+    assert checks["mpdi"]["status"] != "PROVED" and checks["residual"]["status"] != "PROVED"
+    for cex in checks["mpdi"]["counterexamples"]:
+        assert isinstance(cex["sound_bound"], float) and 0 < cex["sound_bound"] < math.inf
+    assert checks["lipschitz"]["value"] is None or checks["lipschitz"]["value"] < math.inf
+    assert checks["lipschitz"]["sampled"] != checks["lipschitz"]["sampled"] \
+        or checks["lipschitz"]["sampled"] >= 0
