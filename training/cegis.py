@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from certify.checks.mpdi import falsify_mpdi
+from certify.gain.buffered import ChunkBuffers
 from certify.kernels import mpdi_lam_max, sym
 from certify.network import GainNetwork
 from certify.parallel import torch_threads
@@ -45,7 +46,7 @@ from certify.system import System
 from training import losses
 from training.collocation import collocation_points
 from training.optim import Adam
-from training.train import LossValues, Objective, _Chunk
+from training.train import LossValues, Objective
 
 Log = Callable[[str], None]
 
@@ -173,7 +174,7 @@ class CertObjective(Objective):
         self.r_all = (y.to(torch.float64) - system.h(xhat.to(torch.float64))).to(dt)
         self.m = n + p  # forward tangents for every input column (xhat and y)
         widths = [n + p, *[layer.weight.shape[0] for layer in net.layers]]
-        self.chunks = [_Chunk(ch.Z, ch.C, widths, self.m, not self.structural)
+        self.chunks = [ChunkBuffers(ch.Z, ch.C, widths, self.m, not self.structural)
                        for ch in self.chunks]
         self.last_lip = 0.0
         self.last_lip_max = 0.0  # max ||dk/dy||_F over the collocation points
@@ -229,7 +230,8 @@ class CertObjective(Objective):
 
 
 def warm_start_network(system: System, hidden: tuple[int, ...], *, K: Any = None,
-                       structure: str = "structural", seed: int = 0) -> GainNetwork:
+                       structure: str = "structural", seed: int = 0,
+                       activation: str = "tanh") -> GainNetwork:
     """A float64 network whose MLP output is exactly zero (last layer zero) and whose linear
     injection buffer is K: its gain is exactly K (y - h(xhat)) (K = None: zero gain).
 
@@ -237,7 +239,8 @@ def warm_start_network(system: System, hidden: tuple[int, ...], *, K: Any = None
     """
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))
-        net = GainNetwork(system.n, system.p, hidden, structure=structure).double()
+        net = GainNetwork(system.n, system.p, hidden, structure=structure,
+                          activation=activation).double()
     with torch.no_grad():
         net.layers[-1].weight.zero_()
         net.layers[-1].bias.zero_()

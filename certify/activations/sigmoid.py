@@ -40,6 +40,9 @@ class Sigmoid(Activation):
         s = torch.sigmoid(x)
         return s, s * (1.0 - s)
 
+    def d2_given(self, x: torch.Tensor, f: torch.Tensor, d1: torch.Tensor) -> torch.Tensor:
+        return d1 * (1.0 - 2.0 * f)
+
     def torch_module(self) -> nn.Module:
         return nn.Sigmoid()
 
