@@ -65,12 +65,26 @@ class GainNetwork(nn.Module):
                    activation=arch.get("activation", activations.DEFAULT))
 
     def weights(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """[(W, b)] per layer, W of shape [out, in]."""
+        """[(W, b)] per layer, W of shape [out, in], for `certify.enclosures` (the prover).
+
+        The prover still applies tanh's interval rules to every neuron, so for any other
+        activation this refuses (the proof check ends in ERROR, never in a wrong PROVED)
+        until enclosures.py reads the activation from `spec()` (see `certify.gain`).
+        """
+        if self.activation != "tanh":
+            raise NotImplementedError(
+                f"the interval prover does not support activation {self.activation!r} yet "
+                f"(its enclosures assume tanh); no proof is attempted")
+        return [(layer.weight, layer.bias) for layer in self.layers]
+
+    def layer_weights(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """[(W, b)] per layer, W of shape [out, in] (any activation)."""
         return [(layer.weight, layer.bias) for layer in self.layers]
 
     def spec(self, dtype: torch.dtype | None = None, detach: bool = False) -> GainSpec:
         """The gain's description over this network's parameters (cast to `dtype` if given)."""
-        s = GainSpec(self.n, self.p, tuple(self.weights()), self.act, self.structure, self.K)
+        s = GainSpec(self.n, self.p, tuple(self.layer_weights()), self.act, self.structure,
+                     self.K)
         return s if dtype is None and not detach else s.to(dtype or s.dtype, detach=detach)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:

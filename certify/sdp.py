@@ -11,7 +11,10 @@ LipSDP-Neuron (Fazlyab et al. 2019) for the MLP in y with xhat frozen,
     y -> x1 = phi(W0y y + c0) -> ... -> xH = phi(W_{H-1} x_{H-1} + c) -> out = Wo xH + K y,
 
 phi slope-restricted in [0, 1], gives one LMI M(t, rho) <= 0 in the stacked increments
-(dy, dx1, ..., dxH):
+(dy, dx1, ..., dxH) (another sector [alpha, beta], `slope=`: alpha >= 0 is solved as [0, 1]
+with the hidden weights scaled by beta; alpha < 0 adds -2 alpha beta W^T T W on the
+(i-1, i-1) blocks and scales T W by alpha + beta, solved by Clarabel; the re-check always
+rebuilds the [alpha, beta] LMI on the unscaled weights):
 
     M = -rho E00 + [K Wo]^T [K Wo] (on the dy, dxH blocks)
         + sum_i ( -2 T_i on (i, i);  T_i W_{i-1} on (i, i-1) and its transpose ),
@@ -126,12 +129,15 @@ def _solve(prob: cp.Problem, t0: float, **solver_opts: Any) -> tuple[Status, str
 # ----------------------------------------------------------------------------------------
 
 def lipsdp_lmi(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | None,
-               t: Sequence[np.ndarray], rho: float) -> np.ndarray:
+               t: Sequence[np.ndarray], rho: float,
+               slope: tuple[float, float] = (0.0, 1.0)) -> np.ndarray:
     """The full LipSDP-Neuron matrix M(t, rho) in numpy (size p + sum n_i); M <= 0 proves L.
 
     Ws = [W0y, W1, ..., W_{H-1}] (each producing a hidden layer), W_out [m, n_H], K [m, p]
-    (a linear skip term K y, or None), t = [t_1..t_H] the neuron multipliers (>= 0).
+    (a linear skip term K y, or None), t = [t_1..t_H] the neuron multipliers (>= 0),
+    slope = the activation's sector [alpha, beta].
     """
+    sa, sb = float(slope[0]), float(slope[1])
     p = Ws[0].shape[1]
     widths = [W.shape[0] for W in Ws]
     offs = np.cumsum([0, p, *widths])
@@ -142,9 +148,11 @@ def lipsdp_lmi(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | None
         r = slice(offs[i + 1], offs[i + 2])
         c = slice(offs[i], offs[i + 1])
         TW = ti[:, None] * W
-        M[r, c] += TW
-        M[c, r] += TW.T
+        M[r, c] += (sa + sb) * TW
+        M[c, r] += (sa + sb) * TW.T
         M[r, r] -= 2.0 * np.diag(ti)
+        if sa * sb != 0.0:
+            M[c, c] -= (2.0 * sa * sb) * (W.T @ TW)
     Kx = np.zeros((W_out.shape[0], p)) if K is None else np.asarray(K, dtype=np.float64)
     O = np.concatenate([Kx, W_out], axis=1)  # acts on (dy, dxH)
     idx = np.r_[0:p, offs[-2]:offs[-1]]
@@ -186,7 +194,8 @@ def _check_tolerance(M: np.ndarray, O: np.ndarray) -> float:
 
 
 def check_lipsdp_lmi(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | None,
-                     t: Sequence[np.ndarray], rho: float, max_inflations: int = 12
+                     t: Sequence[np.ndarray], rho: float, max_inflations: int = 12,
+                     slope: tuple[float, float] = (0.0, 1.0)
                      ) -> tuple[float | None, float, float]:
     """Rebuild M at (max(t, 0), rho) and inflate rho until lam_max(M) <= -tolerance.
 
@@ -200,8 +209,12 @@ def check_lipsdp_lmi(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray 
     Kx = np.zeros((W_out.shape[0], p)) if K is None else np.asarray(K, dtype=np.float64)
     O = np.concatenate([Kx, W_out], axis=1)
     rho = float(max(rho, 0.0))
-    M = lipsdp_lmi(Ws, W_out, K, t, rho)
-    tol = _check_tolerance(M, O)
+    M = lipsdp_lmi(Ws, W_out, K, t, rho, slope)
+    # a sector with alpha beta != 0 adds the products W^T T W: their rounding, like O^T O's
+    ab = 2.0 * abs(float(slope[0]) * float(slope[1]))
+    extra = sum(8.0 * M.shape[0] * _U * ab * np.linalg.norm(np.abs(W).T @ (ti[:, None] * np.abs(W)))
+                for W, ti in zip(Ws, t)) if ab else 0.0
+    tol = _check_tolerance(M, O) + extra
     top = _top_eig(M)
     if np.isfinite(top) and top <= -tol:
         return rho, top, tol
@@ -217,8 +230,8 @@ def check_lipsdp_lmi(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray 
     scale = max(base, 1e-12)
     for k in range(max_inflations):
         trial = base + scale * 10.0 ** (k - max_inflations + 1)  # 1e-11 .. 1 relative
-        M = lipsdp_lmi(Ws, W_out, K, t, trial)
-        tol = _check_tolerance(M, O)
+        M = lipsdp_lmi(Ws, W_out, K, t, trial, slope)
+        tol = _check_tolerance(M, O) + extra
         top = _top_eig(M)
         if np.isfinite(top) and top <= -tol:
             return trial, top, tol
@@ -226,9 +239,10 @@ def check_lipsdp_lmi(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray 
 
 
 def _lipsdp_clarabel(Ws: list[np.ndarray], W_out: np.ndarray, Kx: np.ndarray,
-                     delta: float, t0: float) -> tuple[SdpResult, list[np.ndarray] | None,
-                                                       float | None]:
+                     delta: float, t0: float, slope: tuple[float, float] = (0.0, 1.0)
+                     ) -> tuple[SdpResult, list[np.ndarray] | None, float | None]:
     """Chordal (fan-clique) LipSDP-Neuron through cvxpy + Clarabel. Returns (result, t, rho)."""
+    apb, ab2 = float(slope[0]) + float(slope[1]), 2.0 * float(slope[0]) * float(slope[1])
     p = Ws[0].shape[1]
     H = len(Ws)
     widths = [W.shape[0] for W in Ws]
@@ -240,9 +254,14 @@ def _lipsdp_clarabel(Ws: list[np.ndarray], W_out: np.ndarray, Kx: np.ndarray,
     Dg = [-2 * T[i] + delta * np.eye(widths[i]) for i in range(H)]
     Dg[H - 1] = Dg[H - 1] + W_out.T @ W_out
     R00 = Kx.T @ Kx - rho * np.eye(p)
+    if ab2 != 0.0:  # sector [alpha, beta]: -2 alpha beta W_i^T T_i W_i on the input block of W_i
+        R00 = R00 - ab2 * (Ws[0].T @ T[0] @ Ws[0])
+        for i in range(H - 1):
+            Dg[i] = Dg[i] - ab2 * (Ws[i + 1].T @ T[i + 1] @ Ws[i + 1])
+    TW = [T[i] @ Ws[i] if apb == 1.0 else apb * (T[i] @ Ws[i]) for i in range(H)]
     constraints = []
     if H == 1:
-        G = T[0] @ Ws[0] + WoK
+        G = TW[0] + WoK
         constraints.append(-cp.bmat([[R00, G.T], [G, Dg[0]]]) >> 0)
     else:
         # Free splitting variables of the blocks shared by two cliques, and of (0, 0).
@@ -252,11 +271,11 @@ def _lipsdp_clarabel(Ws: list[np.ndarray], W_out: np.ndarray, Kx: np.ndarray,
         for c in range(1, H):  # clique {y, hidden c-1, hidden c} (0-based hidden layers)
             a, b = c - 1, c
             r00 = R[c] if c < H - 1 else (R00 - sum(R.values()) if R else R00)
-            ra0 = T[0] @ Ws[0] if a == 0 else -F[a]
+            ra0 = TW[0] if a == 0 else -F[a]
             rb0 = WoK if b == H - 1 else F[b]
             raa = Dg[0] if a == 0 else Dg[a] - S[a]
             rbb = Dg[H - 1] if b == H - 1 else S[b]
-            rba = T[b] @ Ws[b]
+            rba = TW[b]
             Mc = cp.bmat([[r00, ra0.T, rb0.T], [ra0, raa, rba.T], [rb0, rba, rbb]])
             constraints.append(-Mc >> 0)
     prob = cp.Problem(cp.Minimize(rho), constraints)
@@ -457,7 +476,8 @@ def _lipsdp_pdip(Ws: list[np.ndarray], W_out: np.ndarray, Kx: np.ndarray, delta:
 
 
 def lipsdp_neuron(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | None = None,
-                  *, method: str = "ipm", strictness: float = 1e-7) -> SdpResult:
+                  *, method: str = "ipm", strictness: float = 1e-7,
+                  slope: tuple[float, float] = (0.0, 1.0)) -> SdpResult:
     """Verified LipSDP-Neuron bound on the L2 Lipschitz constant of y -> W_out x_H + K y.
 
     Ws = [W0y, W1, ..., W_{H-1}] (W0y: the y-columns of the first layer), W_out [m, n_H],
@@ -468,6 +488,7 @@ def lipsdp_neuron(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | N
     sqrt(verified rho) rounded up; `None` (status UNKNOWN) if it cannot be verified.
     `strictness` asks the hidden block to be <= -strictness * max(1, ||W_out||^2) * I so
     that the rebuilt LMI keeps a strict margin (costs a relative ~1e-7 in the bound).
+    `slope` = [alpha, beta], the activation's slope range (tanh: [0, 1]).
     """
     t0 = time.perf_counter()
     Ws = [np.asarray(W, dtype=np.float64) for W in Ws]
@@ -477,19 +498,28 @@ def lipsdp_neuron(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | N
     if not Ws or any(not np.all(np.isfinite(W)) for W in [*Ws, W_out, Kx]):
         return SdpResult(Status.ERROR, "LipSDP needs >= 1 hidden layer and finite weights",
                          None, seconds=time.perf_counter() - t0)
+    sa, sb = float(slope[0]), float(slope[1])
+    if not (np.isfinite(sa) and np.isfinite(sb) and sa <= sb and sb > 0):
+        raise ValueError(f"slope must be [alpha, beta] with alpha <= beta, beta > 0; got {slope}")
+    # alpha >= 0: the sector [0, beta] is the [0, 1] one for the hidden weights scaled by beta
+    Wsolve = Ws if sa < 0 or sb == 1.0 else [sb * W for W in Ws]
+    check_slope = (sa, sb) if sa < 0 else (0.0, sb)
+    if sa < 0:
+        method = "clarabel"  # the interior-point solver is written for the [0, 1] structure
     if method == "clarabel":
         delta = strictness * max(1.0, float(np.linalg.norm(W_out, 2)) ** 2)
-        res, t_val, rho_val = _lipsdp_clarabel(Ws, W_out, Kx, delta, t0)
+        res, t_val, rho_val = _lipsdp_clarabel(Wsolve, W_out, Kx, delta, t0,
+                                               (sa, sb) if sa < 0 else (0.0, 1.0))
     elif method == "ipm":
         delta = strictness * max(1.0, float(np.linalg.norm(W_out, 2)) ** 2)
         with _one_thread():
-            res, t_val, rho_val = _lipsdp_pdip(Ws, W_out, Kx, delta, t0)
+            res, t_val, rho_val = _lipsdp_pdip(Wsolve, W_out, Kx, delta, t0)
     else:
         raise ValueError(f"method must be 'ipm' or 'clarabel'; got {method!r}")
     if t_val is None or rho_val is None:
         return res
     res.raw_value = float(np.sqrt(max(rho_val, 0.0)))
-    rho_ok, top, tol = check_lipsdp_lmi(Ws, W_out, Kx, t_val, rho_val)
+    rho_ok, top, tol = check_lipsdp_lmi(Ws, W_out, Kx, t_val, rho_val, slope=check_slope)
     res.check_max_eig, res.check_tolerance = top, tol
     res.variables = {"t": t_val, "rho": rho_val, "rho_verified": rho_ok}
     res.seconds = time.perf_counter() - t0

@@ -146,15 +146,22 @@ class Activation:
     """A C^1 activation function with its derivatives, enclosures and relaxations.
 
     Subclasses set `name`, `slope_bounds` (inf and sup of f' over the reals: the sector
-    LipSDP needs), `d3_bound` (sup |f'''|, math.inf when f'' is not continuous), the point
-    formulas `f`, `d1`, `d2`, their interval extensions `_f_iv`, `_d1_iv`, `_d2_iv`, and
-    `critical[k]`: every critical point of the k-th derivative (k = 0, 1, 2).
+    LipSDP needs), `value_bound` (sup |f|), `d3_bound` (sup |f'''|, math.inf when f'' is
+    not continuous), the point formulas `f`, `d1`, `d2`, their interval extensions `_f_iv`,
+    `_d1_iv`, `_d2_iv`, and `critical[k]`: every critical point of the k-th derivative
+    (k = 0, 1, 2).
     """
 
     name: str = ""
     slope_bounds: tuple[float, float] = (0.0, 1.0)
+    value_bound: float = math.inf  # sup |f| over the reals (inf: unbounded)
     d3_bound: float = math.inf
     critical: dict[int, tuple[Critical, ...]] = {0: (), 1: (), 2: ()}
+
+    @property
+    def lipschitz(self) -> float:
+        """sup |f'| over the reals (the activation's Lipschitz constant)."""
+        return max(abs(self.slope_bounds[0]), abs(self.slope_bounds[1]))
 
     # --- point values (torch, batched, any dtype/device) ---
     def f(self, x: torch.Tensor) -> torch.Tensor:

@@ -19,6 +19,7 @@ from certify.intervals import Interval
 class Sigmoid(Activation):
     name = "sigmoid"
     slope_bounds = (0.0, 0.25)
+    value_bound = 1.0
     d3_bound = 0.125
     critical = {
         0: (),

@@ -73,6 +73,7 @@ def _sech2_iv(a: Interval) -> Interval:
 class Tanh(Activation):
     name = "tanh"
     slope_bounds = (0.0, 1.0)
+    value_bound = 1.0
     d3_bound = 2.0
     critical = {
         0: (),
