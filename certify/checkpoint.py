@@ -254,8 +254,6 @@ def load(path: str | Path) -> Checkpoint:
         raise CheckpointError(str(exc)) from None
     arch = data["architecture"]
     try:
-        if arch.get("activation", "tanh") != "tanh":
-            raise ValueError(f"activation {arch.get('activation')!r} is not supported")
         if (arch["n"], arch["p"]) != (system.n, system.p):
             raise ValueError(f"network is for n={arch['n']}, p={arch['p']} but the system has "
                              f"n={system.n}, p={system.p}")
