@@ -9,9 +9,8 @@ import torch
 from torch import nn
 
 from certify.importers import ModelImportError, read_model
-from certify.importers import result as import_result
 
-from .test_import import TORCH_ACTIVATIONS, export
+from .test_import import export
 
 onnx = pytest.importorskip("onnx")
 from onnx import TensorProto, helper, numpy_helper  # noqa: E402
@@ -63,9 +62,7 @@ SILU = [helper.make_node("Sigmoid", ["u"], ["sg"], name="s1"),
     ("silu", SILU, ()),
     ("gelu", GELU_REORDERED, GELU_CONSTANTS),
 ])
-def test_matmul_add_and_reordered_patterns(tmp_path, monkeypatch, activation, nodes, extra):
-    monkeypatch.setattr(import_result, "supported_activations",
-                        lambda: tuple(TORCH_ACTIVATIONS))
+def test_matmul_add_and_reordered_patterns(tmp_path, activation, nodes, extra):
     path = write(tmp_path / "m.onnx", first_layer() + nodes + second_layer("h"), extra=extra)
     imported = read_model(path, 2, 1)
     assert imported.activation == activation and imported.hidden == [4]

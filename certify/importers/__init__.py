@@ -14,7 +14,7 @@ from pathlib import Path
 from certify.importers.result import (
     ImportedModel,
     ModelImportError,
-    canonical_activation,
+    check_activation,
     finish,
     supported_activations,
 )
@@ -54,7 +54,7 @@ def read_model(path: str | Path, n: int, p: int, *, activation: str | None = Non
     fmt = detect_format(path)
     notes: list[str] = []
     if activation is not None:
-        activation = canonical_activation(activation, f"{path}: --activation")
+        activation = check_activation(activation, f"{path}: --activation")
     if fmt == "state_dict":
         from certify.importers.torch_model import read_state_dict
 

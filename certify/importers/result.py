@@ -37,38 +37,21 @@ def first_line(exc: Exception) -> str:
 
 
 def supported_activations() -> tuple[str, ...]:
-    """The activations this certify can verify end to end: every name of
-    `certify.activations` once `GainNetwork` takes an `activation`, else tanh only (the
-    verifier's kernels then evaluate tanh, so importing anything else would certify the
-    wrong network)."""
-    import inspect
-
-    if "activation" not in inspect.signature(GainNetwork.__init__).parameters:
-        return ("tanh",)
+    """The activations a `GainNetwork` (and so the verifier) evaluates."""
     from certify.activations import names
 
     return tuple(names())
 
 
-def canonical_activation(name: str, where: str) -> str:
-    """The registry's name for `name` ('Tanh' -> 'tanh', 'swish' -> 'silu'); refuses non-C^1
-    and unknown names with `certify.activations`' reason, naming `where`."""
+def check_activation(name: str, where: str) -> str:
+    """The registry's name for activation `name` ('Tanh' -> 'tanh', 'swish' -> 'silu'); non-C^1
+    and unknown names are refused with `certify.activations`' reason, naming `where`."""
     from certify.activations import get
 
     try:
         return get(name).name
     except ValueError as exc:
         raise ModelImportError(f"{where}: {exc}") from None
-
-
-def check_activation(name: str, where: str) -> str:
-    """The canonical name of activation `name` if certify can verify it; else
-    `ModelImportError` naming `where` and saying why (not C^1, unknown, not yet verifiable)."""
-    canonical = canonical_activation(name, where)
-    if canonical not in supported_activations():
-        raise ModelImportError(f"{where}: activation {canonical!r} cannot be verified by this "
-                               f"certify yet (verifiable: {', '.join(supported_activations())})")
-    return canonical
 
 
 @dataclass(frozen=True)
@@ -100,9 +83,8 @@ class ImportedModel:
 
     def network(self) -> GainNetwork:
         """The `GainNetwork` (float64, K = 0) with exactly these weights."""
-        kwargs: dict[str, Any] = {} if self.activation == "tanh" else {
-            "activation": self.activation}
-        net = GainNetwork(self.n, self.p, self.hidden, structure=self.structure, **kwargs).double()
+        net = GainNetwork(self.n, self.p, self.hidden, structure=self.structure,
+                          activation=self.activation).double()
         with torch.no_grad():
             for module, layer in zip(net.layers, self.layers):
                 module.weight.copy_(torch.from_numpy(layer.W))
