@@ -166,6 +166,19 @@ def cmd_train(args: argparse.Namespace) -> int:
     return run_train(args)
 
 
+# ----- import -----------------------------------------------------------------------------
+def cmd_import(args: argparse.Namespace) -> int:
+    """A model trained elsewhere (ONNX, TorchScript, state_dict) -> a normal checkpoint."""
+    if args.system is None:
+        raise CertifyError("certify import needs --system SPEC (the system the model observes)")
+    check_output_path(args.output, "-o")
+    if os.path.realpath(args.output) == os.path.realpath(args.model):
+        raise CertifyError(f"-o {args.output}: is the model itself; name a new checkpoint")
+    from certify.importers.command import run_import
+
+    return run_import(args)
+
+
 # ----- run, report ------------------------------------------------------------------------
 def _flag_settings(args: argparse.Namespace) -> dict[str, Any]:
     def csv(value: str | None) -> tuple[str, ...] | None:
@@ -189,11 +202,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     settings, config_path = load_settings(
         _flag_settings(args), Path(args.config) if args.config else None,
         use_pyproject=not args.no_config)
-    from certify import checkpoint as ckpt_mod
     from certify.certificate import exit_code
+    from certify.importers.command import checkpoint_for_run
     from certify.verify import verify
 
-    ckpt = ckpt_mod.load(args.checkpoint)
+    ckpt = checkpoint_for_run(args)
     if not args.quiet:
         print(f"certify run {args.checkpoint}: system {ckpt.problem.system.name}, lam="
               f"{ckpt.problem.lam:g}, sha256 {ckpt.sha256[:12]}"
