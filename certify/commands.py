@@ -249,16 +249,18 @@ def write_outputs(cert: Any, args: argparse.Namespace, display: Any) -> None:
 
 
 def _summary(cert: Any, args: argparse.Namespace) -> None:
+    from reports.content import verdict_line
+
     out = human_stream(args)
     if args.quiet:
-        print(f"{cert.verdict}: {cert.summary}", file=out)
+        print(verdict_line(cert), file=out)
     else:
         print_summary(cert, out)
 
 
 def print_summary(cert: Any, out: TextIO | None = None) -> None:
     """The short table of every check (from the reports' content) and the verdict line."""
-    from reports.content import check_rows
+    from reports.content import check_rows, verdict_line, verdict_summary
 
     out = out or sys.stdout
     rows = check_rows(cert)
@@ -280,7 +282,7 @@ def print_summary(cert: Any, out: TextIO | None = None) -> None:
             console.print(f"  {r.name}: {r.message}", highlight=False, markup=False)
         colour = {"CERTIFIED": "green", "NOT CERTIFIED": "red"}.get(cert.verdict, "yellow")
         console.print(f"[bold {colour}]{cert.verdict}[/]: ", end="", highlight=False)
-        console.print(cert.summary, highlight=False, markup=False)
+        console.print(verdict_summary(cert), highlight=False, markup=False)
         return
     table = [("check", "status", "sampled", "proved", "req")]
     table += [(r.title, r.status, r.sampled.value, r.proved.value, "yes" if r.required else "")
@@ -290,7 +292,7 @@ def print_summary(cert: Any, out: TextIO | None = None) -> None:
         print("  ".join(f"{cell:<{w}}" for cell, w in zip(line, widths)).rstrip(), file=out)
     for r in rows:
         print(f"  {r.name}: {r.message}", file=out)
-    print(f"{cert.verdict}: {cert.summary}", file=out)
+    print(verdict_line(cert), file=out)
 
 
 # ----- completion -------------------------------------------------------------------------

@@ -17,13 +17,16 @@ from typing import Any
 
 class Status(str, enum.Enum):
     """How a check ended. PROVED is a sound result; PASSED means sampled evidence (simulation)
-    found no problem, which is never called a proof; UNKNOWN is never a pass."""
+    found no problem, which is never called a proof; UNKNOWN is never a pass. NOT APPLICABLE:
+    the question has no answer here (e.g. no error bound exists when lam_cert <= 0, or there
+    is no bound to compare a simulation with), which establishes nothing, like UNKNOWN."""
 
     PROVED = "PROVED"
     PASSED = "PASSED"
     VIOLATED = "VIOLATED"
     UNKNOWN = "UNKNOWN"
     SKIPPED = "SKIPPED"
+    NOT_APPLICABLE = "NOT APPLICABLE"
     ERROR = "ERROR"
 
 
@@ -178,6 +181,10 @@ class BoundsResult:
     validity: list[str] = field(default_factory=list)
     kappa_P: float = 1.0
     L_is_local: bool = False  # L holds only for y in Y: condition (d) applies
+    #: half the diagonal of X (Euclidean): an error bound above it says little
+    box_half_diagonal: float | None = None
+    #: the best proved ultimate bound exceeds `box_half_diagonal`: valid but vacuous
+    vacuous: bool = False
 
 
 @dataclass
