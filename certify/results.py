@@ -209,6 +209,10 @@ class SimulationRun:
     xhat: list[list[float]] = field(default_factory=list)
     # allowance for the integrator's error in the comparison (estimated by step doubling)
     tolerance: float = 0.0
+    #: how the start was chosen (certify.sim_starts), in words
+    start: str = ""
+    #: length of the valid window [0, first exit) in seconds (the horizon if never left)
+    window: float | None = None
 
 
 @dataclass
@@ -219,6 +223,9 @@ class SimulationResult:
     message: str
     runs: list[SimulationRun] = field(default_factory=list)
     seconds: float = 0.0
+    #: one time constant 1/(2 lam_cert) of the bound (None: no bound); a valid window shorter
+    #: than it compares little, and when every window is, the check is inconclusive
+    time_constant: float | None = None
 
 
 @dataclass

@@ -252,12 +252,12 @@ def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | N
         t3 = (f"applicable, ultimate bound {theorem3.bias:.4g}" if theorem3.applicable
               else f"not applicable ({theorem3.reason})")
         vacuous = float(best.bias or 0.0) > half_diagonal
-        size = (f" (valid but vacuous: larger than the box, whose half-diagonal is "
-                f"{half_diagonal:.4g})" if vacuous else "")
+        size = (f"; valid but vacuous: larger than the box, whose half-diagonal is "
+                f"{half_diagonal:.4g}" if vacuous else "")
         status = Status.PROVED
         msg = (f"error bound proved at vbar = {vbar:g}: the error contracts at rate "
                f"2 lam_cert = {2 * lam:.4g} in the P-norm; ultimate bound on ||e|| "
-               f"{best.bias:.4g} ({best.name}){size}; Theorem 3 as stated: {t3}. Valid only "
+               f"{best.bias:.4g} ({best.name}{size}); Theorem 3 as stated: {t3}. Valid only "
                "under conditions (a)-(d).")
     elif no_rate and not [r for r in invalid if not r.startswith("lam_cert")]:
         status = Status.NOT_APPLICABLE
