@@ -262,48 +262,20 @@ def write_outputs(cert: Any, args: argparse.Namespace, display: Any) -> None:
 
 
 def _summary(cert: Any, args: argparse.Namespace) -> None:
+    from reports.content import verdict_line
+
     out = human_stream(args)
     if args.quiet:
-        print(f"{cert.verdict}: {cert.summary}", file=out)
+        print(verdict_line(cert), file=out)
     else:
         print_summary(cert, out)
 
 
 def print_summary(cert: Any, out: TextIO | None = None) -> None:
-    """The short table of every check (from the reports' content) and the verdict line."""
-    from reports.content import check_rows
+    """The short table of every check, the table of simulation runs and the verdict line."""
+    from certify.display import print_summary as show
 
-    out = out or sys.stdout
-    rows = check_rows(cert)
-    if getattr(out, "isatty", lambda: False)():
-        from rich.console import Console
-        from rich.table import Table
-
-        table = Table(title=f"certify: {cert.system.get('name', '')} (lam={cert.lam:g})")
-        for col in ("check", "status", "sampled", "proved", "required"):
-            table.add_column(col)
-        colours = {"PROVED": "green", "PASSED": "green", "VIOLATED": "red",
-                   "UNKNOWN": "yellow", "ERROR": "red"}
-        for r in rows:
-            table.add_row(r.title, f"[{colours.get(r.status, 'white')}]{r.status}[/]",
-                          r.sampled.value, r.proved.value, "yes" if r.required else "")
-        console = Console(file=out)
-        console.print(table)
-        for r in rows:
-            console.print(f"  {r.name}: {r.message}", highlight=False, markup=False)
-        colour = {"CERTIFIED": "green", "NOT CERTIFIED": "red"}.get(cert.verdict, "yellow")
-        console.print(f"[bold {colour}]{cert.verdict}[/]: ", end="", highlight=False)
-        console.print(cert.summary, highlight=False, markup=False)
-        return
-    table = [("check", "status", "sampled", "proved", "req")]
-    table += [(r.title, r.status, r.sampled.value, r.proved.value, "yes" if r.required else "")
-              for r in rows]
-    widths = [max(len(line[i]) for line in table) for i in range(5)]
-    for line in table:
-        print("  ".join(f"{cell:<{w}}" for cell, w in zip(line, widths)).rstrip(), file=out)
-    for r in rows:
-        print(f"  {r.name}: {r.message}", file=out)
-    print(f"{cert.verdict}: {cert.summary}", file=out)
+    show(cert, out or sys.stdout)
 
 
 # ----- completion -------------------------------------------------------------------------
