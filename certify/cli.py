@@ -143,6 +143,14 @@ def build_parser(with_train: bool = True) -> argparse.ArgumentParser:
                    help=f"comma-separated checks not to run; from: {names}")
     p.add_argument("--allow-unknown", action="store_true",
                    help="an UNKNOWN required check does not fail the gate (ERROR still does)")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="run the grid and the proofs on a local Dask cluster of N processes "
+                        "(default 1: in this process)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run them on a running Dask cluster, e.g. tcp://host:8786 "
+                        "(dask-jobqueue on SLURM/PBS, Kubernetes)")
+    p.add_argument("--device", metavar="DEVICE",
+                   help="torch device of the grid, falsifier and prover: cpu (default) or cuda")
     p.add_argument("--config", metavar="PATH", help="read [tool.certify] from this file")
     p.add_argument("--no-config", action="store_true", help="ignore pyproject.toml")
     p.add_argument("--quiet", "-q", action="store_true", help="only the verdict line")
