@@ -129,3 +129,40 @@ def test_structure_for_p_1_and_activation_that_disagrees(tmp_path):
                                                "--activation sigmoid disagrees"):
         read_model(path, 2, 1, activation="sigmoid")
     assert read_model(path, 2, 1, activation="Tanh").activation == "tanh"
+
+
+def test_transposed_weight_initializer(tmp_path):
+    """Transpose of a weight initializer (as some exporters write) -> MatMul reads W."""
+    nodes = [helper.make_node("Transpose", ["W1t"], ["W1r"], name="tr", perm=[1, 0]),
+             helper.make_node("MatMul", ["z", "W1r"], ["m1"], name="mm1"),
+             helper.make_node("Add", ["m1", "B1"], ["u"], name="bias1"),
+             helper.make_node("Tanh", ["u"], ["h"], name="act")] + second_layer("h")
+    path = write(tmp_path / "m.onnx", nodes, extra=(("W1t", W1.T.copy()),))
+    imported = read_model(path, 2, 1)
+    assert np.array_equal(imported.layers[0].W, W1.T)
+    with pytest.raises(ModelImportError, match=r"node 'tr2' \(Transpose\): its operand"):
+        read_model(write(tmp_path / "bad.onnx", first_layer() + [
+            helper.make_node("Transpose", ["u"], ["h"], name="tr2")] + second_layer("h")), 2, 1)
+
+
+class HandWritten(nn.Module):
+    """A gain written with parameters and matmuls instead of nn.Linear."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.W1 = nn.Parameter(torch.as_tensor(W1.T.copy()))  # [out, in]
+        self.b1 = nn.Parameter(torch.as_tensor(B1))
+        self.W2 = nn.Parameter(torch.as_tensor(W2.T.copy()))
+        self.b2 = nn.Parameter(torch.as_tensor(B2))
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        h = torch.nn.functional.silu(z @ self.W1.t() + self.b1)
+        return torch.matmul(h, self.W2.T) + self.b2
+
+
+def test_torchscript_written_by_hand(tmp_path):
+    model = HandWritten().double()
+    imported = read_model(export(model, tmp_path / "h.pt", "script", ()), 2, 1)
+    assert imported.activation == "silu" and imported.hidden == [4]
+    z = torch.as_tensor(RNG.normal(size=(8, 3)))
+    torch.testing.assert_close(imported.network()(z), model(z).detach(), rtol=0, atol=1e-12)
