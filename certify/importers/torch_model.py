@@ -1,12 +1,14 @@
 """Read a PyTorch gain network: a TorchScript file, or a state_dict of Linear layers.
 
 TorchScript: `torch.jit.load`, then the module's *inlined* forward graph is walked node by node
-(the same `ChainBuilder` as ONNX): `aten::linear` with the module's own parameters, the
-activations `aten::tanh`, `sigmoid`, `softplus` (beta = 1), `elu` (alpha = scale = 1), `gelu`
-(approximate = "none"), `silu`, `mul`(u, sigmoid(u)), and `aten::cat` of two inputs. Class names
-are not trusted (a TorchScript file carries its own code); only the graph's operators decide.
-Anything else is refused with one line naming the node (%value and operator). The model is
-never run.
+(the same `ChainBuilder` as ONNX): `aten::linear` with the module's own parameters, or
+`aten::matmul` by a parameter matrix (through `W.t()`, `W.T`, `transpose`, `permute`) plus
+`aten::add` of a bias; the activations `aten::tanh`, `sigmoid`, `softplus` (beta = 1), `elu`
+(alpha = scale = 1), `gelu` (approximate = "none"), `silu`, `mul`(u, sigmoid(u)); `aten::cat`
+of two inputs; reshape/flatten/dropout (eval mode) no-ops; and a `prim::If` on a constant (the
+`inplace` flag of torch.nn.functional) through the branch it takes. Class names are not trusted
+(a TorchScript file carries its own code); only the graph's operators decide. Anything else is
+refused with one line naming the node (%value and operator). The model is never run.
 
 state_dict: `torch.load(weights_only=True)` (data only, never code) of an `nn.Sequential` of
 Linear layers: keys `[prefix.]i.weight` / `[prefix.]i.bias` in index order. It carries no
