@@ -48,6 +48,8 @@ _SYMPY = {
 }
 _CONSTANTS = {"pi": (sympy.pi, math.pi)}
 FUNCTION_NAMES = tuple(sorted(_SYMPY))
+#: Refused with the reason spelled out (abs is allowed only where it is smooth: certify.domain).
+_NON_SMOOTH = {"sign", "floor", "ceil", "round", "max", "min", "heaviside", "Heaviside", "mod"}
 
 _KINDS = {
     ast.Attribute: "attribute access", ast.Subscript: "subscript", ast.Lambda: "lambda",
@@ -236,7 +238,9 @@ def parse_expression(text: str, names: Mapping[str, sympy.Symbol], where: str = 
                             f"(allowed functions: {allowed})")
         fname = node.func.id
         if fname not in _SYMPY:
-            raise SpecError(f"{prefix}unknown function '{fname}' in {_describe(node)} "
+            why = (": it is not smooth and the checks need f and h twice differentiable"
+                   if fname in _NON_SMOOTH else "")
+            raise SpecError(f"{prefix}unknown function '{fname}' in {_describe(node)}{why} "
                             f"(allowed: {allowed})")
         if node.keywords or len(node.args) != 1:
             raise SpecError(f"{prefix}function '{fname}' takes exactly one argument "

@@ -90,6 +90,9 @@ HOSTILE = [
     ("1/0 + x1", "divides by zero"),
     ("exp(1000) * x1", "no finite real value"),
     ("10.0**300 * 10.0**300 * x1", "beyond"),
+    ("sign(x1)", "'sign' in 'sign(x1)': it is not smooth"),
+    ("floor(x1)", "'floor' in 'floor(x1)': it is not smooth"),
+    ("max(x1, 0)", "unknown function 'max'"),
 ]
 
 

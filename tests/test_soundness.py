@@ -183,4 +183,4 @@ def test_witness_bounds_are_below_the_40_digit_values(seed, n, cond):
     # k and dk/dy: float values agree with the sound lower bounds to rounding
     assert bool((res_low <= res_f * (1 + 1e-12) + 1e-300).all())
     assert bool((lip_low <= lip_f * (1 + 1e-12) + 1e-300).all())
-    assert bool((lip_low >= lip_f * (1 - 1e-9) - 1e-300).all())
+    assert bool((lip_low >= lip_f * (1 - 1e-6) - 1e-12).all())  # tight, up to saturation
