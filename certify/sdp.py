@@ -11,7 +11,10 @@ LipSDP-Neuron (Fazlyab et al. 2019) for the MLP in y with xhat frozen,
     y -> x1 = phi(W0y y + c0) -> ... -> xH = phi(W_{H-1} x_{H-1} + c) -> out = Wo xH + K y,
 
 phi slope-restricted in [0, 1], gives one LMI M(t, rho) <= 0 in the stacked increments
-(dy, dx1, ..., dxH):
+(dy, dx1, ..., dxH) (another sector [alpha, beta], `slope=`: alpha >= 0 is solved as [0, 1]
+with the hidden weights scaled by beta; alpha < 0 adds -2 alpha beta W^T T W on the
+(i-1, i-1) blocks and scales T W by alpha + beta, solved by Clarabel; the re-check always
+rebuilds the [alpha, beta] LMI on the unscaled weights):
 
     M = -rho E00 + [K Wo]^T [K Wo] (on the dy, dxH blocks)
         + sum_i ( -2 T_i on (i, i);  T_i W_{i-1} on (i, i-1) and its transpose ),
@@ -128,9 +131,10 @@ def _solve(prob: cp.Problem, t0: float, **solver_opts: Any) -> tuple[Status, str
 # ----------------------------------------------------------------------------------------
 
 def _lipsdp_clarabel(Ws: list[np.ndarray], W_out: np.ndarray, Kx: np.ndarray,
-                     delta: float, t0: float) -> tuple[SdpResult, list[np.ndarray] | None,
-                                                       float | None]:
+                     delta: float, t0: float, slope: tuple[float, float] = (0.0, 1.0)
+                     ) -> tuple[SdpResult, list[np.ndarray] | None, float | None]:
     """Chordal (fan-clique) LipSDP-Neuron through cvxpy + Clarabel. Returns (result, t, rho)."""
+    apb, ab2 = float(slope[0]) + float(slope[1]), 2.0 * float(slope[0]) * float(slope[1])
     p = Ws[0].shape[1]
     H = len(Ws)
     widths = [W.shape[0] for W in Ws]
@@ -142,9 +146,14 @@ def _lipsdp_clarabel(Ws: list[np.ndarray], W_out: np.ndarray, Kx: np.ndarray,
     Dg = [-2 * T[i] + delta * np.eye(widths[i]) for i in range(H)]
     Dg[H - 1] = Dg[H - 1] + W_out.T @ W_out
     R00 = Kx.T @ Kx - rho * np.eye(p)
+    if ab2 != 0.0:  # sector [alpha, beta]: -2 alpha beta W_i^T T_i W_i on the input block of W_i
+        R00 = R00 - ab2 * (Ws[0].T @ T[0] @ Ws[0])
+        for i in range(H - 1):
+            Dg[i] = Dg[i] - ab2 * (Ws[i + 1].T @ T[i + 1] @ Ws[i + 1])
+    TW = [T[i] @ Ws[i] if apb == 1.0 else apb * (T[i] @ Ws[i]) for i in range(H)]
     constraints = []
     if H == 1:
-        G = T[0] @ Ws[0] + WoK
+        G = TW[0] + WoK
         constraints.append(-cp.bmat([[R00, G.T], [G, Dg[0]]]) >> 0)
     else:
         # Free splitting variables of the blocks shared by two cliques, and of (0, 0).
@@ -154,11 +163,11 @@ def _lipsdp_clarabel(Ws: list[np.ndarray], W_out: np.ndarray, Kx: np.ndarray,
         for c in range(1, H):  # clique {y, hidden c-1, hidden c} (0-based hidden layers)
             a, b = c - 1, c
             r00 = R[c] if c < H - 1 else (R00 - sum(R.values()) if R else R00)
-            ra0 = T[0] @ Ws[0] if a == 0 else -F[a]
+            ra0 = TW[0] if a == 0 else -F[a]
             rb0 = WoK if b == H - 1 else F[b]
             raa = Dg[0] if a == 0 else Dg[a] - S[a]
             rbb = Dg[H - 1] if b == H - 1 else S[b]
-            rba = T[b] @ Ws[b]
+            rba = TW[b]
             Mc = cp.bmat([[r00, ra0.T, rb0.T], [ra0, raa, rba.T], [rb0, rba, rbb]])
             constraints.append(-Mc >> 0)
     prob = cp.Problem(cp.Minimize(rho), constraints)
@@ -188,7 +197,8 @@ def _norm2_upper(A: np.ndarray) -> float:
 
 
 def lipsdp_neuron(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | None = None,
-                  *, method: str = "ipm", strictness: float = 1e-7) -> SdpResult:
+                  *, method: str = "ipm", strictness: float = 1e-7,
+                  slope: tuple[float, float] = (0.0, 1.0)) -> SdpResult:
     """Verified LipSDP-Neuron bound on the L2 Lipschitz constant of y -> W_out x_H + K y.
 
     Ws = [W0y, W1, ..., W_{H-1}] (W0y: the y-columns of the first layer), W_out [m, n_H],
@@ -204,6 +214,7 @@ def lipsdp_neuron(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | N
     Degenerate and extreme networks: a zero layer anywhere on the path makes the MLP constant
     in y, so L = ||K||_2 exactly (no SDP); huge or tiny first and output layers are scaled
     by powers of two (exact) and the bound scaled back.
+    `slope` = [alpha, beta], the activation's slope range (tanh: [0, 1]).
     """
     t0 = time.perf_counter()
     if method not in ("ipm", "clarabel"):
@@ -215,6 +226,11 @@ def lipsdp_neuron(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | N
     if not Ws or any(not np.all(np.isfinite(W)) for W in [*Ws, W_out, Kx]):
         return SdpResult(Status.ERROR, "LipSDP needs >= 1 hidden layer and finite weights",
                          None, seconds=time.perf_counter() - t0)
+    sa, sb = float(slope[0]), float(slope[1])
+    if not (np.isfinite(sa) and np.isfinite(sb) and sa <= sb and sb > 0):
+        raise ValueError(f"slope must be [alpha, beta] with alpha <= beta, beta > 0; got {slope}")
+    if sa < 0:
+        method = "clarabel"  # the interior-point solver is written for the [0, 1] structure
     if any(not np.any(W) for W in [*Ws, W_out]):
         L = _norm2_upper(Kx)
         return SdpResult(Status.PROVED, "a layer is exactly zero: the MLP is constant in y, "
@@ -227,7 +243,7 @@ def lipsdp_neuron(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | N
     if not np.array_equal(np.ldexp(K_s, a + b), Kx):
         a = b = 0
         Ws_s, Wo_s, K_s = Ws, W_out, Kx
-    res = _lipsdp_verified(Ws_s, Wo_s, K_s, method, strictness, t0)
+    res = _lipsdp_verified(Ws_s, Wo_s, K_s, method, strictness, t0, (sa, sb))
     if res.status is Status.PROVED and res.value is not None and (a or b):
         res.value = float(np.ldexp(res.value, a + b))  # exact (or inf)
         res.raw_value = None if res.raw_value is None else float(np.ldexp(res.raw_value, a + b))
@@ -240,7 +256,7 @@ def lipsdp_neuron(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | N
 
 
 def _lipsdp_verified(Ws: list[np.ndarray], W_out: np.ndarray, Kx: np.ndarray, method: str,
-                     strictness: float, t0: float) -> SdpResult:
+                     strictness: float, t0: float, slope: tuple[float, float]) -> SdpResult:
     """Solve (IPM, then Clarabel if the IPM fails or does not verify) and re-check."""
     with np.errstate(over="raise", invalid="raise"):
         try:
@@ -252,11 +268,11 @@ def _lipsdp_verified(Ws: list[np.ndarray], W_out: np.ndarray, Kx: np.ndarray, me
     tried: list[str] = []
     res: SdpResult | None = None
     if method == "ipm":
-        res = _run_solver("ipm", Ws, W_out, Kx, delta, wn, t0)
+        res = _run_solver("ipm", Ws, W_out, Kx, delta, wn, t0, slope)
         if res.status is Status.PROVED:
             return res
         tried.append(f"interior point: {res.message}")
-    fallback = _run_solver("clarabel", Ws, W_out, Kx, delta, wn, t0)
+    fallback = _run_solver("clarabel", Ws, W_out, Kx, delta, wn, t0, slope)
     if fallback.status is Status.PROVED or res is None:
         if tried:
             fallback.message += f" (fallback after {tried[0]})"
@@ -266,13 +282,22 @@ def _lipsdp_verified(Ws: list[np.ndarray], W_out: np.ndarray, Kx: np.ndarray, me
 
 
 def _run_solver(which: str, Ws: list[np.ndarray], W_out: np.ndarray, Kx: np.ndarray,
-                delta: float, wn: float, t0: float) -> SdpResult:
-    """One solver, its answer re-checked; a solver fault becomes an ERROR result."""
+                delta: float, wn: float, t0: float, slope: tuple[float, float]) -> SdpResult:
+    """One solver, its answer re-checked; a solver fault becomes an ERROR result.
+
+    Sector [alpha, beta]: alpha >= 0 is solved as the [0, 1] sector with every hidden layer's
+    input weights scaled by beta (phi(z) = psi(beta z) with psi' in [0, 1]); alpha < 0 goes to
+    Clarabel with the general quadratic constraint. The re-check always rebuilds the
+    [alpha, beta] LMI on the unscaled weights.
+    """
+    sa, sb = slope
+    Wsolve = Ws if sa < 0 or sb == 1.0 else [sb * W for W in Ws]
+    check_slope = (sa, sb) if sa < 0 else (0.0, sb)
     try:
         if which == "ipm":
-            M0 = lipsdp_lmi(Ws, W_out, Kx, [np.zeros(W.shape[0]) for W in Ws], 0.0)
+            M0 = lipsdp_lmi(Wsolve, W_out, Kx, [np.zeros(W.shape[0]) for W in Wsolve], 0.0)
             with one_thread():
-                out = lipsdp_pdip(Ws, M0, wn, delta)
+                out = lipsdp_pdip(Wsolve, M0, wn, delta)
             res = SdpResult(Status.PROVED if out.converged else Status.UNKNOWN, out.message,
                             None, solver="lipsdp-ipm",
                             raw_status="optimal" if out.converged else "stalled",
@@ -282,11 +307,12 @@ def _run_solver(which: str, Ws: list[np.ndarray], W_out: np.ndarray, Kx: np.ndar
                 res.status = Status.ERROR
             t_val, rho_val = out.t, out.rho
         else:
-            res, t_val, rho_val = _lipsdp_clarabel(Ws, W_out, Kx, delta, t0)
+            res, t_val, rho_val = _lipsdp_clarabel(Wsolve, W_out, Kx, delta, t0,
+                                                   (sa, sb) if sa < 0 else (0.0, 1.0))
         if t_val is None or rho_val is None:
             return res
         res.raw_value = float(np.sqrt(max(rho_val, 0.0)))
-        rho_ok, top, tol = check_lipsdp_lmi(Ws, W_out, Kx, t_val, rho_val)
+        rho_ok, top, tol = check_lipsdp_lmi(Ws, W_out, Kx, t_val, rho_val, slope=check_slope)
     except (RuntimeError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
         name = "interior point" if which == "ipm" else "Clarabel"
         return SdpResult(Status.ERROR, f"{name} failed: {type(exc).__name__}: "

@@ -34,12 +34,15 @@ class IpmOutcome:
 
 
 def lipsdp_lmi(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | None,
-               t: Sequence[np.ndarray], rho: float) -> np.ndarray:
+               t: Sequence[np.ndarray], rho: float,
+               slope: tuple[float, float] = (0.0, 1.0)) -> np.ndarray:
     """The full LipSDP-Neuron matrix M(t, rho) in numpy (size p + sum n_i); M <= 0 proves L.
 
     Ws = [W0y, W1, ..., W_{H-1}] (each producing a hidden layer), W_out [m, n_H], K [m, p]
-    (a linear skip term K y, or None), t = [t_1..t_H] the neuron multipliers (>= 0).
+    (a linear skip term K y, or None), t = [t_1..t_H] the neuron multipliers (>= 0),
+    slope = the activation's sector [alpha, beta].
     """
+    sa, sb = float(slope[0]), float(slope[1])
     p = Ws[0].shape[1]
     widths = [W.shape[0] for W in Ws]
     offs = np.cumsum([0, p, *widths])
@@ -50,9 +53,11 @@ def lipsdp_lmi(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | None
         r = slice(offs[i + 1], offs[i + 2])
         c = slice(offs[i], offs[i + 1])
         TW = ti[:, None] * W
-        M[r, c] += TW
-        M[c, r] += TW.T
+        M[r, c] += (sa + sb) * TW
+        M[c, r] += (sa + sb) * TW.T
         M[r, r] -= 2.0 * np.diag(ti)
+        if sa * sb != 0.0:
+            M[c, c] -= (2.0 * sa * sb) * (W.T @ TW)
     Kx = np.zeros((W_out.shape[0], p)) if K is None else np.asarray(K, dtype=np.float64)
     O = np.concatenate([Kx, W_out], axis=1)  # acts on (dy, dxH)
     idx = np.r_[0:p, offs[-2]:offs[-1]]
@@ -79,7 +84,8 @@ def _check_tolerance(M: np.ndarray, O: np.ndarray) -> float:
 
 
 def check_lipsdp_lmi(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | None,
-                     t: Sequence[np.ndarray], rho: float, max_inflations: int = 12
+                     t: Sequence[np.ndarray], rho: float, max_inflations: int = 12,
+                     slope: tuple[float, float] = (0.0, 1.0)
                      ) -> tuple[float | None, float, float]:
     """Rebuild M at (max(t, 0), rho) and inflate rho until lam_max(M) <= -tolerance.
 
@@ -93,8 +99,12 @@ def check_lipsdp_lmi(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray 
     Kx = np.zeros((W_out.shape[0], p)) if K is None else np.asarray(K, dtype=np.float64)
     O = np.concatenate([Kx, W_out], axis=1)
     rho = float(max(rho, 0.0))
-    M = lipsdp_lmi(Ws, W_out, K, t, rho)
-    tol = _check_tolerance(M, O)
+    M = lipsdp_lmi(Ws, W_out, K, t, rho, slope)
+    # a sector with alpha beta != 0 adds the products W^T T W: their rounding, like O^T O's
+    ab = 2.0 * abs(float(slope[0]) * float(slope[1]))
+    extra = sum(8.0 * M.shape[0] * _U * ab * np.linalg.norm(np.abs(W).T @ (ti[:, None] * np.abs(W)))
+                for W, ti in zip(Ws, t)) if ab else 0.0
+    tol = _check_tolerance(M, O) + extra
     top = _top_eig(M)
     if np.isfinite(top) and top <= -tol:
         return rho, top, tol
@@ -110,8 +120,8 @@ def check_lipsdp_lmi(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray 
     scale = max(base, 1e-12)
     for k in range(max_inflations):
         trial = base + scale * 10.0 ** (k - max_inflations + 1)  # 1e-11 .. 1 relative
-        M = lipsdp_lmi(Ws, W_out, K, t, trial)
-        tol = _check_tolerance(M, O)
+        M = lipsdp_lmi(Ws, W_out, K, t, trial, slope)
+        tol = _check_tolerance(M, O) + extra
         top = _top_eig(M)
         if np.isfinite(top) and top <= -tol:
             return trial, top, tol

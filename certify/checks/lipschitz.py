@@ -48,12 +48,13 @@ def sqrtm_psd(P: np.ndarray) -> np.ndarray:
 
 
 def naive_bound(net: GainNetwork, n: int, out: np.ndarray | None = None) -> float:
-    """prod ||W_i||_2 over the y-path (tanh is 1-Lipschitz) + ||K||_2, rounded up; direct only."""
+    """prod ||W_i||_2 over the y-path times Lip(f)^H (tanh: 1) + ||K||_2, rounded up; direct
+    only."""
     Ws, Wo = mlp_in_y(net, n)
     K = net.K.detach().to(_F64).numpy()
     if out is not None:
         Wo, K = out @ Wo, out @ K
-    prod = float(np.prod([np.linalg.norm(W, 2) for W in [*Ws, Wo]]))
+    prod = float(np.prod([np.linalg.norm(W, 2) for W in [*Ws, Wo]])) * net.act.lipschitz ** len(Ws)
     return (prod + float(np.linalg.norm(K, 2))) * _ROUND_UP ** (len(Ws) + 3)
 
 
@@ -61,16 +62,19 @@ def structural_local_naive(problem: Problem) -> float | None:
     """A sound bound on sup ||dk/dy||_2 over X x Y for k = G (y - h) + K (y - h).
 
     dk/dy dy = reshape(dN/dy dy) r + (G + K) dy, so ||dk/dy|| <= L_N ||r||max + ||G||max +
-    ||K||, with L_N the naive constant of the MLP in y, ||G||_2 <= ||G||_F <= || |W_out| 1 +
-    |b_out| ||_2 (|tanh| <= 1) and ||r|| from the interval enclosure of h over X.
+    ||K||, with L_N the naive constant of the MLP in y, ||G||_2 <= ||G||_F <= || |W_out| 1 c +
+    |b_out| ||_2 (c = sup |f|: 1 for tanh; None for an unbounded activation) and ||r|| from
+    the interval enclosure of h over X.
     """
     from certify.intervals import h_enclosure
 
     net, system = problem.network, problem.system
     Ws, Wo = mlp_in_y(net, system.n)
-    LN = float(np.prod([np.linalg.norm(W, 2) for W in [*Ws, Wo]]))
+    if not math.isfinite(net.act.value_bound):
+        return None
+    LN = float(np.prod([np.linalg.norm(W, 2) for W in [*Ws, Wo]])) * net.act.lipschitz ** len(Ws)
     b = net.layers[-1].bias.detach().to(_F64).numpy()
-    Gmax = float(np.linalg.norm(np.abs(Wo).sum(1) + np.abs(b)))
+    Gmax = float(np.linalg.norm(np.abs(Wo).sum(1) * net.act.value_bound + np.abs(b)))
     X = torch.as_tensor(system.X, dtype=_F64)
     hl, hh = h_enclosure(system, X[None, :, 0], X[None, :, 1])
     hl, hh = hl[0].numpy(), hh[0].numpy()
@@ -131,7 +135,7 @@ def lipsdp_for(problem: Problem, metric_weighted: bool = False,
         L = float(np.linalg.norm(Wo[:, problem.n:] + K, 2)) * _ROUND_UP
         return sdp.SdpResult(Status.PROVED, "affine in y: exact", L, solver="closed-form",
                              raw_value=L, verified=True)
-    return sdp.lipsdp_neuron(Ws, Wo, K, method=method)
+    return sdp.lipsdp_neuron(Ws, Wo, K, method=method, slope=net.act.slope_bounds)
 
 
 def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,

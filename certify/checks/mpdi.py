@@ -75,13 +75,25 @@ def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | Non
     The grid is swept with a float32 copy of the kernel as a screen; every point that could be
     above 0 and every top candidate is re-evaluated in float64 (see `maximize_over_box`).
     """
+    from certify.device import resolve_device
+    from certify.executor import current_executor
+
+    device = resolve_device(settings.device)
+    problem = problem.on(device)  # the grid and the ascent run on settings.device
     lo, hi = joint_box(problem)
     exact = GridKernel(problem, lam)
     screen = GridKernel(problem, lam, dtype=torch.float32) if settings.float32_screen else None
+    executor, remote = current_executor(), None
+    if executor.workers > 1:  # the sweep on the run's Dask workers (certify.remote)
+        from certify.remote import mpdi_grid_chunk, mpdi_payload
+
+        remote = (executor, mpdi_grid_chunk, mpdi_payload(
+            problem, exact.lam, settings.float32_screen, settings.device))
     return maximize_over_box(exact, lo, hi, grid_points=settings.grid_points,
                              starts=settings.adversarial_starts, steps=settings.adversarial_steps,
                              top_k=settings.top_counterexamples, seed=settings.seed,
-                             screen=screen, progress=progress, task="MPDI grid")
+                             screen=screen, progress=progress, task="MPDI grid", remote=remote,
+                             device=device)
 
 
 def check_mpdi(problem: Problem, settings: VerifySettings, *,
