@@ -184,3 +184,27 @@ def test_witness_bounds_are_below_the_40_digit_values(seed, n, cond):
     assert bool((res_low <= res_f * (1 + 1e-12) + 1e-300).all())
     assert bool((lip_low <= lip_f * (1 + 1e-12) + 1e-300).all())
     assert bool((lip_low >= lip_f * (1 - 1e-6) - 1e-12).all())  # tight, up to saturation
+
+
+def test_manifold_lower_with_a_nonlinear_output_is_below_the_exact_q():
+    """h = x1 + x2^2/4: ker dh(x) = span(-x2/2, 1); q = v^T S v / v^T v exactly (mpmath)."""
+    import mpmath
+
+    from certify.system import System
+    from certify.witness import manifold_lower
+
+    text = ('name = "t"\nstates = ["x1", "x2"]\noutputs = ["y"]\n'
+            'f = ["-x1 + 0.5*x2", "0.25*x1*x2 - 0.125*x2"]\nh = ["x1 + 0.25*x2**2"]\n'
+            "[box]\nX = [[-1.0, 1.0], [-1.0, 1.0]]\nY = [[-2.0, 2.0]]\n[design]\nlam = 0.25\n"
+            "P = [[2.0, 0.5], [0.5, 1.0]]\n")
+    system = System.from_text(text)
+    P = mpmath.matrix([[2, 0.5], [0.5, 1]])
+    pts = torch.tensor([[0.5, -0.75], [-0.25, 0.5], [0.0, 0.0]], dtype=torch.float64)
+    low = manifold_lower(system, system.P, 0.25, pts)
+    for (x1, x2), lo in zip(pts.tolist(), low.tolist()):
+        with mpmath.workdps(40):
+            J = mpmath.matrix([[-1, 0.5], [0.25 * mpmath.mpf(x2), 0.25 * mpmath.mpf(x1) - 0.125]])
+            S = (P * J + (P * J).T) / 2 + mpmath.mpf(0.5) * P
+            v = mpmath.matrix([-mpmath.mpf(x2) / 2, 1])
+            q = (v.T * S * v)[0] / (v.T * v)[0]
+        assert lo <= q and lo >= q - 1e-9, (lo, q)
