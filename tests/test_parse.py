@@ -123,3 +123,13 @@ def test_enclosure_slack_is_refined_not_refused():
     """(x1 - 0.1)^2 + 0.09 > 0 everywhere, but its naive enclosure over [-1, 1] contains 0."""
     s = System.from_text(spec(["-x1 + 1/(x1**2 + 0.1 - 0.2*x1)", "-x2"]))
     assert np.isfinite(s.f(torch.zeros(1, 2, dtype=torch.float64)).numpy()).all()
+
+
+def test_undefined_spec_refused_by_run_with_system(tmp_path, capsys):
+    from pathlib import Path
+
+    example = Path(__file__).resolve().parents[1] / "examples" / "vdp.ckpt"
+    path = tmp_path / "s.toml"
+    path.write_text(spec(["exp(log(x1))", "-x2"]))
+    code, _, err = run_cli(capsys, "run", str(example), "--system", str(path))
+    assert code == 2 and "log of 'x1', which can be <= 0" in err and err.count("\n") == 1
