@@ -169,7 +169,7 @@ def unreadable_reason(path: Path) -> str | None:
     if head.startswith(_ZIP_MAGIC):
         try:
             archive = zipfile.ZipFile(path)
-        except (zipfile.BadZipFile, OSError):
+        except (zipfile.BadZipFile, OSError, ValueError):  # ValueError: undecodable names
             return (f"truncated or damaged file: the ZIP archive that torch.save writes has no "
                     f"end record ({size} bytes; was a download or copy cut short?)")
         with archive:
