@@ -240,7 +240,7 @@ def check_simulation(problem: Problem, bounds: BoundsResult | None,
             exit_reason=reasons[r] if exit_time is not None else "stayed within the conditions",
             max_ratio=max_ratio, breach=breach, mse=mse, final_error=float(e_r[-1]),
             t=t[keep].tolist(), error=e_r[keep].tolist(),
-            bound=curve[r, keep].tolist() if curve is not None else [],
+            bound=curve[r, keep].tolist() if curve is not None and within else [],
             x=fine.x[keep, r].tolist(), xhat=fine.xhat[keep, r].tolist(), tolerance=tol,
             start=notes[r], window=float(t[-1]) if exit_time is None else exit_time))
     status, msg = _verdict(runs, bounds, curve is not None, breaches, certified, tau,
