@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
+from certify.gain import gain_value
 from certify.network import GainNetwork
 from certify.system import System
 
@@ -67,36 +68,16 @@ def gaussian_noise(steps: int, batch: int, p: int, std: float, *, seed: int = 0
 
 
 class GainFunction:
-    """k(xhat, y) for a batch, by the plain network forward (no Jacobian), float64.
-
-    Same composition as `certify.kernels.gain_terms` (direct / structural, plus K (y - h)).
-    """
+    """k(xhat, y) for a batch, by the plain network forward (no Jacobian), float64
+    (`certify.gain.gain_value`: the same composition as every other evaluation)."""
 
     def __init__(self, system: System, net: GainNetwork) -> None:
         self.system = system
-        self.structure = net.structure
-        self.layers = [(layer.weight.detach().to(torch.float64).T.contiguous(),
-                        layer.bias.detach().to(torch.float64)) for layer in net.layers]
-        K = net.K.detach().to(torch.float64)
-        self.K = K if bool(torch.any(K != 0)) else None
-        self.needs_h = self.structure == "structural" or self.K is not None
+        self.spec = net.spec(torch.float64, detach=True)
 
     def __call__(self, xhat: torch.Tensor, y: torch.Tensor,
                  h_xhat: torch.Tensor | None = None) -> torch.Tensor:
-        a = torch.cat([xhat, y], dim=1)
-        for W, b in self.layers[:-1]:
-            a = torch.tanh(torch.addmm(b, a, W))
-        W, b = self.layers[-1]
-        out = torch.addmm(b, a, W)
-        if not self.needs_h:
-            return out
-        r = y - (self.system.h(xhat) if h_xhat is None else h_xhat)
-        n, p = self.system.n, self.system.p
-        k = (out.reshape(-1, n, p) @ r.unsqueeze(-1)).squeeze(-1) \
-            if self.structure == "structural" else out
-        if self.K is not None:
-            k = k + r @ self.K.T
-        return k
+        return gain_value(self.spec, self.system, xhat, y, h_xhat)
 
 
 def rk4(rhs: Callable[[torch.Tensor, int], torch.Tensor], s0: torch.Tensor, dt: float,

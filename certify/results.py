@@ -32,11 +32,15 @@ class Status(str, enum.Enum):
 
 @dataclass
 class Counterexample:
-    """A point (xhat, y) and the value of the checked quantity there (float64)."""
+    """A point (xhat, y) and the value of the checked quantity there (float64).
+
+    `sound_bound`: a sound lower bound of the quantity at the point (`certify.witness`); a
+    point is a counterexample only when it is > 0. None when not computed."""
 
     xhat: list[float]
     y: list[float]
     value: float
+    sound_bound: float | None = None
 
 
 @dataclass

@@ -353,9 +353,10 @@ class BoundsCheck(Check):
     def run(self, context: Context) -> BoundsResult:
         rate, res, lip = (context.result(n) for n in ("rate", "residual", "lipschitz"))
         lam_cert = None
-        if rate is not None:  # a sampled rate <= 0 already rules a bound out; else the proof
-            lam_cert = rate.sampled_upper if rate.sampled_upper <= 0 else rate.proved_lower
-            if rate.sampled_upper > 0 and lam_cert is not None and lam_cert <= 0:
+        if rate is not None:  # a witnessed rate <= 0 (VIOLATED) rules a bound out; else proof
+            violated = rate.status == Status.VIOLATED and rate.sampled_upper <= 0
+            lam_cert = rate.sampled_upper if violated else rate.proved_lower
+            if not violated and lam_cert is not None and lam_cert <= 0:
                 lam_cert = None  # a proved lower bound <= 0 is no rate, but not "none exists"
         # sup ||P^(1/2) k(x, h(x))|| is known exactly only when k vanishes there by design
         eps_bar_P = 0.0 if res is not None and res.structural else None
