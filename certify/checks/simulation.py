@@ -352,10 +352,12 @@ class SimulationCheck(Check):
         return Presentation(
             sampled=Quantity("max error / bound (valid times)", worst, "no bound to compare"),
             proved=Quantity("breaches; longest valid window",
+                            None if not ratios else
                             f"{breaches} breach{plural}; "
                             + (f"window {longest:.3g} s" if longest is not None else "no window")
                             + (f" (\u03c4 = {r.time_constant:.3g} s)"
-                               if r.time_constant is not None else "")),
+                               if r.time_constant is not None else ""),
+                            "no bound to compare with"),
             setting=(Quantity("runs", len(r.runs)),
                      Quantity("T =", s.get("sim_time"), suffix=" s"),
                      Quantity("dt =", s.get("sim_dt")), Quantity("v\u0304 =", s.get("noise"))),
