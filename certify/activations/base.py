@@ -146,15 +146,22 @@ class Activation:
     """A C^1 activation function with its derivatives, enclosures and relaxations.
 
     Subclasses set `name`, `slope_bounds` (inf and sup of f' over the reals: the sector
-    LipSDP needs), `d3_bound` (sup |f'''|, math.inf when f'' is not continuous), the point
-    formulas `f`, `d1`, `d2`, their interval extensions `_f_iv`, `_d1_iv`, `_d2_iv`, and
-    `critical[k]`: every critical point of the k-th derivative (k = 0, 1, 2).
+    LipSDP needs), `value_bound` (sup |f|), `d3_bound` (sup |f'''|, math.inf when f'' is
+    not continuous), the point formulas `f`, `d1`, `d2`, their interval extensions `_f_iv`,
+    `_d1_iv`, `_d2_iv`, and `critical[k]`: every critical point of the k-th derivative
+    (k = 0, 1, 2).
     """
 
     name: str = ""
     slope_bounds: tuple[float, float] = (0.0, 1.0)
+    value_bound: float = math.inf  # sup |f| over the reals (inf: unbounded)
     d3_bound: float = math.inf
     critical: dict[int, tuple[Critical, ...]] = {0: (), 1: (), 2: ()}
+
+    @property
+    def lipschitz(self) -> float:
+        """sup |f'| over the reals (the activation's Lipschitz constant)."""
+        return max(abs(self.slope_bounds[0]), abs(self.slope_bounds[1]))
 
     # --- point values (torch, batched, any dtype/device) ---
     def f(self, x: torch.Tensor) -> torch.Tensor:
@@ -169,6 +176,25 @@ class Activation:
     def f_and_d1(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """f(x) and f'(x) together (subclasses share work where they can)."""
         return self.f(x), self.d1(x)
+
+    def f_and_d1_into(self, x: torch.Tensor, f_out: torch.Tensor, d1_out: torch.Tensor
+                      ) -> None:
+        """f(x) into f_out and f'(x) into d1_out (preallocated buffers, no autograd)."""
+        f, d1 = self.f_and_d1(x)
+        f_out.copy_(f)
+        d1_out.copy_(d1)
+
+    def d2_given(self, x: torch.Tensor, f: torch.Tensor, d1: torch.Tensor) -> torch.Tensor:
+        """f''(x), given f(x) and f'(x) already computed (subclasses reuse them)."""
+        return self.d2(x)
+
+    def chain_pre(self, g_f: torch.Tensor, g_d1: torch.Tensor, x: torch.Tensor,
+                  f: torch.Tensor, d1: torch.Tensor, out: torch.Tensor) -> None:
+        """Reverse mode through (f(x), f'(x)): out = g_f f'(x), then out[:C] += g_d1 f''(x)
+        for the first C = len(g_d1) rows (only those carry tangents). May overwrite g_f."""
+        C = g_d1.shape[0]
+        torch.mul(g_f, d1, out=out)
+        out[:C].addcmul_(g_d1, self.d2_given(x[:C], f[:C], d1[:C]))
 
     def torch_module(self) -> nn.Module:
         return _Module(self)

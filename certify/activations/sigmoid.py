@@ -19,6 +19,7 @@ from certify.intervals import Interval
 class Sigmoid(Activation):
     name = "sigmoid"
     slope_bounds = (0.0, 0.25)
+    value_bound = 1.0
     d3_bound = 0.125
     critical = {
         0: (),
@@ -39,6 +40,9 @@ class Sigmoid(Activation):
     def f_and_d1(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         s = torch.sigmoid(x)
         return s, s * (1.0 - s)
+
+    def d2_given(self, x: torch.Tensor, f: torch.Tensor, d1: torch.Tensor) -> torch.Tensor:
+        return d1 * (1.0 - 2.0 * f)
 
     def torch_module(self) -> nn.Module:
         return nn.Sigmoid()

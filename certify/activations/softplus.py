@@ -33,6 +33,9 @@ class Softplus(Activation):
     def f_and_d1(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.f(x), torch.sigmoid(x)
 
+    def d2_given(self, x: torch.Tensor, f: torch.Tensor, d1: torch.Tensor) -> torch.Tensor:
+        return d1 * (1.0 - d1)
+
     def _f_iv(self, a: Interval) -> Interval:
         pos = Interval(a.lo.clamp_min(0.0), a.hi.clamp_min(0.0))
         absx = Interval(a.mig(), a.mag())

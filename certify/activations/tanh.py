@@ -73,6 +73,7 @@ def _sech2_iv(a: Interval) -> Interval:
 class Tanh(Activation):
     name = "tanh"
     slope_bounds = (0.0, 1.0)
+    value_bound = 1.0
     d3_bound = 2.0
     critical = {
         0: (),
@@ -94,7 +95,24 @@ class Tanh(Activation):
 
     def f_and_d1(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         t = torch.tanh(x)
-        return t, 1.0 - t * t
+        s = t * t
+        s.neg_().add_(1.0)  # 1 - t^2 without a second temporary
+        return t, s
+
+    def f_and_d1_into(self, x: torch.Tensor, f_out: torch.Tensor, d1_out: torch.Tensor
+                      ) -> None:
+        torch.tanh(x, out=f_out)
+        torch.addcmul(torch.ones((), dtype=x.dtype), f_out, f_out, value=-1.0, out=d1_out)
+
+    def d2_given(self, x: torch.Tensor, f: torch.Tensor, d1: torch.Tensor) -> torch.Tensor:
+        return -2.0 * f * d1
+
+    def chain_pre(self, g_f: torch.Tensor, g_d1: torch.Tensor, x: torch.Tensor,
+                  f: torch.Tensor, d1: torch.Tensor, out: torch.Tensor) -> None:
+        # f'' = -2 f f': out = (g_f - 2 f g_d1) f' (one fused multiply-add, then one product)
+        C = g_d1.shape[0]
+        g_f[:C].addcmul_(g_d1, f[:C], value=-2.0)
+        torch.mul(g_f, d1, out=out)
 
     def torch_module(self) -> nn.Module:
         return nn.Tanh()
