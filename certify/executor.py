@@ -42,6 +42,7 @@ class Executor(Protocol):
     """Runs `fn` over `items`, results in the order of `items`."""
 
     workers: int
+    remote: bool  # True: chunks go to other processes (worth chunking even for 1 worker)
 
     def map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> list[Any]: ...
 
@@ -52,6 +53,7 @@ class SerialExecutor:
     """Everything in this process, in order (the default; no dependency)."""
 
     workers = 1
+    remote = False  # chunks run in this process
     description = "serial (this process)"
 
     def map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> list[Any]:
@@ -90,6 +92,7 @@ class DaskExecutor:
                                 "'certify[dask]'") from None
         self._cluster = None
         self._scattered: dict[str, Any] = {}
+        self.remote = True
         if scheduler is not None:
             address = str(scheduler).strip()
             if not address:

@@ -170,11 +170,11 @@ def _residual_evaluator(problem: Problem):
 
 
 def _distributed(kind: str, problem: Problem, evaluate, **options: object):
-    """`evaluate` itself, or, when the run's executor has several workers, the same
+    """`evaluate` itself, or, when the run's executor sends work to other processes, the same
     evaluator run there on each round's boxes in chunks (`certify.remote`), which gives the
     same bounds box for box."""
     executor = current_executor()
-    if executor.workers <= 1:
+    if not getattr(executor, "remote", False):
         return evaluate
     from certify.remote import box_payload, distributed_evaluate, prover_box_chunk
 

@@ -33,6 +33,12 @@ def slow_square(x: int) -> int:
     return x * x
 
 
+def _cached_keys() -> list[str]:
+    from certify import executor
+
+    return list(executor._cache)
+
+
 def offset(payload: dict, a: int, b: int) -> list[int]:
     return [payload["base"] + i for i in range(a, b)]
 
@@ -52,7 +58,7 @@ def test_chunk_ranges_cover_in_order():
 
 
 def test_serial_is_the_default():
-    assert isinstance(current_executor(), SerialExecutor)
+    assert isinstance(current_executor(), SerialExecutor) and not current_executor().remote
     assert isinstance(executor_from_settings(VerifySettings()), SerialExecutor)
     ex = SerialExecutor()
     assert ex.map(abs, [-3, 1, -2]) == [3, 1, 2]
@@ -203,6 +209,8 @@ def test_mpdi_proof_on_dask_equals_serial(dask2):
     with using(dask2):
         remote = prove_mpdi(problem, seconds=1e9, max_boxes=5000)
     assert serial.stats.budget_exhausted and remote.stats.budget_exhausted
+    built = dask2.client.run(_cached_keys)  # the boxes really went to the workers
+    assert any(k.startswith("box:") for keys in built.values() for k in keys)
     assert serial.status == remote.status
     assert serial.upper == remote.upper and serial.lower == remote.lower
     assert serial.stats.boxes_processed == remote.stats.boxes_processed
