@@ -40,9 +40,11 @@ def _history(hist: list[list[float]], cap: int = 12) -> list[list[float]]:
     return [[round(a, 2), round(b, 5)] for a, b in out]
 
 
-def _run(prob, seconds: float, max_boxes: int, taylor: object) -> dict:
+def _run(prob, seconds: float, max_boxes: int, taylor: object, crown: bool = True,
+         batch: int = 1024) -> dict:
     t = time.perf_counter()
-    out = prove_mpdi(prob, seconds=seconds, max_boxes=max_boxes, taylor=taylor)
+    out = prove_mpdi(prob, seconds=seconds, max_boxes=max_boxes, taylor=taylor, crown=crown,
+                     batch=batch)
     st = out.stats
     return {"status": out.status.value, "boxes": st.boxes_processed,
             "seconds": round(time.perf_counter() - t, 3), "upper": out.upper,
@@ -91,11 +93,13 @@ def main() -> None:
     ap.add_argument("--prover", default="default", choices=["default", "taylor", "plain"],
                     help="taylor: the pre-issue-9 prover (interval + Taylor models)")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--batch", type=int, default=1024, help="boxes per B&B round")
     ap.add_argument("--cache", default="/tmp/certify-bench/instances.json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cache = Path(args.cache) if args.cache else None
     taylor = {"default": True, "taylor": True, "plain": False}[args.prover]
+    crown = args.prover == "default"
     rows: dict[str, list[dict]] = {}
     for fam in args.family:
         depth, width = FAMILIES[fam]
@@ -111,7 +115,8 @@ def main() -> None:
                                "prover": args.prover, "load": round(os.getloadavg()[0], 2),
                                "lam": prob.lam, "sampled_max": info["sampled_max"],
                                "setup_seconds": round(setup, 2)}
-                        rec.update(_run(prob, args.seconds, args.max_boxes, taylor))
+                        rec.update(_run(prob, args.seconds, args.max_boxes, taylor, crown,
+                                        args.batch))
                         if not args.no_baseline:
                             bs = args.baseline_seconds or args.seconds
                             rec["baseline"] = _run(prob, bs, args.max_boxes, False)

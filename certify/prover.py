@@ -76,12 +76,15 @@ def _seed_box(seeds: object | None, d: int) -> Box | None:
     return Box(pts, pts.clone(), torch.zeros(pts.shape[0], dtype=torch.long))
 
 
-def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bool = True):
+def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bool | str = True,
+                    crown: bool = True):
     n = problem.n
     P = problem.P_t
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
-        bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, taylor=taylor)
+        # boxes the plain interval bound already proves skip the Taylor / relaxation work
+        bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, taylor=taylor, crown=crown,
+                             screen=0.0)
         ub = to_lam_max_D(bb.upper, P, pc)
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         c = 0.5 * (lo + hi)
@@ -93,14 +96,15 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
 
 def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 60.0,
                max_boxes: int = 2_000_000, progress: Progress | None = None,
-               seeds: object | None = None, batch: int = 1024, taylor: bool = True,
-               keep_leaves: int = 5000) -> ProofOutcome:
+               seeds: object | None = None, batch: int = 1024, taylor: bool | str = True,
+               keep_leaves: int = 5000, crown: bool = True) -> ProofOutcome:
     """Decide D(xhat, y) <= 0 over X x Y for rate `lam` (default problem.lam) and P.
 
     PROVED: every sub-box has a sound bound lam_max(D) <= 0. VIOLATED: a point (a box
     centre or one of `seeds` [m, n+p]) with float64 lam_max(D) > 0. UNKNOWN: budget spent
     (`seconds`, `max_boxes`) or NaN/Inf in some bound; `upper` is then the best bound.
-    `taylor=False` uses plain interval arithmetic only (for comparison).
+    `taylor=False` uses plain interval arithmetic only (for comparison); `crown=False` keeps
+    the forward Taylor models without backward linear bound propagation (the pre-issue-9 prover).
     """
     progress = progress or NullProgress()
     lam = float(problem.lam if lam is None else lam)
@@ -108,7 +112,7 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
     lo, hi = _root(problem)
     n = problem.n
     out = branch_and_bound(
-        lo, hi, _mpdi_evaluator(problem, lam, pc, taylor), threshold=0.0, seconds=seconds,
+        lo, hi, _mpdi_evaluator(problem, lam, pc, taylor, crown), threshold=0.0, seconds=seconds,
         max_boxes=max_boxes, batch=batch, progress=progress, task="mpdi proof",
         seeds=_seed_box(seeds, lo.shape[0]), keep_leaves=keep_leaves)
     cex = None

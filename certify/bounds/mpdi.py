@@ -30,11 +30,15 @@ class BoxBounds:
 
 
 def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: float,
-                    pc: Preconditioner | None = None, taylor: bool | str = True) -> BoxBounds:
+                    pc: Preconditioner | None = None, taylor: bool | str = True,
+                    crown: bool = True, screen: float | None = None) -> BoxBounds:
     """Sound upper bounds of max over each box of lam_max(M D M^T), D with rate lam.
 
     taylor: True (first-order Taylor models through the network, the default), "interval"
-    (mean-value form with interval second derivatives) or False (plain interval only)."""
+    (mean-value form with interval second derivatives) or False (plain interval only).
+    crown (with taylor=True): the network's Taylor models are tightened entry by entry by
+    backward linear bound propagation (`certify.bounds.crown`). screen: boxes whose plain
+    interval bound is already <= screen skip the Taylor / linear-relaxation work."""
     system, net = problem.system, problem.network
     if pc is None:
         pc = make_preconditioner(problem.P_t)
@@ -50,17 +54,28 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     gb, _ = gain_enclosure(system, net, lo, hi, order=order, center_pre=nec.pre)
     Ab = iadd(_congruence(pc, iadd(gb.jf, gb.dk_dx)), bcast(lamC, B))
     plain = lam_max_upper_interval(Ab)
+    wscore = zr * (1.0 / (zr.amax(-1, keepdim=True) + 1e-300))
     if not taylor:
-        score = zr * (1.0 / (zr.amax(-1, keepdim=True) + 1e-300))
-        return BoxBounds(plain, plain, torch.full_like(plain, float("inf")), score)
+        return BoxBounds(plain, plain, torch.full_like(plain, float("inf")), wscore)
     if taylor == "interval":
         Ac = iadd(_congruence(pc, iadd(gc.jf, gc.dk_dx)), bcast(lamC, B))
         dJ = iadd(gb.djf, gb.d2k)  # [B, n, n, d]
         dA = _congruence(pc, Interval(dJ.lo.permute(0, 3, 1, 2), dJ.hi.permute(0, 3, 1, 2)))
         tay, score = taylor_upper(Ac, dA, zr)
-    else:
-        Jt = jcl_taylor(system, net, lo, hi)
-        tay, score = tm_lam_upper(tm_congruence(pc, Jt, lam, zr), zr)
-    upper = nan_min(plain, tay)
-    return BoxBounds(upper, plain, tay, score)
+        return BoxBounds(nan_min(plain, tay), plain, tay, score)
+    work = torch.ones(B, dtype=torch.bool) if screen is None else ~(plain <= screen)
+    tay = torch.full_like(plain, float("inf"))
+    score = wscore.clone()
+    if bool(work.any()):
+        wl, wh = lo[work], hi[work]
+        net_tms = None
+        if crown:
+            from certify.bounds.crown import network_crown_tms
 
+            net_tms = network_crown_tms(net, wl, wh, list(range(problem.n)),
+                                        value=problem.structural)
+        Jt = jcl_taylor(system, net, wl, wh, net_tms=net_tms)
+        t_w, s_w = tm_lam_upper(tm_congruence(pc, Jt, lam, zr[work]), zr[work])
+        tay[work] = t_w
+        score[work] = s_w
+    return BoxBounds(nan_min(plain, tay), plain, tay, score)

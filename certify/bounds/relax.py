@@ -148,7 +148,7 @@ def _dtanh_slope(x: torch.Tensor) -> torch.Tensor:
 
 
 def _bisect_crit(a: torch.Tensor, pa: torch.Tensor, pb: torch.Tensor, increasing: bool,
-                 iters: int = 40) -> torch.Tensor:
+                 iters: int = 14) -> torch.Tensor:
     """x in [pa, pb] with tanh''(x) ~ a, tanh'' monotone there (clamped to an endpoint)."""
     lo, hi = pa.clone(), pb.clone()
     for _ in range(iters):

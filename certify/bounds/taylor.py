@@ -192,13 +192,17 @@ def network_taylor(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor
     return val, d1, r
 
 
-def jcl_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor) -> TM:
-    """TM of the closed-loop Jacobian Jf(xhat) + dk/dxhat(xhat, y) over z-boxes -> [B, n, n]."""
+def jcl_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
+               net_tms: tuple[TM, TM, torch.Tensor] | None = None) -> TM:
+    """TM of the closed-loop Jacobian Jf(xhat) + dk/dxhat(xhat, y) over z-boxes -> [B, n, n].
+
+    net_tms: (value [B, out], Jacobian [B, out, d], radii) of the network from elsewhere
+    (e.g. tightened by linear bound propagation); default `network_taylor`."""
     n, p = system.n, system.p
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     B, d = lo.shape
-    val, d1, r = network_taylor(net, lo, hi)
+    val, d1, r = network_taylor(net, lo, hi) if net_tms is None else net_tms
     zc = 0.5 * (lo + hi)
     xc = zc[:, :n]
     xl, xh = lo[:, :n], hi[:, :n]

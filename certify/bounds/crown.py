@@ -1,0 +1,383 @@
+"""Backward linear bound propagation (CROWN-style) through the network's Jacobian graph.
+
+For a `direct` tanh MLP N(z) (pre_0 = W_0 z + b_0, a_l = tanh(pre_l), pre_{l+1} = W_{l+1} a_l +
+b_{l+1}) the Jacobian columns follow t_0^j = W_0[:, j], Q_l^j = s_l * t_l^j with
+s_l = tanh'(pre_l), t_{l+1}^j = W_{l+1} Q_l^j and dN/dz_j = W_H Q_{H-1}^j. For every entry
+(i, j) and both signs, one backward pass from the output to z composes
+
+- McCormick planes for the products Q = s * t (`relax.mccormick`),
+- linear relaxations of tanh' (derivative path) and tanh (value path) (`relax`),
+- the exact linear maps W_l,
+
+picking each relaxation's lower or upper plane by the sign of its backward coefficient, and
+ends with a linear function of z that bounds the entry on the whole box. Intermediate bounds
+(ranges of pre_l and t_l) come from a forward pass that intersects plain interval propagation
+with first-order Taylor models (`certify.bounds.taylor`).
+
+Rounding: the backward coefficients are computed in float64 and used as the (exactly
+representable) coefficients of the relaxation; what float evaluation changes is accounted for
+by a slack added to each query: every matrix product contributes gamma_k (|Lambda| |W|) . mag(x),
+every elementwise product u |Lambda a| . mag(x), every sum of bias terms gamma_k sum|terms|,
+with mag(x) the magnitude bound of the node the coefficients multiply (from the forward
+ranges). The slack is rounded up and subtracted; the resulting lines are then turned into a
+Taylor model whose remainder is computed with upward rounding (`to_tm`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from certify.bounds.relax import mccormick, relax_dtanh, relax_tanh
+from certify.bounds.taylor import TM, tm_linear, tm_mul, tm_rho, tm_tanh_and_dtanh
+from certify.intervals import (
+    TINY,
+    Interval,
+    down,
+    dtanh_enclosure,
+    gamma,
+    imul,
+    matmul_point_right,
+    midrad_to_interval,
+    tanh_enclosure,
+    up,
+)
+from certify.network import GainNetwork
+
+U = 2.0**-53
+
+
+@dataclass
+class ForwardBounds:
+    """Per hidden layer l: ranges of pre_l [B, h] and of t_l = d pre_l / dz [B, h, d]; the
+    Taylor models of the output value [B, out] and Jacobian [B, out, d]; box radii [B, d]."""
+
+    pre: list[Interval]
+    tan: list[Interval]
+    value_tm: TM
+    jac_tm: TM
+    r: torch.Tensor
+    layers: list = field(default_factory=list)  # _Layer per hidden layer (relaxations)
+
+
+def _intersect(a: Interval, b: Interval) -> Interval:
+    return Interval(torch.maximum(a.lo, b.lo), torch.minimum(a.hi, b.hi))
+
+
+def _tm_range(t: TM, r: torch.Tensor) -> Interval:
+    rho = tm_rho(t, r)
+    return Interval(down(t.c - rho), up(t.c + rho))
+
+
+def _imatvec_point(x: Interval, W: torch.Tensor) -> Interval:
+    """x @ W.T for x [..., k] an interval and W [m, k] a point matrix."""
+    c, r = x.midrad()
+    oc, orr = matmul_point_right(c, r, W.T)
+    return midrad_to_interval(oc, orr)
+
+
+@dataclass
+class LinearEnclosure:
+    """For every z in the box: gl . (z - zc) + cl <= F(z) <= gu . (z - zc) + cu (real
+    arithmetic; shapes [B, ...] for c, [B, ..., d] for g)."""
+
+    gl: torch.Tensor
+    cl: torch.Tensor
+    gu: torch.Tensor
+    cu: torch.Tensor
+
+
+def _acc(coef_abs: torch.Tensor, mag: torch.Tensor | float, k: int) -> torch.Tensor:
+    """gamma_k sum(coef_abs * mag) over the last dim (a float error bound), rounded up."""
+    return up(gamma(k + 2) * (coef_abs * mag).sum(-1) * (1.0 + 4 * U) + TINY)
+
+
+def _mag(iv: Interval) -> torch.Tensor:
+    return torch.maximum(iv.lo.abs(), iv.hi.abs())
+
+
+def _midrad_icpt(lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """m, w with [lo, hi] inside [m - w, m + w] (w rounded up)."""
+    m = 0.5 * (lo + hi)
+    return m, up(torch.maximum(hi - m, m - lo))
+
+
+class _Layer:
+    """Per hidden layer: parallel-line relaxations (value: tanh, derivative: tanh') and the
+    magnitudes of pre_l, a_l, t_l, Q_l used by the backward passes' rounding slack.
+
+    A relaxation is stored as f(x) in a x + m + [-w, w]; the lines of `relax` are parallel
+    (both sides share the chord slope), which lets a backward coefficient L pick its side with
+    L m - |L| w instead of a sign test."""
+
+    def __init__(self, pre: Interval, tan: Interval, W_next: torch.Tensor) -> None:
+        self.pre = pre
+        self.tan = tan
+        self.s = dtanh_enclosure(pre)
+        rs = relax_dtanh(pre.lo, pre.hi)
+        ra = relax_tanh(pre.lo, pre.hi)
+        if not (torch.equal(rs.lower_slope, rs.upper_slope)
+                and torch.equal(ra.lower_slope, ra.upper_slope)):
+            raise ValueError("backward propagation needs parallel-line relaxations")
+        self.a_s = rs.lower_slope.unsqueeze(1)  # [B, 1, h]
+        ms, ws = _midrad_icpt(rs.lower_icpt, rs.upper_icpt)
+        self.m_s, self.w_s = ms.unsqueeze(1), ws.unsqueeze(1)
+        self.a_a = ra.lower_slope.unsqueeze(1)
+        ma, wa = _midrad_icpt(ra.lower_icpt, ra.upper_icpt)
+        self.m_a, self.w_a = ma.unsqueeze(1), wa.unsqueeze(1)
+        self.pmag = _mag(pre).unsqueeze(1)  # [B, 1, h]
+        amag = tanh_enclosure(pre).mag()  # [B, h]
+        # |W_next| |a_l|: bounds sum_m |W_km| |a_m| for the rounding of L @ W_next
+        self.Wa = (amag @ W_next.abs().T).unsqueeze(1)  # [B, 1, h_next]
+        self.W_next = W_next
+        self._mc: dict[tuple[int, ...], tuple] = {}
+
+    def mc(self, cols: torch.Tensor) -> tuple:
+        """For the columns `cols`: McCormick slopes (s, t), intercept midpoint and radius,
+        |t| and |W_next| |Q| (each [B, h or h_next, J])."""
+        key = tuple(int(c) for c in cols)
+        if key not in self._mc:
+            t = Interval(self.tan.lo[..., cols], self.tan.hi[..., cols])
+            m = mccormick(Interval(self.s.lo.unsqueeze(-1), self.s.hi.unsqueeze(-1)), t)
+            mq, wq = _midrad_icpt(m.lower_icpt, m.upper_icpt)
+            qmag = self.s.mag().unsqueeze(-1) * _mag(t)  # [B, h, J]
+            WQ = torch.einsum("kh,bhj->bkj", self.W_next.abs(), qmag)
+            self._mc[key] = (m.slope_s, m.slope_t.expand_as(m.slope_s), mq, wq, _mag(t), WQ)
+        return self._mc[key]
+
+
+def _gather(x: torch.Tensor, jq: torch.Tensor) -> torch.Tensor:
+    """[B, h, J] -> [B, Q, h] by query column index jq [Q]."""
+    return x[..., jq].transpose(1, 2)
+
+
+def _backward(weights: list, layers: list[_Layer], top: int, La: torch.Tensor,
+              LQ: torch.Tensor | None, bias: torch.Tensor, qcol: torch.Tensor,
+              lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Backward pass from coefficients on a_{top-1} (La) and on Q_{top-1}^{qcol} (LQ; None for
+    value-only queries) down to z: returns (Lz [B, Q, d], c [B, Q]) with
+    query >= Lz . (z - zc) + c for every z in the box (real arithmetic, rounding in c).
+
+    Slack: every elementwise product and every sum of the bias over a layer is covered by
+    gamma_{2h+8} times the sum of the magnitudes involved (coefficient times node magnitude);
+    a product L @ W by gamma_{h+2} |L| |W| |x| (computed as |L| . (|W| |x|))."""
+    B, d = lo.shape
+    zc = 0.5 * (lo + hi)
+    err = torch.zeros_like(bias)
+    ucols = torch.unique(qcol)
+    jq = (qcol[:, None] == ucols[None, :]).to(torch.long).argmax(-1)
+    Lz = None
+    for li in range(top - 1, -1, -1):
+        lay = layers[li]
+        h = lay.pre.lo.shape[-1]
+        g_h = gamma(2 * h + 8)
+        Lpre = La * lay.a_a
+        E = (La.abs() * lay.a_a + Lpre.abs()) * lay.pmag + (La * lay.m_a).abs() \
+            + La.abs() * lay.w_a
+        bterm = La * lay.m_a - La.abs() * lay.w_a
+        if LQ is not None:
+            ss, st, mq, wq, tmag, _ = lay.mc(ucols)
+            ss, st = _gather(ss, jq), _gather(st, jq)
+            mq, wq, tmag = _gather(mq, jq), _gather(wq, jq), _gather(tmag, jq)
+            Ls = LQ * ss
+            Lt = LQ * st
+            bterm = bterm + LQ * mq - LQ.abs() * wq + Ls * lay.m_s - Ls.abs() * lay.w_s
+            c1 = Ls * lay.a_s
+            Lpre = Lpre + c1
+            E = E + Ls.abs() + Lt.abs() * tmag + (LQ * mq).abs() + LQ.abs() * wq \
+                + (Ls * lay.m_s).abs() + Ls.abs() * lay.w_s + (c1.abs() + Lpre.abs()) * lay.pmag
+        W, b = weights[li]  # pre_li = W x + b
+        E = E + Lpre.abs() * b.abs()
+        bias = bias + bterm.sum(-1) + Lpre @ b
+        err = err + g_h * E.sum(-1) + gamma(4) * bias.abs()
+        if li > 0:
+            prev = layers[li - 1]
+            err = err + gamma(h + 2) * (Lpre.abs() * prev.Wa).sum(-1)
+            La = Lpre @ W
+            if LQ is not None:
+                WQ = _gather(prev.mc(ucols)[5], jq)
+                err = err + gamma(h + 2) * (Lt.abs() * WQ).sum(-1)
+                LQ = Lt @ W
+        else:
+            zmag = torch.maximum(lo.abs(), hi.abs())  # [B, d]
+            Wz = (zmag @ W.abs().T).unsqueeze(1)  # [B, 1, h]
+            err = err + gamma(h + 2) * (Lpre.abs() * Wz).sum(-1)
+            Lz = Lpre @ W  # [B, Q, d]
+            if LQ is not None:
+                tc = W[:, qcol].T  # [Q, h]: t_0^j = W_0[:, j]
+                bt = (Lt * tc).sum(-1)
+                err = err + gamma(h + 2) * (Lt * tc).abs().sum(-1)
+                bias = bias + bt
+                err = err + gamma(4) * bias.abs()
+    cz = (Lz * zc.unsqueeze(1)).sum(-1)
+    err = err + gamma(d + 4) * ((Lz * zc.unsqueeze(1)).abs().sum(-1) + (cz + bias).abs())
+    c = down(cz + bias - up(up(err * (1.0 + 8 * U)) + TINY * (4 * d + 64)))
+    return Lz, c
+
+
+def _concretize_lower(Lz: torch.Tensor, c: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """min over |dz| <= r of Lz . dz + c, rounded down."""
+    d = Lz.shape[-1]
+    return down(c - up((Lz.abs() * r.unsqueeze(1)).sum(-1) * (1.0 + gamma(d + 2))))
+
+
+def _queries(Wrows: torch.Tensor, cols: torch.Tensor, B: int
+             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Coefficients for q = (sign, i, j): [B, Q, h], signs [Q], columns [Q]."""
+    out, h = Wrows.shape
+    J = len(cols)
+    sign = torch.tensor([1.0, -1.0], dtype=torch.float64)
+    qsign = sign[:, None, None].expand(2, out, J).reshape(-1)
+    qrow = torch.arange(out)[None, :, None].expand(2, out, J).reshape(-1)
+    qcol = cols[None, None, :].expand(2, out, J).reshape(-1)
+    L = (qsign[:, None] * Wrows[qrow]).expand(B, -1, h)
+    return L, qsign, qcol
+
+
+def forward_bounds(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
+                   cols: list[int] | None = None, crown: bool = True) -> ForwardBounds:
+    """Ranges of every pre-activation and tangent: interval propagation of the intersected
+    ranges, intersected with the Taylor-model ranges and (crown) with backward linear bounds
+    of pre_l and of the tangent columns `cols` (default all), layer by layer."""
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    B, d = lo.shape
+    colt = torch.arange(d) if cols is None else torch.as_tensor(cols, dtype=torch.long)
+    zc = 0.5 * (lo + hi)
+    r = up(torch.maximum(hi - zc, zc - lo))
+    weights = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
+    W0, b0 = weights[0]
+    eye = torch.eye(d, dtype=torch.float64).expand(B, d, d)
+    val = tm_linear(TM(zc, eye, torch.zeros_like(zc)), W0.T, b0, r)  # [B, h]
+    h0 = W0.shape[0]
+    T = TM(W0.T.expand(B, d, h0), torch.zeros(B, d, h0, d, dtype=torch.float64),
+           torch.zeros(B, d, h0, dtype=torch.float64))
+    pre_iv = _tm_range(val, r)
+    tan_iv = Interval(W0.expand(B, h0, d), W0.expand(B, h0, d))  # [B, h, d]
+    pres, tans = [], []
+    layers: list[_Layer] = []
+    for L, (W, b) in enumerate(weights[1:], start=1):
+        pres.append(pre_iv)
+        tans.append(tan_iv)
+        layers.append(_Layer(pre_iv, tan_iv, W))
+        a, s = tm_tanh_and_dtanh(val, r)
+        s_b = TM(s.c.unsqueeze(1), s.g.unsqueeze(1), s.e.unsqueeze(1))
+        Tn = tm_mul(s_b, T, r)  # [B, d, h]
+        val = tm_linear(a, W.T, b, r)
+        T = tm_linear(Tn, W.T, None, r)
+        if L == len(weights) - 1:
+            break
+        # interval step from the intersected ranges, then intersect with the TM ranges
+        lay = layers[-1]
+        a_iv = tanh_enclosure(pre_iv)
+        q_iv = imul(Interval(lay.s.lo.unsqueeze(-1), lay.s.hi.unsqueeze(-1)), tan_iv)
+        nxt = _imatvec_point(a_iv, W)
+        pre_iv = _intersect(Interval(down(nxt.lo + b), up(nxt.hi + b)), _tm_range(val, r))
+        qt = Interval(q_iv.lo.transpose(1, 2), q_iv.hi.transpose(1, 2))  # [B, d, h]
+        tcur = _intersect(_imatvec_point(qt, W), _tm_range(T, r))  # [B, d, m]
+        tan_iv = Interval(tcur.lo.transpose(1, 2), tcur.hi.transpose(1, 2))
+        if crown:
+            m = W.shape[0]
+            # value queries on pre_L: +-W_L[i] a_{L-1} +- b_L[i]
+            La, qs, _ = _queries(W, torch.zeros(1, dtype=torch.long), B)
+            Lz, c = _backward(weights, layers, L, La.clone(), None,
+                              (qs * b.repeat(2)).expand(B, -1).clone(),
+                              torch.zeros(2 * m, dtype=torch.long), lo, hi)
+            low = _concretize_lower(Lz, c, r).reshape(B, 2, m)
+            pre_iv = Interval(torch.maximum(pre_iv.lo, low[:, 0]),
+                              torch.minimum(pre_iv.hi, -low[:, 1]))
+            # tangent queries on t_L^j = W_L Q_{L-1}^j
+            LQ, _, qcol = _queries(W, colt, B)
+            Lz, c = _backward(weights, layers, L, torch.zeros_like(LQ), LQ.clone(),
+                              torch.zeros(B, LQ.shape[1], dtype=torch.float64), qcol, lo, hi)
+            low = _concretize_lower(Lz, c, r).reshape(B, 2, m, len(colt))
+            tl, th = tan_iv.lo.clone(), tan_iv.hi.clone()
+            tl[..., colt] = torch.maximum(tl[..., colt], low[:, 0])
+            th[..., colt] = torch.minimum(th[..., colt], -low[:, 1])
+            tan_iv = Interval(tl, th)
+    jac = TM(T.c.transpose(1, 2), T.g.transpose(1, 2), T.e.transpose(1, 2))  # [B, out, d]
+    return ForwardBounds(pres, tans, val, jac, r, layers)
+
+
+def jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, cols: list[int],
+                   fb: ForwardBounds) -> LinearEnclosure:
+    """Linear lower/upper bounds of dN_i/dz_j over each box, i < out, j in cols -> [B, out, J]."""
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    B, d = lo.shape
+    weights = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
+    layers = fb.layers
+    WH = weights[-1][0]
+    out = WH.shape[0]
+    colt = torch.as_tensor(cols, dtype=torch.long)
+    LQ, _, qcol = _queries(WH, colt, B)
+    Lz, c = _backward(weights, layers, len(weights) - 1, torch.zeros_like(LQ), LQ.clone(),
+                      torch.zeros(B, LQ.shape[1], dtype=torch.float64), qcol, lo, hi)
+    J = len(cols)
+    Lz = Lz.reshape(B, 2, out, J, d)
+    c = c.reshape(B, 2, out, J)
+    return LinearEnclosure(gl=Lz[:, 0], cl=c[:, 0], gu=-Lz[:, 1], cu=-c[:, 1])
+
+
+def value_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, fb: ForwardBounds
+                ) -> LinearEnclosure:
+    """Linear lower/upper bounds of the network output N(z) over each box -> [B, out]."""
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    B, d = lo.shape
+    weights = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
+    WH, bH = weights[-1]
+    out = WH.shape[0]
+    La, qs, qcol = _queries(WH, torch.zeros(1, dtype=torch.long), B)
+    Lz, c = _backward(weights, fb.layers, len(weights) - 1, La.clone(), None,
+                      (qs * bH.repeat(2)).expand(B, -1).clone(), qcol, lo, hi)
+    Lz = Lz.reshape(B, 2, out, d)
+    c = c.reshape(B, 2, out)
+    return LinearEnclosure(gl=Lz[:, 0], cl=c[:, 0], gu=-Lz[:, 1], cu=-c[:, 1])
+
+
+def network_crown_tms(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, cols: list[int],
+                      value: bool = False, crown_intermediate: bool = True
+                      ) -> tuple[TM, TM, torch.Tensor]:
+    """(value TM [B, out], Jacobian TM [B, out, d], radii): the forward Taylor models with the
+    Jacobian columns `cols` (and the value, when asked) replaced entry by entry by the linear
+    bound propagation's, where that has the smaller remainder."""
+    fb = forward_bounds(net, lo, hi, cols=cols, crown=crown_intermediate)
+    jt = to_tm(jacobian_crown(net, lo, hi, cols, fb), fb.r)  # [B, out, J]
+    colt = torch.as_tensor(cols, dtype=torch.long)
+    base = fb.jac_tm
+    sub = TM(base.c[..., colt], base.g[..., colt, :], base.e[..., colt])
+    best = tm_tighter(sub, jt)
+    c, g, e = base.c.clone(), base.g.clone(), base.e.clone()
+    c[..., colt], g[..., colt, :], e[..., colt] = best.c, best.g, best.e
+    val = fb.value_tm
+    if value:
+        val = tm_tighter(val, to_tm(value_crown(net, lo, hi, fb), fb.r))
+    return val, TM(c, g, e), fb.r
+
+
+def to_tm(le: LinearEnclosure, r: torch.Tensor) -> TM:
+    """The Taylor model c + g . dz + [-e, e] containing both lines over |dz| <= r."""
+    c = 0.5 * (le.cl + le.cu)
+    g = 0.5 * (le.gl + le.gu)
+    rr = r.reshape(r.shape[0], *([1] * (g.ndim - 2)), r.shape[1])
+    d = g.shape[-1]
+    k = gamma(d + 4)
+    e_up = up(up(le.cu - c) + up((le.gu - g).abs() * rr).sum(-1) * (1.0 + k))
+    e_lo = up(up(c - le.cl) + up((g - le.gl).abs() * rr).sum(-1) * (1.0 + k))
+    e = up(torch.maximum(e_up, e_lo) * (1.0 + k) + d * TINY)
+    bad = ~(torch.isfinite(e) & torch.isfinite(c))
+    e = torch.where(bad, torch.full_like(e, float("nan")), e)
+    return TM(c, g, e)
+
+
+def tm_tighter(a: TM, b: TM) -> TM:
+    """Per entry, the Taylor model with the smaller remainder (both contain the function)."""
+    use_b = torch.nan_to_num(b.e, nan=float("inf")) < a.e
+    return TM(torch.where(use_b, b.c, a.c), torch.where(use_b[..., None], b.g, a.g),
+              torch.where(use_b, b.e, a.e))
+
+
+__all__ = ["ForwardBounds", "forward_bounds", "LinearEnclosure", "jacobian_crown",
+           "value_crown", "network_crown_tms", "to_tm", "tm_tighter"]
