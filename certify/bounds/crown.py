@@ -104,114 +104,113 @@ def _midrad_icpt(lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torc
 
 
 class _Layer:
-    """Per hidden layer: parallel-line relaxations (value: tanh, derivative: tanh') and the
-    magnitudes of pre_l, a_l, t_l, Q_l used by the backward passes' rounding slack.
+    """Hidden layer l: pre_l = W x + b (x = a_{l-1}, or z for l = 0), with parallel-line
+    relaxations of tanh (value path) and tanh' (derivative path) on the range of pre_l, and
+    the constants the backward passes need, shaped [B, 1, J, h] for broadcasting against
+    coefficients [B, R, J, h] (R query rows, J Jacobian columns).
 
     A relaxation is stored as f(x) in a x + m + [-w, w]; the lines of `relax` are parallel
-    (both sides share the chord slope), which lets a backward coefficient L pick its side with
-    L m - |L| w instead of a sign test."""
+    (both sides share the chord slope), so a backward coefficient L picks its side with
+    L m - |L| w. K_a, K_Q collect, per unit of |coefficient|, every magnitude whose product
+    with a coefficient is rounded in the pass (the rounding slack is gamma * |L| . K)."""
 
-    def __init__(self, pre: Interval, tan: Interval, W_next: torch.Tensor) -> None:
-        self.pre = pre
-        self.tan = tan
+    def __init__(self, pre: Interval, tan: Interval, W: torch.Tensor, b: torch.Tensor,
+                 prev: _Layer | None, zmag: torch.Tensor) -> None:
+        self.pre, self.tan, self.W, self.b, self.prev = pre, tan, W, b, prev
         self.s = dtanh_enclosure(pre)
         rs = relax_dtanh(pre.lo, pre.hi)
         ra = relax_tanh(pre.lo, pre.hi)
         if not (torch.equal(rs.lower_slope, rs.upper_slope)
                 and torch.equal(ra.lower_slope, ra.upper_slope)):
             raise ValueError("backward propagation needs parallel-line relaxations")
-        self.a_s = rs.lower_slope.unsqueeze(1)  # [B, 1, h]
+        e = lambda x: x[:, None, None, :]  # noqa: E731  [B, h] -> [B, 1, 1, h]
+        self.a_s = e(rs.lower_slope)
         ms, ws = _midrad_icpt(rs.lower_icpt, rs.upper_icpt)
-        self.m_s, self.w_s = ms.unsqueeze(1), ws.unsqueeze(1)
-        self.a_a = ra.lower_slope.unsqueeze(1)
+        self.m_s, self.w_s = e(ms), e(ws)
+        self.a_a = e(ra.lower_slope)
         ma, wa = _midrad_icpt(ra.lower_icpt, ra.upper_icpt)
-        self.m_a, self.w_a = ma.unsqueeze(1), wa.unsqueeze(1)
-        self.pmag = _mag(pre).unsqueeze(1)  # [B, 1, h]
-        amag = tanh_enclosure(pre).mag()  # [B, h]
-        # |W_next| |a_l|: bounds sum_m |W_km| |a_m| for the rounding of L @ W_next
-        self.Wa = (amag @ W_next.abs().T).unsqueeze(1)  # [B, 1, h_next]
-        self.W_next = W_next
-        self._mc: dict[tuple[int, ...], tuple] = {}
+        self.m_a, self.w_a = e(ma), e(wa)
+        self.pmag = e(_mag(pre))
+        self.amag = tanh_enclosure(pre).mag()  # [B, h]
+        xmag = zmag if prev is None else prev.amag  # |x| feeding this layer
+        self.Wx = e(xmag @ W.abs().T)  # |W| |x|: rounding of L @ W
+        babs = b.abs()[None, None, None]
+        self.K_a = 2 * self.a_a.abs() * self.pmag + self.m_a.abs() + self.w_a \
+            + self.a_a.abs() * (babs + self.Wx)
+        self._cols: dict[tuple[int, ...], tuple] = {}
 
-    def mc(self, cols: torch.Tensor) -> tuple:
-        """For the columns `cols`: McCormick slopes (s, t), intercept midpoint and radius,
-        |t| and |W_next| |Q| (each [B, h or h_next, J])."""
+    def qmag(self, cols: torch.Tensor) -> torch.Tensor:
+        """|Q_l^j| <= |s_l| |t_l^j|, [B, h, J]."""
+        return self.s.mag().unsqueeze(-1) * _mag(self.tan)[..., cols]
+
+    def col_consts(self, cols: torch.Tensor) -> tuple:
+        """(st, SA, MQ, WQ, KQ), each [B, 1, J, h], for the McCormick planes of s * t^j."""
         key = tuple(int(c) for c in cols)
-        if key not in self._mc:
+        if key not in self._cols:
             t = Interval(self.tan.lo[..., cols], self.tan.hi[..., cols])
             m = mccormick(Interval(self.s.lo.unsqueeze(-1), self.s.hi.unsqueeze(-1)), t)
+            f = lambda x: x.transpose(1, 2).unsqueeze(1)  # noqa: E731  [B, h, J] -> [B,1,J,h]
             mq, wq = _midrad_icpt(m.lower_icpt, m.upper_icpt)
-            qmag = self.s.mag().unsqueeze(-1) * _mag(t)  # [B, h, J]
-            WQ = torch.einsum("kh,bhj->bkj", self.W_next.abs(), qmag)
-            self._mc[key] = (m.slope_s, m.slope_t.expand_as(m.slope_s), mq, wq, _mag(t), WQ)
-        return self._mc[key]
+            ss = f(m.slope_s)
+            st = f(m.slope_t.expand_as(m.slope_s))
+            mq, wq, tmag = f(mq), f(wq), f(_mag(t))
+            SA = ss * self.a_s
+            MQ = mq + ss * self.m_s
+            WQ = up(wq + ss.abs() * self.w_s)
+            if self.prev is None:  # t_0^j = W_0[:, j], a constant: Lt . t_0 joins the bias
+                Wq = self.W[:, cols].T.abs()[None, None]  # [1, 1, J, h]
+            else:  # |W| |Q_{l-1}^j|: rounding of Lt @ W
+                Wq = f(torch.einsum("kh,bhj->bkj", self.W.abs(), self.prev.qmag(cols)))
+            KQ = ss.abs() * (1 + self.m_s.abs() + self.w_s) + st.abs() * (tmag + Wq) \
+                + mq.abs() + wq + SA.abs() * (2 * self.pmag + self.b.abs()[None, None, None]
+                                              + self.Wx) + MQ.abs() + WQ
+            self._cols[key] = (st, SA, MQ, WQ, KQ)
+        return self._cols[key]
 
 
-def _gather(x: torch.Tensor, jq: torch.Tensor) -> torch.Tensor:
-    """[B, h, J] -> [B, Q, h] by query column index jq [Q]."""
-    return x[..., jq].transpose(1, 2)
-
-
-def _backward(weights: list, layers: list[_Layer], top: int, La: torch.Tensor,
-              LQ: torch.Tensor | None, bias: torch.Tensor, qcol: torch.Tensor,
+def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
+              LQ: torch.Tensor | None, bias: torch.Tensor, cols: torch.Tensor,
               lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Backward pass from coefficients on a_{top-1} (La) and on Q_{top-1}^{qcol} (LQ; None for
-    value-only queries) down to z: returns (Lz [B, Q, d], c [B, Q]) with
-    query >= Lz . (z - zc) + c for every z in the box (real arithmetic, rounding in c).
+    """Backward pass from coefficients on a_{top-1} (La) and on Q_{top-1}^j (LQ; None for
+    value-only queries), both [B, R, J, h], down to z: returns (Lz [B, R, J, d], c [B, R, J])
+    with query >= Lz . (z - zc) + c for every z in the box (real arithmetic).
 
-    Slack: every elementwise product and every sum of the bias over a layer is covered by
-    gamma_{2h+8} times the sum of the magnitudes involved (coefficient times node magnitude);
-    a product L @ W by gamma_{h+2} |L| |W| |x| (computed as |L| . (|W| |x|))."""
+    Slack: gamma_{2h+8} |L| . K per layer covers every elementwise product, every sum of
+    at most 2h bias terms and the products L @ W (gamma_{h+2} |L| |W| |x|); each update of
+    the running bias adds gamma_4 |bias|."""
     B, d = lo.shape
     zc = 0.5 * (lo + hi)
     err = torch.zeros_like(bias)
-    ucols = torch.unique(qcol)
-    jq = (qcol[:, None] == ucols[None, :]).to(torch.long).argmax(-1)
     Lz = None
     for li in range(top - 1, -1, -1):
         lay = layers[li]
         h = lay.pre.lo.shape[-1]
-        g_h = gamma(2 * h + 8)
-        Lpre = La * lay.a_a
-        E = (La.abs() * lay.a_a + Lpre.abs()) * lay.pmag + (La * lay.m_a).abs() \
-            + La.abs() * lay.w_a
-        bterm = La * lay.m_a - La.abs() * lay.w_a
+        if La is not None:
+            Lpre = La * lay.a_a
+            bterm = La * lay.m_a - La.abs() * lay.w_a
+            E = La.abs() * lay.K_a
         if LQ is not None:
-            ss, st, mq, wq, tmag, _ = lay.mc(ucols)
-            ss, st = _gather(ss, jq), _gather(st, jq)
-            mq, wq, tmag = _gather(mq, jq), _gather(wq, jq), _gather(tmag, jq)
-            Ls = LQ * ss
+            st, SA, MQ, WQ, KQ = lay.col_consts(cols)
+            q_pre = LQ * SA
+            Lpre = q_pre if La is None else Lpre + q_pre
+            q_b = LQ * MQ - LQ.abs() * WQ
+            bterm = q_b if La is None else bterm + q_b
+            q_e = LQ.abs() * KQ
+            E = q_e if La is None else E + q_e
             Lt = LQ * st
-            bterm = bterm + LQ * mq - LQ.abs() * wq + Ls * lay.m_s - Ls.abs() * lay.w_s
-            c1 = Ls * lay.a_s
-            Lpre = Lpre + c1
-            E = E + Ls.abs() + Lt.abs() * tmag + (LQ * mq).abs() + LQ.abs() * wq \
-                + (Ls * lay.m_s).abs() + Ls.abs() * lay.w_s + (c1.abs() + Lpre.abs()) * lay.pmag
-        W, b = weights[li]  # pre_li = W x + b
-        E = E + Lpre.abs() * b.abs()
-        bias = bias + bterm.sum(-1) + Lpre @ b
-        err = err + g_h * E.sum(-1) + gamma(4) * bias.abs()
+        bias = bias + bterm.sum(-1) + Lpre @ lay.b
+        err = err + gamma(2 * h + 8) * E.sum(-1) + gamma(4) * bias.abs()
         if li > 0:
-            prev = layers[li - 1]
-            err = err + gamma(h + 2) * (Lpre.abs() * prev.Wa).sum(-1)
-            La = Lpre @ W
-            if LQ is not None:
-                WQ = _gather(prev.mc(ucols)[5], jq)
-                err = err + gamma(h + 2) * (Lt.abs() * WQ).sum(-1)
-                LQ = Lt @ W
+            La = Lpre @ lay.W
+            LQ = Lt @ lay.W if LQ is not None else None
         else:
-            zmag = torch.maximum(lo.abs(), hi.abs())  # [B, d]
-            Wz = (zmag @ W.abs().T).unsqueeze(1)  # [B, 1, h]
-            err = err + gamma(h + 2) * (Lpre.abs() * Wz).sum(-1)
-            Lz = Lpre @ W  # [B, Q, d]
+            Lz = Lpre @ lay.W  # [B, R, J, d]
             if LQ is not None:
-                tc = W[:, qcol].T  # [Q, h]: t_0^j = W_0[:, j]
-                bt = (Lt * tc).sum(-1)
-                err = err + gamma(h + 2) * (Lt * tc).abs().sum(-1)
-                bias = bias + bt
+                bias = bias + (Lt * lay.W[:, cols].T[None, None]).sum(-1)
                 err = err + gamma(4) * bias.abs()
-    cz = (Lz * zc.unsqueeze(1)).sum(-1)
-    err = err + gamma(d + 4) * ((Lz * zc.unsqueeze(1)).abs().sum(-1) + (cz + bias).abs())
+    zcq = zc[:, None, None, :]
+    cz = (Lz * zcq).sum(-1)
+    err = err + gamma(d + 4) * ((Lz * zcq).abs().sum(-1) + (cz + bias).abs())
     c = down(cz + bias - up(up(err * (1.0 + 8 * U)) + TINY * (4 * d + 64)))
     return Lz, c
 
@@ -219,20 +218,16 @@ def _backward(weights: list, layers: list[_Layer], top: int, La: torch.Tensor,
 def _concretize_lower(Lz: torch.Tensor, c: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
     """min over |dz| <= r of Lz . dz + c, rounded down."""
     d = Lz.shape[-1]
-    return down(c - up((Lz.abs() * r.unsqueeze(1)).sum(-1) * (1.0 + gamma(d + 2))))
+    rr = r.reshape(r.shape[0], *([1] * (Lz.ndim - 2)), d)
+    return down(c - up((Lz.abs() * rr).sum(-1) * (1.0 + gamma(d + 2))))
 
 
-def _queries(Wrows: torch.Tensor, cols: torch.Tensor, B: int
-             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Coefficients for q = (sign, i, j): [B, Q, h], signs [Q], columns [Q]."""
+def _queries(Wrows: torch.Tensor, J: int, B: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Coefficients [B, 2 out, J, h] for the queries (+-row i, column j) and the signs [2 out]."""
     out, h = Wrows.shape
-    J = len(cols)
-    sign = torch.tensor([1.0, -1.0], dtype=torch.float64)
-    qsign = sign[:, None, None].expand(2, out, J).reshape(-1)
-    qrow = torch.arange(out)[None, :, None].expand(2, out, J).reshape(-1)
-    qcol = cols[None, None, :].expand(2, out, J).reshape(-1)
-    L = (qsign[:, None] * Wrows[qrow]).expand(B, -1, h)
-    return L, qsign, qcol
+    sign = torch.cat([torch.ones(out, dtype=torch.float64), -torch.ones(out, dtype=torch.float64)])
+    L = (sign[:, None] * torch.cat([Wrows, Wrows]))[None, :, None, :].expand(B, 2 * out, J, h)
+    return L, sign
 
 
 def forward_bounds(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
@@ -246,6 +241,7 @@ def forward_bounds(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
     colt = torch.arange(d) if cols is None else torch.as_tensor(cols, dtype=torch.long)
     zc = 0.5 * (lo + hi)
     r = up(torch.maximum(hi - zc, zc - lo))
+    zmag = torch.maximum(lo.abs(), hi.abs())
     weights = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
     W0, b0 = weights[0]
     eye = torch.eye(d, dtype=torch.float64).expand(B, d, d)
@@ -260,7 +256,8 @@ def forward_bounds(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
     for L, (W, b) in enumerate(weights[1:], start=1):
         pres.append(pre_iv)
         tans.append(tan_iv)
-        layers.append(_Layer(pre_iv, tan_iv, W))
+        Win, bin_ = weights[L - 1]
+        layers.append(_Layer(pre_iv, tan_iv, Win, bin_, layers[-1] if layers else None, zmag))
         a, s = tm_tanh_and_dtanh(val, r)
         s_b = TM(s.c.unsqueeze(1), s.g.unsqueeze(1), s.e.unsqueeze(1))
         Tn = tm_mul(s_b, T, r)  # [B, d, h]
@@ -279,18 +276,18 @@ def forward_bounds(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
         tan_iv = Interval(tcur.lo.transpose(1, 2), tcur.hi.transpose(1, 2))
         if crown:
             m = W.shape[0]
-            # value queries on pre_L: +-W_L[i] a_{L-1} +- b_L[i]
-            La, qs, _ = _queries(W, torch.zeros(1, dtype=torch.long), B)
-            Lz, c = _backward(weights, layers, L, La.clone(), None,
-                              (qs * b.repeat(2)).expand(B, -1).clone(),
-                              torch.zeros(2 * m, dtype=torch.long), lo, hi)
-            low = _concretize_lower(Lz, c, r).reshape(B, 2, m)
+            # value queries on pre_L = +-(W_L[i] a_{L-1} + b_L[i])
+            La, sign = _queries(W, 1, B)
+            bias = (sign * torch.cat([b, b]))[None, :, None].expand(B, 2 * m, 1)
+            Lz, c = _backward(layers, L, La, None, bias, colt[:1], lo, hi)
+            low = _concretize_lower(Lz, c, r)[..., 0].reshape(B, 2, m)
             pre_iv = Interval(torch.maximum(pre_iv.lo, low[:, 0]),
                               torch.minimum(pre_iv.hi, -low[:, 1]))
-            # tangent queries on t_L^j = W_L Q_{L-1}^j
-            LQ, _, qcol = _queries(W, colt, B)
-            Lz, c = _backward(weights, layers, L, torch.zeros_like(LQ), LQ.clone(),
-                              torch.zeros(B, LQ.shape[1], dtype=torch.float64), qcol, lo, hi)
+            # tangent queries on t_L^j = +-W_L[i] Q_{L-1}^j
+            LQ, _ = _queries(W, len(colt), B)
+            Lz, c = _backward(layers, L, None, LQ, torch.zeros(B, 2 * m, len(colt),
+                                                                dtype=torch.float64),
+                              colt, lo, hi)
             low = _concretize_lower(Lz, c, r).reshape(B, 2, m, len(colt))
             tl, th = tan_iv.lo.clone(), tan_iv.hi.clone()
             tl[..., colt] = torch.maximum(tl[..., colt], low[:, 0])
@@ -306,15 +303,13 @@ def jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, cols: l
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     B, d = lo.shape
-    weights = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
-    layers = fb.layers
-    WH = weights[-1][0]
+    WH = net.weights()[-1][0].to(torch.float64)
     out = WH.shape[0]
     colt = torch.as_tensor(cols, dtype=torch.long)
-    LQ, _, qcol = _queries(WH, colt, B)
-    Lz, c = _backward(weights, layers, len(weights) - 1, torch.zeros_like(LQ), LQ.clone(),
-                      torch.zeros(B, LQ.shape[1], dtype=torch.float64), qcol, lo, hi)
     J = len(cols)
+    LQ, _ = _queries(WH, J, B)
+    Lz, c = _backward(fb.layers, len(fb.layers), None, LQ,
+                      torch.zeros(B, 2 * out, J, dtype=torch.float64), colt, lo, hi)
     Lz = Lz.reshape(B, 2, out, J, d)
     c = c.reshape(B, 2, out, J)
     return LinearEnclosure(gl=Lz[:, 0], cl=c[:, 0], gu=-Lz[:, 1], cu=-c[:, 1])
@@ -326,12 +321,12 @@ def value_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, fb: Forwar
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     B, d = lo.shape
-    weights = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
-    WH, bH = weights[-1]
+    WH, bH = (x.to(torch.float64) for x in net.weights()[-1])
     out = WH.shape[0]
-    La, qs, qcol = _queries(WH, torch.zeros(1, dtype=torch.long), B)
-    Lz, c = _backward(weights, fb.layers, len(weights) - 1, La.clone(), None,
-                      (qs * bH.repeat(2)).expand(B, -1).clone(), qcol, lo, hi)
+    La, sign = _queries(WH, 1, B)
+    bias = (sign * torch.cat([bH, bH]))[None, :, None].expand(B, 2 * out, 1)
+    Lz, c = _backward(fb.layers, len(fb.layers), La, None, bias, torch.zeros(1, dtype=torch.long),
+                      lo, hi)
     Lz = Lz.reshape(B, 2, out, d)
     c = c.reshape(B, 2, out)
     return LinearEnclosure(gl=Lz[:, 0], cl=c[:, 0], gu=-Lz[:, 1], cu=-c[:, 1])

@@ -275,7 +275,7 @@ def tm_congruence(pc: Preconditioner, J: TM, lam: float, r: torch.Tensor) -> TM:
     return A
 
 
-def tm_lam_upper(A: TM, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False):
     """max over the box of lam_max(A(z)) <= max_vertices lam_max(c + sum_m s_m r_m g_m)
     + rho(e + rounding) (convexity of lam_max in the affine part)."""
     B, n, _, d = A.g.shape
@@ -298,5 +298,7 @@ def tm_lam_upper(A: TM, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     # proportion to the radii (the remainder grows with every radius)
     share = r / r.sum(-1, keepdim=True).clamp_min(1e-300)
     score = torch.linalg.matrix_norm(rG) + rr.unsqueeze(-1) * share  # [B, d]
+    if parts:  # also the vertex (affine) part alone: a prediction of what tighter remainders
+        return bound, score, lv  # could reach
     return bound, score
 
