@@ -131,3 +131,24 @@ def test_mpdi_bound_with_crown_is_sound(seed: int, structure: str, scale: float,
     v = mpdi_lam_max(s, prob.network, prob.P_t, prob.lam, z[:, :2], z[:, 2:]).reshape(8, -1)
     vmax = v.amax(1)
     assert bool((torch.isnan(ub) | (vmax <= ub + 1e-12 * (1 + vmax.abs()))).all())
+
+
+@SETTINGS
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 6), rad=st.sampled_from([0.0, 1e-3, 0.3, 2.0]))
+def test_hertz_bound_is_sound_and_never_above_centre_plus_radius(seed: int, n: int,
+                                                                  rad: float) -> None:
+    from certify.bounds.eigen import hertz_upper, lam_max_upper_point, rho_upper
+
+    g = torch.Generator().manual_seed(seed)
+    C = torch.randn(16, n, n, generator=g, dtype=F64)
+    C = 0.5 * (C + C.transpose(1, 2))
+    R = rad * torch.rand(16, n, n, generator=g, dtype=F64)
+    R = 0.5 * (R + R.transpose(1, 2))
+    ub = hertz_upper(C, R)
+    T = (2 * torch.rand(16, 200, n, n, generator=g, dtype=F64) - 1) * R[:, None]
+    corner = torch.rand(16, 200, n, n, generator=g, dtype=F64) < 0.3
+    T = torch.where(corner, T.sign() * R[:, None], T)
+    S = C[:, None] + 0.5 * (T + T.transpose(-1, -2))
+    assert bool((torch.linalg.eigvalsh(S)[..., -1].amax(1) <= ub).all())
+    weyl = lam_max_upper_point(C) + rho_upper(R)
+    assert bool((ub <= weyl + 1e-9 * (1 + weyl.abs())).all())

@@ -58,7 +58,50 @@ def lam_max_upper_interval(A: Interval) -> torch.Tensor:
     r = up(torch.maximum(torch.maximum(A.hi - c, c - A.lo),
                          torch.maximum(A.hi - c, c - A.lo).transpose(-1, -2)))
     cr = up(lam_max_upper_point(c) + rho_upper(r))
-    return nan_min(cr, gershgorin_upper(A))
+    best = nan_min(cr, gershgorin_upper(A))
+    if n <= MAX_HERTZ_DIM:
+        best = nan_min(best, hertz_upper(c, r))
+    return best
+
+
+MAX_HERTZ_DIM = 6  # 2^(n-1) eigenproblems per matrix
+_SIGNS: dict[int, torch.Tensor] = {}
+
+
+def _sign_patterns(n: int) -> torch.Tensor:
+    """z in {+-1}^n with z_1 = 1: [2^(n-1), n]."""
+    if n not in _SIGNS:
+        idx = torch.arange(2 ** (n - 1))
+        bits = (idx[:, None] >> torch.arange(n - 1)[None, :]) & 1
+        z = torch.cat([torch.ones(len(idx), 1), 1.0 - 2.0 * bits], 1)
+        _SIGNS[n] = z.to(torch.float64)
+    return _SIGNS[n]
+
+
+def hertz_upper(C: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """Upper bound of lam_max(S) over all symmetric S with |S - C| <= R (entrywise) [..., n, n].
+
+    For a unit x with sign pattern z: x^T S x <= x^T C x + |x|^T R |x|
+    = x^T (C + D_z R D_z) x <= lam_max(C + D_z R D_z), and z, -z give the same matrix, so the
+    maximum over the 2^(n-1) patterns with z_1 = 1 bounds the whole family (Hertz 1992: it is
+    attained). C symmetric, R symmetric and >= 0. Rounding: n = 2 closed form rounded outward;
+    otherwise the float sums C + z_i z_j R_ij err by at most u |C| + R entrywise, covered by
+    adding 2u ||(|C| + R)||_F (Weyl), then `lam_max_upper_point`'s own margin.
+    """
+    n = C.shape[-1]
+    if n == 1:
+        return up(C[..., 0, 0] + R[..., 0, 0])
+    if n == 2:
+        return _lam2_upper(up(C[..., 0, 0] + R[..., 0, 0]),
+                           up(torch.maximum(C[..., 0, 1].abs(), C[..., 1, 0].abs())
+                              + torch.maximum(R[..., 0, 1], R[..., 1, 0])),
+                           up(C[..., 1, 1] + R[..., 1, 1]))
+    Z = _sign_patterns(n)  # [V, n]
+    zz = Z[:, :, None] * Z[:, None, :]  # [V, n, n]
+    M = C.unsqueeze(-3) + zz * R.unsqueeze(-3)  # [..., V, n, n]
+    lm = lam_max_upper_point(M).amax(-1)
+    margin = up(2.0 * U * torch.linalg.matrix_norm(C.abs() + R) * (1.0 + 4 * U) + TINY)
+    return up(lm + margin)
 
 
 def gershgorin_upper(A: Interval) -> torch.Tensor:

@@ -12,7 +12,13 @@ from dataclasses import dataclass
 
 import torch
 
-from certify.bounds.eigen import MAX_VERTEX_DIM, _vertices, lam_max_upper_point, rho_upper
+from certify.bounds.eigen import (
+    MAX_VERTEX_DIM,
+    _vertices,
+    hertz_upper,
+    lam_max_upper_point,
+    rho_upper,
+)
 from certify.bounds.interval_ops import const_lam
 from certify.bounds.preconditioner import Preconditioner
 from certify.intervals import (
@@ -277,7 +283,9 @@ def tm_congruence(pc: Preconditioner, J: TM, lam: float, r: torch.Tensor) -> TM:
 
 def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False):
     """max over the box of lam_max(A(z)) <= max_vertices lam_max(c + sum_m s_m r_m g_m)
-    + rho(e + rounding) (convexity of lam_max in the affine part)."""
+    + rho(e + rounding) (convexity of lam_max in the affine part); for n <= 3 the smaller
+    max_vertices hertz_upper(vertex matrix, e + rounding) (the remainder entrywise, not by its
+    spectral radius)."""
     B, n, _, d = A.g.shape
     rG = (A.g * r[:, None, None, :]).permute(0, 3, 1, 2)  # [B, d, n, n]
     gk = gamma(d + 5)
@@ -290,10 +298,15 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False):
         S = 0.5 * (S + S.transpose(-1, -2))
         lv = lam_max_upper_point(S).amax(-1)
     else:
+        S = None
         rem = up(rem + rG.abs().sum(1) * (1.0 + gk))
         lv = lam_max_upper_point(A.c)
     rr = rho_upper(rem)
     bound = up(lv + rr)
+    if S is not None and n <= 3:
+        hz = hertz_upper(S, rem.unsqueeze(1).expand_as(S)).amax(-1)
+        bound = torch.where(torch.isnan(bound) | torch.isnan(hz), bound + hz,
+                            torch.minimum(bound, hz))
     # split score: first-order variation per dimension plus the remainder shared out in
     # proportion to the radii (the remainder grows with every radius)
     share = r / r.sum(-1, keepdim=True).clamp_min(1e-300)
