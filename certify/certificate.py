@@ -111,7 +111,7 @@ def decide_verdict(checks: dict[str, Any], required: list[str],
     Any required VIOLATED -> NOT CERTIFIED (a counterexample stands on its own); else any
     required ERROR (the check failed internally: nothing was established either way) ->
     INCONCLUSIVE, whatever `allow_unknown` says; else any required UNKNOWN (or SKIPPED, not
-    run, not applicable) -> INCONCLUSIVE unless `allow_unknown`; else CERTIFIED. Checks
+    run, NOT APPLICABLE) -> INCONCLUSIVE unless `allow_unknown`; else CERTIFIED. Checks
     that are not required never change the verdict; one in ERROR is named in the summary.
     """
     def status(n: str) -> Status | None:
@@ -119,7 +119,8 @@ def decide_verdict(checks: dict[str, Any], required: list[str],
 
     violated = [n for n in required if status(n) == Status.VIOLATED]
     errors = [n for n in required if status(n) == Status.ERROR]
-    unknown = [n for n in required if status(n) in (None, Status.UNKNOWN, Status.SKIPPED)]
+    unknown = [n for n in required if status(n) in (None, Status.UNKNOWN, Status.SKIPPED,
+                                                    Status.NOT_APPLICABLE)]
     other_errors = [n for n in checks if n not in required and status(n) == Status.ERROR]
     aside = (f"; not required, ended in ERROR: {', '.join(other_errors)}"
              if other_errors else "")

@@ -169,7 +169,7 @@ def unreadable_reason(path: Path) -> str | None:
     if head.startswith(_ZIP_MAGIC):
         try:
             archive = zipfile.ZipFile(path)
-        except (zipfile.BadZipFile, OSError):
+        except (zipfile.BadZipFile, OSError, ValueError):  # ValueError: undecodable names
             return (f"truncated or damaged file: the ZIP archive that torch.save writes has no "
                     f"end record ({size} bytes; was a download or copy cut short?)")
         with archive:
@@ -254,8 +254,6 @@ def load(path: str | Path) -> Checkpoint:
         raise CheckpointError(str(exc)) from None
     arch = data["architecture"]
     try:
-        if arch.get("activation", "tanh") != "tanh":
-            raise ValueError(f"activation {arch.get('activation')!r} is not supported")
         if (arch["n"], arch["p"]) != (system.n, system.p):
             raise ValueError(f"network is for n={arch['n']}, p={arch['p']} but the system has "
                              f"n={system.n}, p={system.p}")

@@ -29,6 +29,8 @@ examples:
   certify run vdp.ckpt --html r.html --junit r.xml  verify, write reports
   certify run vdp.ckpt --json - --quiet | jq .verdict
   certify run vdp.ckpt --require mpdi,rate --skip simulation
+  certify run model.onnx --system spec.toml         verify a model trained elsewhere
+  certify import model.onnx --system spec.toml -o model.ckpt
   certify report r.json --pdf r.pdf                 re-render without verifying
   eval "$(certify completion bash)"                 tab completion (bash, zsh, fish)
 
@@ -68,6 +70,18 @@ def _report_flags(p: argparse.ArgumentParser, json_help: str) -> None:
     p.add_argument("--json", metavar="PATH", help=json_help)
     p.add_argument("--junit", metavar="PATH",
                    help="write JUnit XML (VIOLATED is a <failure>, ERROR an <error>)")
+
+
+def _model_flags(p: argparse.ArgumentParser, system_help: str) -> None:
+    """The flags that turn a model from elsewhere (ONNX, TorchScript, state_dict) into a
+    verification problem (`certify import`, `certify run MODEL --system SPEC`)."""
+    p.add_argument("--system", metavar="SPEC", help=system_help)
+    p.add_argument("--lam", type=float, help="contraction rate (default: the spec's)")
+    p.add_argument("--metric", help="metric P as [[a,b],[b,c]] (default: the spec's)")
+    p.add_argument("--activation", metavar="NAME",
+                   help="the activation of a state_dict (it carries none), e.g. tanh")
+    p.add_argument("--structure", choices=("direct", "structural"),
+                   help="gain structure when the output width does not decide it (p = 1)")
 
 
 def build_parser(with_train: bool = True) -> argparse.ArgumentParser:
@@ -112,7 +126,9 @@ def build_parser(with_train: bool = True) -> argparse.ArgumentParser:
     p = sub.add_parser("run", parents=[common], formatter_class=formatter,
                        help="verify a checkpoint and write the certificate",
                        epilog=f"checks: {names}.\n{EXIT_CODES_TEXT}.")
-    p.add_argument("checkpoint", help="a checkpoint written by 'certify train' (.ckpt)")
+    p.add_argument("checkpoint", help="a checkpoint written by 'certify train' (.ckpt), or "
+                   "a model from elsewhere (.onnx, TorchScript, state_dict) with --system")
+    _model_flags(p, "the system a model from elsewhere observes (built-in name or spec path)")
     _report_flags(p, "write the JSON certificate ('-': stdout, the rest goes to stderr)")
     p.add_argument("--grid-points", type=int, help="dense grid size over X x Y (default 1e6)")
     p.add_argument("--proof-seconds", type=float, help="prover time budget (default 60)")
@@ -127,10 +143,25 @@ def build_parser(with_train: bool = True) -> argparse.ArgumentParser:
                    help=f"comma-separated checks not to run; from: {names}")
     p.add_argument("--allow-unknown", action="store_true",
                    help="an UNKNOWN required check does not fail the gate (ERROR still does)")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="run the grid and the proofs on a local Dask cluster of N processes "
+                        "(default 1: in this process)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run them on a running Dask cluster, e.g. tcp://host:8786 "
+                        "(dask-jobqueue on SLURM/PBS, Kubernetes)")
+    p.add_argument("--device", metavar="DEVICE",
+                   help="torch device of the grid, falsifier and prover: cpu (default) or cuda")
     p.add_argument("--config", metavar="PATH", help="read [tool.certify] from this file")
     p.add_argument("--no-config", action="store_true", help="ignore pyproject.toml")
     p.add_argument("--quiet", "-q", action="store_true", help="only the verdict line")
     p.set_defaults(func=_dispatch("run"))
+
+    p = sub.add_parser("import", parents=[common],
+                       help="turn an ONNX, TorchScript or state_dict model into a checkpoint")
+    p.add_argument("model", help="model.onnx, a TorchScript file, or a state_dict (.pt)")
+    _model_flags(p, "the system the model observes (built-in name or spec path; required)")
+    p.add_argument("-o", "--output", required=True, metavar="PATH", help="checkpoint to write")
+    p.set_defaults(func=_dispatch("import"))
 
     p = sub.add_parser("report", parents=[common],
                        help="re-render reports from a saved JSON certificate")

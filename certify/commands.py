@@ -166,6 +166,19 @@ def cmd_train(args: argparse.Namespace) -> int:
     return run_train(args)
 
 
+# ----- import -----------------------------------------------------------------------------
+def cmd_import(args: argparse.Namespace) -> int:
+    """A model trained elsewhere (ONNX, TorchScript, state_dict) -> a normal checkpoint."""
+    if args.system is None:
+        raise CertifyError("certify import needs --system SPEC (the system the model observes)")
+    check_output_path(args.output, "-o")
+    if os.path.realpath(args.output) == os.path.realpath(args.model):
+        raise CertifyError(f"-o {args.output}: is the model itself; name a new checkpoint")
+    from certify.importers.command import run_import
+
+    return run_import(args)
+
+
 # ----- run, report ------------------------------------------------------------------------
 def _flag_settings(args: argparse.Namespace) -> dict[str, Any]:
     def csv(value: str | None) -> tuple[str, ...] | None:
@@ -177,6 +190,8 @@ def _flag_settings(args: argparse.Namespace) -> dict[str, Any]:
         "required": csv(args.require), "skip": csv(args.skip),
         "allow_unknown": True if args.allow_unknown else None, "sim_time": args.sim_time,
         "adversarial_starts": args.adversarial_starts,
+        "workers": getattr(args, "workers", None), "scheduler": getattr(args, "scheduler", None),
+        "device": getattr(args, "device", None),
     }
 
 
@@ -189,23 +204,33 @@ def cmd_run(args: argparse.Namespace) -> int:
     settings, config_path = load_settings(
         _flag_settings(args), Path(args.config) if args.config else None,
         use_pyproject=not args.no_config)
-    from certify import checkpoint as ckpt_mod
     from certify.certificate import exit_code
+    from certify.device import resolve_device
+    from certify.executor import executor_from_settings
+    from certify.importers.command import checkpoint_for_run
     from certify.verify import verify
 
-    ckpt = ckpt_mod.load(args.checkpoint)
-    if not args.quiet:
-        print(f"certify run {args.checkpoint}: system {ckpt.problem.system.name}, lam="
-              f"{ckpt.problem.lam:g}, sha256 {ckpt.sha256[:12]}"
-              + (f", policy from {config_path}" if config_path else ""), file=sys.stderr)
-    display = ProgressDisplay(quiet=args.quiet, budgets=budgets_from(settings))
-    args.display = display  # the error handler names the step that was running
+    resolve_device(settings.device)  # bad device or scheduler: exit 2 before any work
+    ckpt = checkpoint_for_run(args)
+    executor = executor_from_settings(settings)
     try:
-        wants_figures = any(getattr(args, k) for k in ("html", "pdf", "json"))
-        cert = verify(ckpt, settings, progress=display, figures=wants_figures)
-        write_outputs(cert, args, display)
+        if not args.quiet:
+            print(f"certify run {args.checkpoint}: system {ckpt.problem.system.name}, lam="
+                  f"{ckpt.problem.lam:g}, sha256 {ckpt.sha256[:12]}"
+                  + (f", policy from {config_path}" if config_path else "")
+                  + (f", on {executor.description}" if executor.workers > 1 else ""),
+                  file=sys.stderr)
+        display = ProgressDisplay(quiet=args.quiet, budgets=budgets_from(settings))
+        args.display = display  # the error handler names the step that was running
+        try:
+            wants_figures = any(getattr(args, k) for k in ("html", "pdf", "json"))
+            cert = verify(ckpt, settings, progress=display, figures=wants_figures,
+                          executor=executor)
+            write_outputs(cert, args, display)
+        finally:
+            display.close()
     finally:
-        display.close()
+        executor.close()
     _summary(cert, args)
     return exit_code(cert)
 
@@ -249,48 +274,20 @@ def write_outputs(cert: Any, args: argparse.Namespace, display: Any) -> None:
 
 
 def _summary(cert: Any, args: argparse.Namespace) -> None:
+    from reports.content import verdict_line
+
     out = human_stream(args)
     if args.quiet:
-        print(f"{cert.verdict}: {cert.summary}", file=out)
+        print(verdict_line(cert), file=out)
     else:
         print_summary(cert, out)
 
 
 def print_summary(cert: Any, out: TextIO | None = None) -> None:
-    """The short table of every check (from the reports' content) and the verdict line."""
-    from reports.content import check_rows
+    """The short table of every check, the table of simulation runs and the verdict line."""
+    from certify.display import print_summary as show
 
-    out = out or sys.stdout
-    rows = check_rows(cert)
-    if getattr(out, "isatty", lambda: False)():
-        from rich.console import Console
-        from rich.table import Table
-
-        table = Table(title=f"certify: {cert.system.get('name', '')} (lam={cert.lam:g})")
-        for col in ("check", "status", "sampled", "proved", "required"):
-            table.add_column(col)
-        colours = {"PROVED": "green", "PASSED": "green", "VIOLATED": "red",
-                   "UNKNOWN": "yellow", "ERROR": "red"}
-        for r in rows:
-            table.add_row(r.title, f"[{colours.get(r.status, 'white')}]{r.status}[/]",
-                          r.sampled.value, r.proved.value, "yes" if r.required else "")
-        console = Console(file=out)
-        console.print(table)
-        for r in rows:
-            console.print(f"  {r.name}: {r.message}", highlight=False, markup=False)
-        colour = {"CERTIFIED": "green", "NOT CERTIFIED": "red"}.get(cert.verdict, "yellow")
-        console.print(f"[bold {colour}]{cert.verdict}[/]: ", end="", highlight=False)
-        console.print(cert.summary, highlight=False, markup=False)
-        return
-    table = [("check", "status", "sampled", "proved", "req")]
-    table += [(r.title, r.status, r.sampled.value, r.proved.value, "yes" if r.required else "")
-              for r in rows]
-    widths = [max(len(line[i]) for line in table) for i in range(5)]
-    for line in table:
-        print("  ".join(f"{cell:<{w}}" for cell, w in zip(line, widths)).rstrip(), file=out)
-    for r in rows:
-        print(f"  {r.name}: {r.message}", file=out)
-    print(f"{cert.verdict}: {cert.summary}", file=out)
+    show(cert, out or sys.stdout)
 
 
 # ----- completion -------------------------------------------------------------------------

@@ -1,4 +1,7 @@
-"""What the command line shows while it works: one line per finished step, live progress.
+"""What the command line shows: live progress while it works, then the summary.
+
+`print_summary`: the table of checks, each check's one-line message, the table of
+simulation runs and the verdict line (with its notes, e.g. a vacuous bound).
 
 On a terminal: `rich.progress` bars, one row per running step and one per task inside it
 (a grid sweep counts points; a proof shows its closed volume against its budget of seconds
@@ -193,3 +196,80 @@ class ProgressDisplay:
                 quiet_for = time.monotonic() - self._last_output
                 if self.current_step is not None and quiet_for >= self.heartbeat:
                     self._line("  " + self._status_line())
+
+
+# ----- the summary after a run -----------------------------------------------------------
+def _plain_table(header: list[str], rows: list[list[str]], out: TextIO,
+                 indent: str = "") -> None:
+    table = [header, *rows]
+    widths = [max(len(line[i]) for line in table) for i in range(len(header))]
+    for line in table:
+        text = "  ".join(f"{cell:<{w}}" for cell, w in zip(line, widths)).rstrip()
+        print(indent + text, file=out)
+
+
+def run_table(cert: Any) -> tuple[list[str], list[list[str]]]:
+    """The simulation runs, compact for a terminal: run, window, what ended it, e/b, breach."""
+    from reports.content import fmt, result
+    from reports.sections import exit_words
+
+    r = result(cert, "simulation")
+    if r is None or not r.runs:
+        return [], []
+    rows = []
+    for run in r.runs:
+        label = run.label if run.within_conditions else f"{run.label.split(' (')[0]}*"
+        window = run.window if run.window is not None else run.exit_time
+        rows.append([label, fmt(window, 3) + ("" if run.exit_time is not None else " (all)"),
+                     exit_words(run), fmt(run.max_ratio, 3), "BREACH" if run.breach else ""])
+    return ["run", "valid window (s)", "what ended it", "max e/b", "breach"], rows
+
+
+def print_summary(cert: Any, out: TextIO) -> None:
+    """The checks table, messages, simulation runs and verdict line (rich on a terminal)."""
+    from reports.content import check_rows, verdict_line, verdict_summary
+
+    rows = check_rows(cert)
+    header, runs = run_table(cert)
+    outside = any(r[0].endswith("*") for r in runs)
+    if getattr(out, "isatty", lambda: False)():
+        from rich.console import Console
+        from rich.table import Table
+
+        table = Table(title=f"certify: {cert.system.get('name', '')} (lam={cert.lam:g})")
+        for col in ("check", "status", "sampled", "proved", "required"):
+            table.add_column(col)
+        colours = {"PROVED": "green", "PASSED": "green", "VIOLATED": "red",
+                   "UNKNOWN": "yellow", "ERROR": "red"}
+        for r in rows:
+            table.add_row(r.title, f"[{colours.get(r.status, 'white')}]{r.status}[/]",
+                          r.sampled.value, r.proved.value, "yes" if r.required else "")
+        console = Console(file=out)
+        console.print(table)
+        for r in rows:
+            console.print(f"  {r.name}: {r.message}", highlight=False, markup=False)
+        if runs:
+            sims = Table(title="simulation runs", title_justify="left")
+            for col in header:
+                sims.add_column(col)
+            for row in runs:
+                sims.add_row(*row)
+            console.print(sims)
+            if outside:
+                console.print("  * outside the theorem's conditions (Gaussian noise)",
+                              highlight=False, markup=False)
+        colour = {"CERTIFIED": "green", "NOT CERTIFIED": "red"}.get(cert.verdict, "yellow")
+        console.print(f"[bold {colour}]{cert.verdict}[/]: ", end="", highlight=False)
+        console.print(verdict_summary(cert), highlight=False, markup=False)
+        return
+    _plain_table(["check", "status", "sampled", "proved", "req"],
+                 [[r.title, r.status, r.sampled.value, r.proved.value,
+                   "yes" if r.required else ""] for r in rows], out)
+    for r in rows:
+        print(f"  {r.name}: {r.message}", file=out)
+    if runs:
+        print("  simulation runs:", file=out)
+        _plain_table(header, runs, out, indent="    ")
+        if outside:
+            print("    * outside the theorem's conditions (Gaussian noise)", file=out)
+    print(verdict_line(cert), file=out)

@@ -1,15 +1,14 @@
-"""Whitelist expression parser: text -> sympy, without `eval`.
+"""The function table and the evaluation of spec expression trees (torch, intervals).
 
-Only numbers, declared names, `+ - * / **`, unary minus/plus and the functions of
-`FUNCTIONS` are accepted; anything else is refused with a message naming the offending
-piece. The same table drives point evaluation (torch) and interval enclosures
-(`certify.intervals`), so whatever parses can also be evaluated and enclosed.
+Parsing lives in `certify.parse` (re-exported here as `parse_expression`): only numbers,
+declared names, `+ - * / **`, unary minus/plus and the functions of `FUNCTIONS` are
+accepted. The same table drives point evaluation (torch) and interval enclosures
+(`certify.intervals`), so whatever parses can also be evaluated and enclosed;
+`certify.domain` checks that it is defined and smooth on the box.
 """
 
 from __future__ import annotations
 
-import ast
-import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol
 
@@ -17,6 +16,10 @@ import sympy
 import torch
 
 from certify.errors import SpecError
+from certify.parse import FUNCTION_NAMES, parse_expression
+
+__all__ = ["FUNCTIONS", "DERIVED_FUNCTIONS", "parse_expression", "evaluate",
+           "compile_torch", "function_name", "TORCH"]
 
 #: Whitelisted functions: name -> (sympy function, torch point function).
 FUNCTIONS: dict[str, tuple[Any, Callable[[torch.Tensor], torch.Tensor]]] = {
@@ -30,6 +33,8 @@ FUNCTIONS: dict[str, tuple[Any, Callable[[torch.Tensor], torch.Tensor]]] = {
     "abs": (sympy.Abs, torch.abs),
 }
 
+assert set(FUNCTIONS) == set(FUNCTION_NAMES), "the parser and the evaluator list the same functions"
+
 #: Functions that only appear in derivatives of whitelisted ones (never parsed from text).
 DERIVED_FUNCTIONS: dict[str, tuple[Any, Callable[[torch.Tensor], torch.Tensor]]] = {
     "sign": (sympy.sign, torch.sign),  # d/dx abs(x)
@@ -42,95 +47,6 @@ _SYMPY_TO_NAME = {
     sympy.sin: "sin", sympy.cos: "cos", sympy.tan: "tan", sympy.exp: "exp",
     sympy.log: "log", sympy.tanh: "tanh", sympy.Abs: "abs", sympy.sign: "sign",
 }
-
-
-def _describe(node: ast.AST) -> str:
-    try:
-        return f"'{ast.unparse(node)}'"
-    except Exception:  # pragma: no cover - unparse handles every parsed node
-        return type(node).__name__
-
-
-def parse_expression(text: str, names: Mapping[str, sympy.Symbol], where: str = "") -> sympy.Expr:
-    """Parse `text` into a sympy expression over the declared `names`.
-
-    Raises `SpecError` naming the offending construct (prefixed by `where`, e.g.
-    ``"spec vdp.toml: f[1]"``) for anything outside the whitelist.
-    """
-    prefix = f"{where}: " if where else ""
-    if not isinstance(text, str):
-        raise SpecError(f"{prefix}expression must be a string; got {type(text).__name__}")
-    if not text.strip():
-        raise SpecError(f"{prefix}expression is empty")
-    try:
-        tree = ast.parse(text.strip(), mode="eval")
-    except SyntaxError as exc:
-        raise SpecError(f"{prefix}cannot parse {text!r}: {exc.msg}") from None
-
-    def build(node: ast.AST) -> sympy.Expr:
-        if isinstance(node, ast.Expression):
-            return build(node.body)
-        if isinstance(node, ast.Constant):
-            value = node.value
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise SpecError(f"{prefix}constant {_describe(node)} is not a real number")
-            if isinstance(value, float) and not math.isfinite(value):
-                raise SpecError(f"{prefix}constant {_describe(node)} is not finite")
-            return sympy.Integer(value) if isinstance(value, int) else sympy.Float(repr(value))
-        if isinstance(node, ast.Name):
-            if node.id in names:
-                return names[node.id]
-            if node.id in CONSTANTS:
-                return CONSTANTS[node.id]
-            raise SpecError(f"{prefix}uses unknown name '{node.id}'")
-        if isinstance(node, ast.UnaryOp):
-            operand = build(node.operand)
-            if isinstance(node.op, ast.USub):
-                return -operand
-            if isinstance(node.op, ast.UAdd):
-                return operand
-            raise SpecError(f"{prefix}operator in {_describe(node)} is not allowed")
-        if isinstance(node, ast.BinOp):
-            left, right = build(node.left), build(node.right)
-            op = node.op
-            if isinstance(op, ast.Add):
-                return left + right
-            if isinstance(op, ast.Sub):
-                return left - right
-            if isinstance(op, ast.Mult):
-                return left * right
-            if isinstance(op, ast.Div):
-                return left / right
-            if isinstance(op, ast.Pow):
-                return left**right
-            raise SpecError(f"{prefix}operator in {_describe(node)} is not allowed "
-                            "(use + - * / **)")
-        if isinstance(node, ast.Call):
-            if not isinstance(node.func, ast.Name):
-                raise SpecError(f"{prefix}call {_describe(node)} is not allowed "
-                                f"(allowed functions: {', '.join(sorted(FUNCTIONS))})")
-            fname = node.func.id
-            if fname not in FUNCTIONS:
-                raise SpecError(f"{prefix}unknown function '{fname}' in {_describe(node)} "
-                                f"(allowed: {', '.join(sorted(FUNCTIONS))})")
-            if node.keywords or len(node.args) != 1:
-                raise SpecError(f"{prefix}function '{fname}' takes exactly one argument "
-                                f"in {_describe(node)}")
-            return FUNCTIONS[fname][0](build(node.args[0]))
-        kinds = {
-            ast.Attribute: "attribute access", ast.Subscript: "subscript",
-            ast.Lambda: "lambda", ast.Compare: "comparison", ast.BoolOp: "boolean operator",
-            ast.IfExp: "conditional", ast.List: "list", ast.Tuple: "tuple", ast.Dict: "dict",
-            ast.JoinedStr: "string", ast.NamedExpr: "assignment",
-        }
-        kind = next((v for k, v in kinds.items() if isinstance(node, k)), type(node).__name__)
-        raise SpecError(f"{prefix}{kind} {_describe(node)} is not allowed")
-
-    expr = build(tree)
-    bad = expr.atoms(sympy.I, sympy.zoo, sympy.nan, sympy.oo)
-    if bad:
-        raise SpecError(f"{prefix}{text!r} simplifies to a non-real value")
-    return expr
 
 
 class Algebra(Protocol):

@@ -7,9 +7,11 @@ bound on the supremum (never a proof of anything about the whole box).
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -55,7 +57,7 @@ def grid_shape(lo: np.ndarray, hi: np.ndarray, min_points: int) -> list[int]:
 def grid_chunk(lo: torch.Tensor, hi: torch.Tensor, shape: list[int], start: int,
                stop: int) -> torch.Tensor:
     """Points start..stop-1 of the tensor-product grid (row-major), shape [stop-start, d]."""
-    idx = torch.arange(start, stop, dtype=torch.int64)
+    idx = torch.arange(start, stop, dtype=torch.int64, device=lo.device)
     cols = []
     for j in reversed(range(len(shape))):
         m = shape[j]
@@ -70,8 +72,9 @@ def screen_tolerance(fn: ScoreFn, screen: ScoreFn, lo: torch.Tensor, hi: torch.T
                      ) -> tuple[float, float]:
     """The re-check band: 8x the largest |screen - fn| seen on random points (plus a floor);
     and the fraction of those points that would fall in the band or above the threshold."""
-    gen = torch.Generator().manual_seed(seed + 7919)
-    pts = lo + (hi - lo) * torch.rand(samples, len(lo), generator=gen, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(seed + 7919)  # on the CPU: the same on every device
+    pts = lo + (hi - lo) * torch.rand(samples, len(lo), generator=gen,
+                                      dtype=torch.float64).to(lo.device)
     exact = fn(pts)
     approx = screen(pts).to(torch.float64)
     ok = torch.isfinite(exact) & torch.isfinite(approx)
@@ -99,11 +102,57 @@ def _distinct_top(points: torch.Tensor, values: torch.Tensor, lo: torch.Tensor, 
     return pts[keep], vals[keep]
 
 
+def sweep_range(fn: ScoreFn, screen: ScoreFn | None, lo: torch.Tensor, hi: torch.Tensor,
+                shape: list[int], start: int, stop: int, threshold: float, tol: float,
+                keep: int) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+    """Grid points start..stop-1: their top `keep` candidates (points, float64 values), the
+    count above `threshold` and the non-finite count (see `maximize_over_box`)."""
+    pts = grid_chunk(lo, hi, shape, start, stop)
+    with torch.no_grad():
+        if screen is None:
+            vals = fn(pts)
+            bad = ~torch.isfinite(vals)
+            vals = torch.where(bad, torch.full_like(vals, math.inf), vals)
+            n_above, n_bad = int((vals > threshold).sum()), int(bad.sum())
+            tv, ti = torch.topk(vals, min(keep, len(vals)))
+        else:
+            approx = screen(pts).to(torch.float64)
+            approx = torch.where(torch.isfinite(approx), approx,
+                                 torch.full_like(approx, math.inf))
+            near = approx > threshold - tol
+            n_above = n_bad = 0
+            if bool(near.any()):
+                exact = fn(pts[near])
+                bad = ~torch.isfinite(exact)
+                n_bad = int(bad.sum())
+                n_above = int((exact > threshold).sum()) + n_bad
+            _, ti = torch.topk(approx, min(keep, len(approx)))
+            tv = fn(pts[ti])
+            tv = torch.where(torch.isfinite(tv), tv, torch.full_like(tv, math.inf))
+    return pts[ti], tv, n_above, n_bad
+
+
+def _remote_sweep(remote: tuple[Any, Callable[..., Any], dict[str, Any]], grid: dict[str, Any],
+                  total: int, tol: float, use_screen: bool, progress: Progress,
+                  task: str) -> list[tuple]:
+    """The grid's chunks on `remote`'s executor, a few tasks per worker, flattened in order."""
+    from certify.executor import chunk_ranges
+
+    executor, chunk_fn, payload = remote
+    ranges = chunk_ranges(total, 4 * executor.workers, align=grid["chunk"])
+    parts = executor.map_chunks(chunk_fn, {**payload, "grid": grid},
+                                [(a, b, tol, use_screen) for a, b in ranges])
+    progress.update(task, advance=total)
+    return [r for part in parts for r in part]
+
+
 def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_points: int,
                       starts: int = 32, steps: int = 100, top_k: int = 5, seed: int = 0,
                       threshold: float = 0.0, chunk: int = 8192,
                       screen: ScoreFn | None = None,
-                      progress: Progress | None = None, task: str = "search") -> SearchOutcome:
+                      progress: Progress | None = None, task: str = "search",
+                      remote: tuple[Any, Callable[..., Any], Any] | None = None,
+                      device: torch.device | str | None = None) -> SearchOutcome:
     """Largest value of `fn` over the box [lo, hi]: grid, then projected gradient ascent.
 
     Ascent starts from the best distinct grid points and from seeded random points; steps are
@@ -113,15 +162,26 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
     grid: its error is measured on a calibration sample, every grid point within 8x that error
     of `threshold` (and every top candidate) is re-evaluated with `fn` in float64, so the
     returned values and the count above `threshold` are float64 results, as without it.
+
+    `remote = (executor, chunk_fn, payload)`, with an executor of more than one worker, sweeps
+    the grid there instead of on local threads: `chunk_fn(payload, start, stop, tol,
+    use_screen)` (payload with the grid added under "grid") must return `sweep_range`'s
+    results for [start, stop) in `chunk`-sized pieces (e.g. `certify.remote.mpdi_grid_chunk`);
+    the merge is the same, in grid order, so the outcome is identical.
+
+    `device`: where the points live (`fn` must accept them there, e.g. a GridKernel of a
+    problem moved with `Problem.on`); random numbers are drawn on the CPU and moved, so the
+    points are the same on every device. Returned arrays are on the CPU.
     """
     progress = progress or NullProgress()
-    lo_t = torch.as_tensor(lo, dtype=torch.float64)
-    hi_t = torch.as_tensor(hi, dtype=torch.float64)
+    device = torch.device("cpu" if device is None else device)
+    lo_t = torch.as_tensor(np.asarray(lo, np.float64), dtype=torch.float64, device=device)
+    hi_t = torch.as_tensor(np.asarray(hi, np.float64), dtype=torch.float64, device=device)
     shape = grid_shape(np.asarray(lo, float), np.asarray(hi, float), grid_points)
     total = int(np.prod(shape))
     keep = max(4 * starts, 4 * top_k, 16)
-    cand_pts = torch.empty(0, len(shape), dtype=torch.float64)
-    cand_vals = torch.empty(0, dtype=torch.float64)
+    cand_pts = torch.empty(0, len(shape), dtype=torch.float64, device=device)
+    cand_vals = torch.empty(0, dtype=torch.float64, device=device)
     above = 0
     nonfinite = 0
     progress.start(task, total=total)
@@ -133,38 +193,25 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
                 screen = None
 
         def sweep(start: int) -> tuple[torch.Tensor, torch.Tensor, int, int]:
-            """Top candidates, count above threshold and non-finite count of one chunk."""
-            pts = grid_chunk(lo_t, hi_t, shape, start, min(total, start + chunk))
-            with torch.no_grad():
-                if screen is None:
-                    vals = fn(pts)
-                    bad = ~torch.isfinite(vals)
-                    vals = torch.where(bad, torch.full_like(vals, math.inf), vals)
-                    n_above, n_bad = int((vals > threshold).sum()), int(bad.sum())
-                    tv, ti = torch.topk(vals, min(keep, len(vals)))
-                else:
-                    approx = screen(pts).to(torch.float64)
-                    approx = torch.where(torch.isfinite(approx), approx,
-                                         torch.full_like(approx, math.inf))
-                    near = approx > threshold - tol
-                    n_above = n_bad = 0
-                    if bool(near.any()):
-                        exact = fn(pts[near])
-                        bad = ~torch.isfinite(exact)
-                        n_bad = int(bad.sum())
-                        n_above = int((exact > threshold).sum()) + n_bad
-                    _, ti = torch.topk(approx, min(keep, len(approx)))
-                    tv = fn(pts[ti])
-                    tv = torch.where(torch.isfinite(tv), tv, torch.full_like(tv, math.inf))
-            progress.update(task, advance=len(pts))
-            return pts[ti], tv, n_above, n_bad
+            out = sweep_range(fn, screen, lo_t, hi_t, shape, start, min(total, start + chunk),
+                              threshold, tol, keep)
+            progress.update(task, advance=min(total, start + chunk) - start)
+            return out
 
-        with parallel_chunks() as pool:
-            for pts, tv, n_above, n_bad in pool.map(sweep, range(0, total, chunk)):
+        with contextlib.ExitStack() as stack:
+            if remote is not None and getattr(remote[0], "workers", 1) > 1:
+                grid = {"lo": lo_t.cpu().numpy(), "hi": hi_t.cpu().numpy(), "shape": shape,
+                        "threshold": threshold, "keep": keep, "chunk": chunk}
+                results: Any = _remote_sweep(remote, grid, total, tol, screen is not None,
+                                             progress, task)
+            else:
+                results = stack.enter_context(parallel_chunks()).map(
+                    sweep, range(0, total, chunk))
+            for pts, tv, n_above, n_bad in results:
                 above += n_above
                 nonfinite += n_bad
-                cand_pts = torch.cat([cand_pts, pts])
-                cand_vals = torch.cat([cand_vals, tv])
+                cand_pts = torch.cat([cand_pts, pts.to(device)])
+                cand_vals = torch.cat([cand_vals, tv.to(device)])
                 if len(cand_vals) > 4 * keep:
                     tv, ti = torch.topk(cand_vals, keep)
                     cand_pts, cand_vals = cand_pts[ti], tv
@@ -173,7 +220,7 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
     seeds, _ = _distinct_top(cand_pts, cand_vals, lo_t, hi_t, max(1, starts // 2), 0.02)
     n_rand = max(0, starts - len(seeds))
     rand = lo_t + (hi_t - lo_t) * torch.rand(n_rand, len(shape), generator=gen,
-                                             dtype=torch.float64)
+                                             dtype=torch.float64).to(device)
     x = torch.cat([seeds, rand]) if starts > 0 else seeds[:0]
     history: list[float] = []
     if len(x) and steps > 0:
@@ -186,8 +233,9 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
     progress.finish(task)
     return SearchOutcome(
         best_value=float(top_v[0]) if len(top_v) else -math.inf,
-        best_point=top_p[0].numpy() if len(top_p) else (np.asarray(lo) + np.asarray(hi)) / 2,
-        top_points=top_p.numpy(), top_values=top_v.numpy(), grid_points=total,
+        best_point=top_p[0].cpu().numpy() if len(top_p)
+        else (np.asarray(lo) + np.asarray(hi)) / 2,
+        top_points=top_p.cpu().numpy(), top_values=top_v.cpu().numpy(), grid_points=total,
         grid_shape=shape, above_threshold=above, starts=len(x), grid_best_value=grid_best,
         nonfinite=nonfinite, history=history,
     )

@@ -1,17 +1,18 @@
 """Fast no-grad lam_max(D) for dense grids (the falsifier's inner loop).
 
 The general kernel (`certify.kernels`) keeps points in rows, which suits autograd. For a dense
-grid the work is many tiny 30 x 30 products and elementwise tanh; storing points in columns
-(feature-major, [width, batch]) lets every layer be one large matrix product with contiguous
-elementwise passes, several times faster. Only the n tangent directions of xhat are propagated
-(D needs dk/dxhat, not dk/dy). It covers the `direct` structure with or without the linear term
-K; other structures use the general kernel.
+grid the work is many tiny 30 x 30 products and elementwise activations; storing points in
+columns (feature-major, `certify.gain.ColumnArithmetic`) lets every layer be one large matrix
+product with contiguous elementwise passes, several times faster. Only the n tangent
+directions of xhat are propagated (D needs dk/dxhat, not dk/dy). It covers the `direct`
+structure with or without the linear term K; other structures use the general kernel.
 """
 
 from __future__ import annotations
 
 import torch
 
+from certify.gain import COLUMNS, compose, propagate
 from certify.kernels import contraction_matrix, lam_max, mpdi_lam_max
 from certify.problem import Problem
 
@@ -26,10 +27,7 @@ class GridKernel:
         self.dtype = dtype
         net = problem.network
         self.fast = net.structure == "direct"
-        self.W = [layer.weight.detach().to(dtype).contiguous() for layer in net.layers]
-        self.b = [layer.bias.detach().to(dtype)[:, None].contiguous() for layer in net.layers]
-        self.K = net.K.detach().to(dtype)
-        self.has_K = bool(torch.any(self.K != 0))
+        self.spec = net.spec(dtype, detach=True)
         self.P = problem.P_t.to(dtype)
         self.n = problem.n
 
@@ -40,19 +38,8 @@ class GridKernel:
             return mpdi_lam_max(problem.system, problem.network, problem.P_t, self.lam,
                                 z64[:, :n], z64[:, n:]).to(self.dtype)
         z = z.to(self.dtype)
-        B = z.shape[0]
-        pre = torch.addmm(self.b[0], self.W[0], z.T)  # [h, B]
-        tang = self.W[0][:, :n, None].expand(-1, n, B)  # [h, n, B]: d pre / d xhat
-        for W, b in zip(self.W[1:], self.b[1:]):
-            t = torch.tanh(pre)
-            s = t * t
-            s.neg_().add_(1.0)  # tanh' = 1 - tanh^2
-            scaled = (tang * s[:, None, :]).reshape(-1, n * B)
-            tang = torch.mm(W, scaled).view(W.shape[0], n, B)  # one product for all tangents
-            pre = torch.addmm(b, W, t)
-        dk_dx = tang.permute(2, 0, 1)  # [B, n_out, n]
         xhat = z[:, :n]
-        Jf = problem.system.jac_f(xhat)
-        if self.has_K:
-            dk_dx = dk_dx - self.K @ problem.system.jac_h(xhat)
-        return lam_max(contraction_matrix(Jf, dk_dx, self.P, self.lam))
+        net = propagate(self.spec, COLUMNS, z, n)
+        Hx = problem.system.jac_h(xhat) if self.spec.has_K else None
+        dk_dx = compose(self.spec, COLUMNS, net, None, Hx, with_dy=False, with_k=False).dk_dx
+        return lam_max(contraction_matrix(problem.system.jac_f(xhat), dk_dx, self.P, self.lam))

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
+from certify.gain import gain_value
 from certify.network import GainNetwork
 from certify.system import System
 
@@ -67,36 +68,16 @@ def gaussian_noise(steps: int, batch: int, p: int, std: float, *, seed: int = 0
 
 
 class GainFunction:
-    """k(xhat, y) for a batch, by the plain network forward (no Jacobian), float64.
-
-    Same composition as `certify.kernels.gain_terms` (direct / structural, plus K (y - h)).
-    """
+    """k(xhat, y) for a batch, by the plain network forward (no Jacobian), float64
+    (`certify.gain.gain_value`: the same composition as every other evaluation)."""
 
     def __init__(self, system: System, net: GainNetwork) -> None:
         self.system = system
-        self.structure = net.structure
-        self.layers = [(layer.weight.detach().to(torch.float64).T.contiguous(),
-                        layer.bias.detach().to(torch.float64)) for layer in net.layers]
-        K = net.K.detach().to(torch.float64)
-        self.K = K if bool(torch.any(K != 0)) else None
-        self.needs_h = self.structure == "structural" or self.K is not None
+        self.spec = net.spec(torch.float64, detach=True)
 
     def __call__(self, xhat: torch.Tensor, y: torch.Tensor,
                  h_xhat: torch.Tensor | None = None) -> torch.Tensor:
-        a = torch.cat([xhat, y], dim=1)
-        for W, b in self.layers[:-1]:
-            a = torch.tanh(torch.addmm(b, a, W))
-        W, b = self.layers[-1]
-        out = torch.addmm(b, a, W)
-        if not self.needs_h:
-            return out
-        r = y - (self.system.h(xhat) if h_xhat is None else h_xhat)
-        n, p = self.system.n, self.system.p
-        k = (out.reshape(-1, n, p) @ r.unsqueeze(-1)).squeeze(-1) \
-            if self.structure == "structural" else out
-        if self.K is not None:
-            k = k + r @ self.K.T
-        return k
+        return gain_value(self.spec, self.system, xhat, y, h_xhat)
 
 
 def rk4(rhs: Callable[[torch.Tensor, int], torch.Tensor], s0: torch.Tensor, dt: float,
@@ -108,15 +89,28 @@ def rk4(rhs: Callable[[torch.Tensor, int], torch.Tensor], s0: torch.Tensor, dt: 
     out = torch.empty((steps + 1, *s0.shape), dtype=s0.dtype)
     out[0] = s0
     s = s0
-    h2, h6 = dt / 2.0, dt / 6.0
     for k in range(steps):
-        k1 = rhs(s, k)
-        k2 = rhs(s + h2 * k1, k)
-        k3 = rhs(s + h2 * k2, k)
-        k4 = rhs(s + dt * k3, k)
-        s = s + h6 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        s = rk4_step(rhs, s, k, dt)
         out[k + 1] = s
     return out
+
+
+def rk4_step(rhs: Callable[[torch.Tensor, int], torch.Tensor], s: torch.Tensor, k: int,
+             dt: float | torch.Tensor) -> torch.Tensor:
+    """One RK4 step; `dt` a float or a column [rows, 1] (a step size per row of s)."""
+    h2 = dt / 2.0
+    k1 = rhs(s, k)
+    k2 = rhs(s + h2 * k1, k)
+    k3 = rhs(s + h2 * k2, k)
+    k4 = rhs(s + dt * k3, k)
+    return s + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def simulate_plant(system: System, x0: torch.Tensor, *, dt: float, steps: int) -> torch.Tensor:
+    """The plant alone, x' = f(x), from x0 [B, n] -> states [steps + 1, B, n] (RK4)."""
+    with torch.no_grad():
+        return rk4(lambda s, k: system.f(s), torch.as_tensor(x0, dtype=torch.float64),
+                   float(dt), int(steps))
 
 
 def simulate(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: torch.Tensor, *,
@@ -125,6 +119,20 @@ def simulate(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: torch.Te
 
     The plant and observer are integrated together (one RK4 on the stacked state [2B, n]);
     f and h are evaluated once per stage on the stacked batch [2B, n].
+    """
+    return simulate_doubled(system, net, x0, xhat0, dt=dt, steps=steps, noise=noise)[0]
+
+
+def simulate_doubled(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: torch.Tensor,
+                     *, dt: float, steps: int, noise: torch.Tensor | None = None,
+                     doubled: list[int] | None = None, doubled_steps: int = 0
+                     ) -> tuple[Trajectories, Trajectories | None]:
+    """`simulate`, and the runs `doubled` again at step 2 dt for `doubled_steps` steps.
+
+    One batched integrator over every run: on every second step of dt the runs at 2 dt join
+    the batch (a step size per row), so the second integration costs no extra right-hand-side
+    calls. Their noise is the same signal sampled every second step (held over 2 dt when the
+    hold is even, see `hold_steps`). Returns (the dt trajectories, the 2 dt ones or None).
     """
     n, p = system.n, system.p
     x0 = torch.as_tensor(x0, dtype=torch.float64)
@@ -138,19 +146,52 @@ def simulate(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: torch.Te
     noise = torch.as_tensor(noise, dtype=torch.float64)
     if noise.shape != (steps, B, p):
         raise ValueError(f"noise must have shape [{steps}, {B}, {p}]; got {list(noise.shape)}")
+    rows = list(doubled or [])
+    c_steps = min(int(doubled_steps), steps // 2) if rows else 0
+    C = len(rows) if c_steps > 0 else 0
     gain = GainFunction(system, net)
+    both = noise if C == 0 else torch.cat([noise, noise[:, rows]], dim=1)  # [steps, B + C, p]
+    width = [B]  # rows of x (then of xhat) in the state now being stepped
 
     def rhs(s: torch.Tensor, k: int) -> torch.Tensor:
-        # s [2B, n]: rows of x (first B), then rows of xhat
+        # s [2W, n]: rows of x (first W), then rows of xhat
+        W = width[0]
         fz = system.f(s)
         hz = system.h(s)
-        y = hz[:B] + noise[k]
-        kk = gain(s[B:], y, hz[B:])
-        return torch.cat([fz[:B], fz[B:] + kk], dim=0)
+        y = hz[:W] + both[k, :W]
+        kk = gain(s[W:], y, hz[W:])
+        return torch.cat([fz[:W], fz[W:] + kk], dim=0)
 
+    dt = float(dt)
     with torch.no_grad():
-        s0 = torch.cat([x0, xhat0], dim=0)
-        traj = rk4(rhs, s0, float(dt), int(steps))  # [steps + 1, 2B, n]
-    t = torch.arange(steps + 1, dtype=torch.float64) * float(dt)
+        fine = torch.empty((steps + 1, 2 * B, n), dtype=torch.float64)
+        fine[0] = torch.cat([x0, xhat0], dim=0)
+        coarse = torch.empty((c_steps + 1, 2 * C, n), dtype=torch.float64) if C else None
+        if coarse is not None:
+            coarse[0] = torch.cat([x0[rows], xhat0[rows]], dim=0)
+            col = torch.cat([torch.full((B, 1), dt, dtype=torch.float64),
+                             torch.full((C, 1), 2 * dt, dtype=torch.float64)])
+            col = torch.cat([col, col], dim=0)  # x rows, then xhat rows
+        s_f = fine[0]
+        for k in range(steps):
+            j = k // 2
+            if coarse is not None and k % 2 == 0 and j < c_steps:
+                s_c = coarse[j]
+                joint = torch.cat([s_f[:B], s_c[:C], s_f[B:], s_c[C:]], dim=0)
+                width[0] = B + C
+                out = rk4_step(rhs, joint, k, col)
+                width[0] = B
+                s_f = torch.cat([out[:B], out[B + C: 2 * B + C]], dim=0)
+                coarse[j + 1] = torch.cat([out[B: B + C], out[2 * B + C:]], dim=0)
+            else:
+                s_f = rk4_step(rhs, s_f, k, dt)
+            fine[k + 1] = s_f
+    t = torch.arange(steps + 1, dtype=torch.float64) * dt
     v = torch.cat([noise, noise[-1:]], dim=0) if steps > 0 else noise.new_zeros(1, B, p)
-    return Trajectories(t=t, x=traj[:, :B], xhat=traj[:, B:], v=v)
+    result = Trajectories(t=t, x=fine[:, :B], xhat=fine[:, B:], v=v)
+    if coarse is None:
+        return result, None
+    vc = noise[: 2 * c_steps: 2, rows]
+    vc = torch.cat([vc, vc[-1:]], dim=0)
+    tc = torch.arange(c_steps + 1, dtype=torch.float64) * (2 * dt)
+    return result, Trajectories(t=tc, x=coarse[:, :C], xhat=coarse[:, C:], v=vc)

@@ -331,42 +331,27 @@ assert set(RULES) == set(FUNCTIONS) | set(DERIVED_FUNCTIONS), \
     "every whitelisted function needs an enclosure rule"
 
 
-# ----- tanh and its derivatives (the network's activation) -------------------------------
+# ----- tanh and its derivatives: moved to certify.activations.tanh -----------------------
+# Thin re-exports (imported at call time: certify.activations imports this module).
 def tanh_enclosure(a: Interval) -> Interval:
-    return RULES["tanh"].enclose(a)
+    """tanh over [lo, hi]; see `certify.activations.tanh`."""
+    from certify.activations.tanh import tanh_enclosure as rule
+
+    return rule(a)
 
 
 def dtanh_enclosure(a: Interval) -> Interval:
-    """tanh'(x) = 1 - tanh(x)^2 over [lo, hi]: maximum 1 at 0 when the interval contains 0."""
-    t = tanh_enclosure(Interval(a.mig(), a.mag()))  # tanh over |x|, increasing
-    lo = down(1.0 - up(t.hi * t.hi)).clamp_min(0.0)
-    hi = up(1.0 - down(t.lo * t.lo)).clamp(max=1.0)
-    return Interval(lo, hi)
+    """tanh' over [lo, hi]; see `certify.activations.tanh`."""
+    from certify.activations.tanh import dtanh_enclosure as rule
 
-
-_G_CRIT = 4.0 / (3.0 * math.sqrt(3.0))  # max of -2 t (1 - t^2), attained at t = -1/sqrt(3)
-_T_CRIT = 1.0 / math.sqrt(3.0)
-
-
-def _g_point(t: torch.Tensor) -> Interval:
-    """g(t) = -2 t (1 - t^2) at point t, as an outward-rounded interval."""
-    ti = Interval(t, t)
-    return Interval(-2.0 * t, -2.0 * t) * (1.0 - isqr(ti))
+    return rule(a)
 
 
 def d2tanh_enclosure(a: Interval) -> Interval:
-    """tanh''(x) = -2 tanh (1 - tanh^2): non-monotone, so critical points are included."""
-    t = tanh_enclosure(a)
-    g1, g2 = _g_point(t.lo), _g_point(t.hi)
-    lo = torch.minimum(g1.lo, g2.lo)
-    hi = torch.maximum(g1.hi, g2.hi)
-    slack = 1e-12
-    has_max = (t.lo <= -_T_CRIT + slack) & (t.hi >= -_T_CRIT - slack)
-    has_min = (t.lo <= _T_CRIT + slack) & (t.hi >= _T_CRIT - slack)
-    gmax = math.nextafter(math.nextafter(_G_CRIT, 1.0), 1.0)
-    hi = torch.where(has_max, torch.clamp(hi, min=gmax), hi)
-    lo = torch.where(has_min, torch.clamp(lo, max=-gmax), lo)
-    return Interval(lo.clamp(min=-gmax), hi.clamp(max=gmax))
+    """tanh'' over [lo, hi]; see `certify.activations.tanh`."""
+    from certify.activations.tanh import d2tanh_enclosure as rule
+
+    return rule(a)
 
 
 # ----- products with point matrices (midpoint-radius, Higham's bound) --------------------

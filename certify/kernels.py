@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import torch
 
+from certify.gain import gain_at_points
 from certify.network import GainNetwork
 from certify.system import System
 
@@ -24,33 +25,10 @@ class GainTerms:
 
 def gain_terms(system: System, net: GainNetwork, xhat: torch.Tensor, y: torch.Tensor,
                with_dy: bool = True) -> GainTerms:
-    """k(xhat, y) with its Jacobians for a batch, composing the MLP with y - h(xhat)."""
-    n = system.n
-    z = torch.cat([xhat, y], dim=1)
-    need_cols = n + system.p if (with_dy or net.structure == "structural") else n
-    out, J = net.forward_with_jacobian(z, columns=need_cols)
-    K = net.K.to(xhat.dtype)
-    has_K = bool(torch.any(K != 0))
-    needs_h = net.structure == "structural" or has_K
-    if needs_h:
-        r = y - system.h(xhat)  # [B, p]
-        Hx = system.jac_h(xhat)  # [B, p, n]
-    if net.structure == "direct":
-        k, dk_dx = out, J[:, :, :n]
-        dk_dy = J[:, :, n:] if with_dy else None
-    else:
-        B, p = z.shape[0], system.p
-        G = out.reshape(B, n, p)
-        dG = J.reshape(B, n, p, n + p)
-        k = torch.einsum("bij,bj->bi", G, r)
-        dk_dx = torch.einsum("bijm,bj->bim", dG[..., :n], r) - G @ Hx
-        dk_dy = (torch.einsum("bijm,bj->bim", dG[..., n:], r) + G) if with_dy else None
-    if has_K:
-        k = k + r @ K.T
-        dk_dx = dk_dx - K @ Hx
-        if dk_dy is not None:
-            dk_dy = dk_dy + K
-    return GainTerms(k=k, dk_dx=dk_dx, dk_dy=dk_dy)
+    """k(xhat, y) with its Jacobians for a batch (`certify.gain.gain_at_points`)."""
+    spec = net.spec(xhat.dtype) if net.K.dtype != xhat.dtype else net.spec()
+    g = gain_at_points(spec, system, xhat, y, with_dy=with_dy)
+    return GainTerms(k=g.k, dk_dx=g.dk_dx, dk_dy=g.dk_dy)
 
 
 def sym(M: torch.Tensor) -> torch.Tensor:

@@ -1,15 +1,15 @@
-"""The gain network k(xhat, y) and its batched forward-mode Jacobian.
+"""The gain network k(xhat, y): an MLP with a C^1 activation plus a linear injection term.
 
-`GainNetwork` is a tanh MLP on concat(xhat, y) plus an optional constant output-injection
-term. Two structures:
+`GainNetwork` is an MLP on concat(xhat, y) (activation from `certify.activations`, default
+tanh) plus an optional constant output-injection term. Two structures:
 
 - ``direct``:     k = N(xhat, y)                          + K (y - h(xhat))
 - ``structural``: k = G(xhat, y) (y - h(xhat))            + K (y - h(xhat)),  G = N reshaped
   to n x p, so that k(x, h(x)) = 0 by construction.
 
 `K` (n x p, default zero) carries a linear observer gain (the certified LMI baseline, or a
-warm start). The composition with h lives in `certify.kernels`; this module knows only the
-MLP.
+warm start). `spec()` gives the `certify.gain.GainSpec` every evaluation goes through
+(`certify.gain.propagate`); this module only owns the parameters.
 """
 
 from __future__ import annotations
@@ -20,19 +20,26 @@ from typing import Any
 import torch
 from torch import nn
 
-STRUCTURES = ("direct", "structural")
+from certify import activations
+from certify.gain import ROWS, GainSpec, propagate
+from certify.gain.spec import STRUCTURES
+
+__all__ = ["GainNetwork", "STRUCTURES"]
 
 
 class GainNetwork(nn.Module):
-    """tanh MLP on concat(xhat, y) with a linear injection buffer `K`."""
+    """MLP on concat(xhat, y) with a C^1 activation and a linear injection buffer `K`."""
 
     def __init__(self, n: int, p: int, hidden: Sequence[int] = (30,) * 5,
-                 structure: str = "direct", K: torch.Tensor | None = None) -> None:
+                 structure: str = "direct", K: torch.Tensor | None = None,
+                 activation: str = activations.DEFAULT) -> None:
         super().__init__()
         if structure not in STRUCTURES:
             raise ValueError(f"structure must be one of {STRUCTURES}; got {structure!r}")
         if n < 1 or p < 1 or any(int(h) < 1 for h in hidden):
             raise ValueError("n, p and every hidden width must be >= 1")
+        self.act = activations.get(activation)  # ValueError for non-C^1 / unknown names
+        self.activation = self.act.name
         self.n, self.p = int(n), int(p)
         self.hidden = [int(h) for h in hidden]
         self.structure = structure
@@ -47,40 +54,46 @@ class GainNetwork(nn.Module):
 
     def architecture(self) -> dict[str, Any]:
         """Plain-data description stored in checkpoints."""
-        return {"n": self.n, "p": self.p, "hidden": list(self.hidden), "activation": "tanh",
-                "structure": self.structure}
+        return {"n": self.n, "p": self.p, "hidden": list(self.hidden),
+                "activation": self.activation, "structure": self.structure}
 
     @classmethod
     def from_architecture(cls, arch: dict[str, Any]) -> GainNetwork:
-        return cls(arch["n"], arch["p"], arch["hidden"], arch.get("structure", "direct"))
+        """The network an `architecture()` describes (no "activation" key: tanh, as in
+        checkpoints written before activations were selectable)."""
+        return cls(arch["n"], arch["p"], arch["hidden"], arch.get("structure", "direct"),
+                   activation=arch.get("activation", activations.DEFAULT))
 
     def weights(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """[(W, b)] per layer, W of shape [out, in]."""
+        """[(W, b)] per layer, W of shape [out, in], for `certify.enclosures` (the prover).
+
+        The prover still applies tanh's interval rules to every neuron, so for any other
+        activation this refuses (the proof check ends in ERROR, never in a wrong PROVED)
+        until enclosures.py reads the activation from `spec()` (see `certify.gain`).
+        """
+        if self.activation != "tanh":
+            raise NotImplementedError(
+                f"the interval prover does not support activation {self.activation!r} yet "
+                f"(its enclosures assume tanh); no proof is attempted")
         return [(layer.weight, layer.bias) for layer in self.layers]
+
+    def layer_weights(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """[(W, b)] per layer, W of shape [out, in] (any activation)."""
+        return [(layer.weight, layer.bias) for layer in self.layers]
+
+    def spec(self, dtype: torch.dtype | None = None, detach: bool = False) -> GainSpec:
+        """The gain's description over this network's parameters (cast to `dtype` if given)."""
+        s = GainSpec(self.n, self.p, tuple(self.layer_weights()), self.act, self.structure,
+                     self.K)
+        return s if dtype is None and not detach else s.to(dtype or s.dtype, detach=detach)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         """N(z) for z = concat(xhat, y) of shape [B, n+p] -> [B, out_dim]."""
-        a = z
-        for layer in self.layers[:-1]:
-            a = torch.tanh(layer(a))
-        return self.layers[-1](a)
+        return propagate(self.spec(), ROWS, z, 0).value
 
     def forward_with_jacobian(self, z: torch.Tensor, columns: int | None = None
                               ) -> tuple[torch.Tensor, torch.Tensor]:
-        """N(z) [B, out] and dN/dz[:, :, :columns] [B, out, columns], in forward mode.
-
-        Value and tangents travel together as rows of one tensor [B, 1+columns, width], so each
-        layer is a single matrix product; no Python loop over points.
-        """
+        """N(z) [B, out] and dN/dz[:, :, :columns] [B, out, columns], in forward mode."""
         m = z.shape[1] if columns is None else int(columns)
-        W0, b0 = self.layers[0].weight, self.layers[0].bias
-        pre = z @ W0.T + b0  # [B, h]
-        tang = W0[:, :m].T.unsqueeze(0).expand(z.shape[0], m, W0.shape[0])  # [B, m, h]
-        for layer in self.layers[1:]:
-            t = torch.tanh(pre)
-            s = 1.0 - t * t
-            A = torch.cat([t.unsqueeze(1), s.unsqueeze(1) * tang], dim=1)  # [B, 1+m, h]
-            Z = (A.reshape(-1, A.shape[-1]) @ layer.weight.T).reshape(A.shape[0], m + 1, -1)
-            pre = Z[:, 0] + layer.bias
-            tang = Z[:, 1:]
-        return pre, tang.transpose(1, 2)
+        out = propagate(self.spec(), ROWS, z, m)
+        return out.value, out.jac

@@ -19,6 +19,7 @@ class Problem:
     network: GainNetwork
     lam: float
     P: np.ndarray  # [n, n], symmetric positive definite
+    device: str = "cpu"  # where the network's weights and P_t live (see `on`)
 
     def __post_init__(self) -> None:
         self.network = self.network.double().eval()
@@ -27,7 +28,19 @@ class Problem:
 
     @property
     def P_t(self) -> torch.Tensor:
-        return torch.as_tensor(self.P, dtype=torch.float64)
+        return torch.as_tensor(self.P, dtype=torch.float64, device=self.device)
+
+    def on(self, device: torch.device | str) -> Problem:
+        """This problem with a copy of the network (and P_t) on `device` (self if already
+        there): for the kernels that run on a GPU (`--device cuda`)."""
+        device = torch.device(device)
+        if device == torch.device(self.device):
+            return self
+        import copy
+
+        net = copy.deepcopy(self.network).to(device)
+        return Problem(system=self.system, network=net, lam=self.lam, P=self.P,
+                       device=str(device))
 
     @property
     def n(self) -> int:

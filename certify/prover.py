@@ -30,6 +30,7 @@ from certify.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import Counterexample, ProofStats, Status
 from certify.system import System
+from certify.witness import is_witness, mpdi_lower
 
 __all__ = [
     "ProofOutcome", "RateOutcome", "prove_mpdi", "prove_rate", "bound_residual",
@@ -120,8 +121,9 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
         pt = out.best_point[None]
         v = float(mpdi_lam_max(problem.system, problem.network, problem.P_t, lam,
                                pt[:, :n], pt[:, n:])[0])
-        cex = Counterexample(xhat=pt[0, :n].tolist(), y=pt[0, n:].tolist(), value=v)
-    if out.violated and cex is not None and cex.value > 0:
+        cex = Counterexample(xhat=pt[0, :n].tolist(), y=pt[0, n:].tolist(), value=v,
+                             sound_bound=float(mpdi_lower(problem, pt, lam)[0]))
+    if out.violated and cex is not None and is_witness(cex.sound_bound):
         status = Status.VIOLATED
         msg = f"lam_max(D) = {cex.value:.6g} > 0 at xhat={cex.xhat}, y={cex.y}"
     elif out.complete and out.upper <= 0 and math.isfinite(out.upper):

@@ -17,23 +17,30 @@ from typing import Any
 
 class Status(str, enum.Enum):
     """How a check ended. PROVED is a sound result; PASSED means sampled evidence (simulation)
-    found no problem, which is never called a proof; UNKNOWN is never a pass."""
+    found no problem, which is never called a proof; UNKNOWN is never a pass. NOT APPLICABLE:
+    the question has no answer here (e.g. no error bound exists when lam_cert <= 0, or there
+    is no bound to compare a simulation with), which establishes nothing, like UNKNOWN."""
 
     PROVED = "PROVED"
     PASSED = "PASSED"
     VIOLATED = "VIOLATED"
     UNKNOWN = "UNKNOWN"
     SKIPPED = "SKIPPED"
+    NOT_APPLICABLE = "NOT APPLICABLE"
     ERROR = "ERROR"
 
 
 @dataclass
 class Counterexample:
-    """A point (xhat, y) and the value of the checked quantity there (float64)."""
+    """A point (xhat, y) and the value of the checked quantity there (float64).
+
+    `sound_bound`: a sound lower bound of the quantity at the point (`certify.witness`); a
+    point is a counterexample only when it is > 0. None when not computed."""
 
     xhat: list[float]
     y: list[float]
     value: float
+    sound_bound: float | None = None
 
 
 @dataclass
@@ -178,6 +185,10 @@ class BoundsResult:
     validity: list[str] = field(default_factory=list)
     kappa_P: float = 1.0
     L_is_local: bool = False  # L holds only for y in Y: condition (d) applies
+    #: half the diagonal of X (Euclidean): an error bound above it says little
+    box_half_diagonal: float | None = None
+    #: the best proved ultimate bound exceeds `box_half_diagonal`: valid but vacuous
+    vacuous: bool = False
 
 
 @dataclass
@@ -202,6 +213,10 @@ class SimulationRun:
     xhat: list[list[float]] = field(default_factory=list)
     # allowance for the integrator's error in the comparison (estimated by step doubling)
     tolerance: float = 0.0
+    #: how the start was chosen (certify.sim_starts), in words
+    start: str = ""
+    #: length of the valid window [0, first exit) in seconds (the horizon if never left)
+    window: float | None = None
 
 
 @dataclass
@@ -212,6 +227,9 @@ class SimulationResult:
     message: str
     runs: list[SimulationRun] = field(default_factory=list)
     seconds: float = 0.0
+    #: one time constant 1/(2 lam_cert) of the bound (None: no bound); a valid window shorter
+    #: than it compares little, and when every window is, the check is inconclusive
+    time_constant: float | None = None
 
 
 @dataclass

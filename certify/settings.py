@@ -41,7 +41,9 @@ class VerifySettings:
     required: tuple[str, ...] = ("mpdi",)  # checks whose failure means exit 1
     allow_unknown: bool = False  # treat an UNKNOWN required check as a pass (exit 0)
     skip: tuple[str, ...] = ()  # checks not run at all
-    device: str = "cpu"
+    device: str = "cpu"  # torch device of the grid, falsifier and prover ("cpu", "cuda")
+    workers: int = 1  # Dask worker processes of a local cluster (1: serial, no cluster)
+    scheduler: str = ""  # address of a running Dask scheduler (wins over workers)
 
     def __post_init__(self) -> None:
         validate(self, source="settings")
@@ -49,7 +51,7 @@ class VerifySettings:
 
 _INT_MIN = {
     "grid_points": 1, "adversarial_starts": 0, "adversarial_steps": 0, "top_counterexamples": 0,
-    "max_boxes": 1, "sim_initial_conditions": 1, "seed": 0,
+    "max_boxes": 1, "sim_initial_conditions": 1, "seed": 0, "workers": 1,
 }
 _POS_FLOAT = {"proof_seconds", "rate_seconds", "residual_seconds", "lipschitz_seconds",
               "sim_time", "sim_dt"}
@@ -78,8 +80,12 @@ def validate(s: VerifySettings, source: str = "settings") -> None:
     for name in ("allow_unknown", "float32_screen"):
         if not isinstance(getattr(s, name), bool):
             raise _fail(source, name, "true or false", getattr(s, name))
-    if s.device not in ("cpu", "cuda"):
-        raise _fail(source, "device", "'cpu' or 'cuda'", s.device)
+    if not isinstance(s.device, str) or not (
+            s.device in ("cpu", "cuda") or (s.device.startswith("cuda:")
+                                            and s.device[5:].isdigit())):
+        raise _fail(source, "device", "'cpu' or 'cuda' (or 'cuda:N')", s.device)
+    if not isinstance(s.scheduler, str) or any(c.isspace() for c in s.scheduler.strip()):
+        raise _fail(source, "scheduler", "an address like 'tcp://host:8786'", s.scheduler)
 
 
 FIELD_NAMES = tuple(f.name for f in dataclasses.fields(VerifySettings) if f.init)

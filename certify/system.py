@@ -21,6 +21,7 @@ import numpy as np
 import sympy
 import torch
 
+from certify.domain import check_domain
 from certify.errors import SettingsError, SpecError
 from certify.expr import compile_torch, parse_expression
 
@@ -154,10 +155,14 @@ class System:
     def _parse(self, where: str) -> None:
         syms = {s: sympy.Symbol(s, real=True) for s in self.states}
         self.symbols = [syms[s] for s in self.states]
-        self.f_expr = [parse_expression(t, syms, f"{where}: f[{i}]")
-                       for i, t in enumerate(self.f_text)]
-        self.h_expr = [parse_expression(t, syms, f"{where}: h[{i}]")
-                       for i, t in enumerate(self.h_text)]
+        labels = [f"{where}: f[{i}]" for i in range(len(self.f_text))] + \
+            [f"{where}: h[{i}]" for i in range(len(self.h_text))]
+        texts = self.f_text + self.h_text
+        sources: dict[sympy.Expr, str] = {}
+        parsed = [parse_expression(t, syms, w, sources=sources) for t, w in zip(texts, labels)]
+        # every sub-expression defined and smooth on X (abs resolved to +-u): certify.domain
+        checked = check_domain(parsed, texts, self.symbols, self.X, labels, sources)
+        self.f_expr, self.h_expr = checked[:self.n], checked[self.n:]
         x = sympy.Matrix(self.symbols)
         self.jf_expr = sympy.Matrix(self.f_expr).jacobian(x)  # n x n
         self.jh_expr = sympy.Matrix(self.h_expr).jacobian(x)  # p x n

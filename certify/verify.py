@@ -31,15 +31,29 @@ MAP_Y_SAMPLES = 41  # total samples over Y (and the other states) per map pixel
 
 
 def verify(checkpoint: Checkpoint, settings: VerifySettings | None = None, *,
-           progress: Progress | None = None, figures: bool = True) -> Certificate:
+           progress: Progress | None = None, figures: bool = True,
+           executor: Any = None) -> Certificate:
     """Check a loaded checkpoint and return its Certificate (see METHOD.md §3).
 
     `figures`: also compute the maps the reports draw (a step of its own, about as long as
-    a fast check); leave it False when no report will be written.
+    a fast check); leave it False when no report will be written. `executor`: where chunked
+    work runs (`certify.executor`); None opens the one `settings.workers/scheduler` ask for
+    and closes it at the end.
     """
+    from certify.device import resolve_device
+    from certify.executor import executor_from_settings, using
+
     settings = settings or VerifySettings()
-    with torch_threads(1):  # see certify.parallel: chunk workers beat intra-op threads here
-        return _verify(checkpoint, settings, progress or NullProgress(), figures)
+    resolve_device(settings.device)  # an unusable device is bad input, before any work
+    owned = executor is None
+    executor = executor_from_settings(settings) if owned else executor
+    try:
+        # see certify.parallel: chunk workers beat intra-op threads here
+        with torch_threads(1), using(executor):
+            return _verify(checkpoint, settings, progress or NullProgress(), figures)
+    finally:
+        if owned:
+            executor.close()
 
 
 def _verify(checkpoint: Checkpoint, settings: VerifySettings, progress: Progress,

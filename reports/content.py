@@ -30,6 +30,7 @@ STATUS_COLOURS = {  # text colour, background
     "VIOLATED": ("#7f1d1d", "#fee2e2"),
     "UNKNOWN": ("#78350f", "#fef3c7"),
     "SKIPPED": ("#374151", "#e5e7eb"),
+    "NOT APPLICABLE": ("#374151", "#e5e7eb"),
     "ERROR": ("#581c87", "#f3e8ff"),
 }
 VERDICT_COLOURS = {"CERTIFIED": "#15803d", "NOT CERTIFIED": "#b91c1c", "INCONCLUSIVE": "#b45309"}
@@ -313,5 +314,23 @@ def timing_pairs(cert: Certificate) -> list[tuple[str, str]]:
     return [(k, fmt_seconds(v)) for k, v in (cert.timings or {}).items()]
 
 
+def verdict_notes(cert: Certificate) -> list[str]:
+    """What the verdict alone does not say: a true certificate whose bound says little."""
+    notes = []
+    b = result(cert, "bounds")
+    if b is not None and getattr(b, "vacuous", False):
+        best = min((x.bias for x in (b.theorem3, b.iss, b.iss_metric)
+                    if x is not None and x.applicable and x.bias is not None), default=None)
+        notes.append(f"the proved error bound {fmt(best)} is valid but vacuous: larger than "
+                     f"the box (half-diagonal of X {fmt(b.box_half_diagonal)})")
+    return notes
+
+
+def verdict_summary(cert: Certificate) -> str:
+    """The summary with its notes: what the verdict line, the HTML and the PDF show."""
+    return "; ".join([cert.summary, *(f"note: {n}" for n in verdict_notes(cert))])
+
+
 def verdict_line(cert: Certificate) -> str:
-    return f"{cert.verdict}: {cert.summary}"
+    """The one line a terminal, a log or a banner shows: verdict, summary, notes."""
+    return f"{cert.verdict}: {verdict_summary(cert)}"

@@ -60,7 +60,7 @@ def context(cert: Certificate, figures: list[RenderedFigure]) -> dict[str, Any]:
         [(s["anchor"], s["short"] or s["title"]) for s in secs] + [("settings", "Settings")]
     sy = cert.system or {}
     return {
-        "verdict": cert.verdict, "summary": cert.summary,
+        "verdict": cert.verdict, "summary": C.verdict_summary(cert),
         "verdict_colour": C.VERDICT_COLOURS.get(cert.verdict, "#374151"),
         "status_colours": C.STATUS_COLOURS, "system_name": sy.get("name", "system"),
         "system_description": sy.get("description", ""),

@@ -1,12 +1,16 @@
 """JUnit XML: one test case per check, so CI systems show the certificate natively.
 
-PROVED and PASSED (evidence only) pass; VIOLATED is a <failure>; ERROR (the check failed
-internally: certify's problem, not the network's) is an <error>; SKIPPED is <skipped>;
-UNKNOWN is a <failure> by default (the policy `unknown="error"` reports it as an <error>,
-to tell "could not decide" from "proved false" on dashboards). Every failure carries the
-numbers of both sides. The gate itself is the exit code; JUnit reports every check,
-required or not, and says which are required. When `certify run` stops on an internal error
-(exit 4, no certificate), `render_internal_error` gives the one <error> case CI shows instead.
+Valid against the Jenkins `junit-10.xsd` schema (vendored in tests/data and checked by a
+test), and red in CI exactly when the gate fails. A required check: PROVED and PASSED
+(evidence only) pass; VIOLATED is a <failure>; ERROR (the check failed internally:
+certify's problem, not the network's) is an <error>; UNKNOWN, SKIPPED, NOT APPLICABLE or not
+run (nothing established) is a <failure> by default (the policy `unknown="error"` makes it an
+<error>, to tell "could not decide" from "proved false" on dashboards), or <skipped> when the
+settings allow unknown required checks. A check that is not required never fails the build:
+it passes when it passed, and is otherwise <skipped> with its status and finding as the
+reason. Every case carries the numbers of both sides in <system-out>. When `certify run`
+stops on an internal error (exit 4, no certificate), `render_internal_error` gives the one
+<error> case CI shows instead.
 """
 
 from __future__ import annotations
@@ -30,39 +34,61 @@ def _numbers_text(row: C.CheckRow) -> str:
     return "\n".join(lines)
 
 
+#: statuses of a check that passed
+PASSING = ("PROVED", "PASSED")
+
+
+def case_outcome(row: C.CheckRow, unknown: str, allow_unknown: bool) -> tuple[str, str]:
+    """(element, message) for a check: element is "" (passed), "failure", "error", "skipped".
+
+    Mirrors `certify.certificate.decide_verdict`, so CI shows red exactly when the gate fails.
+    """
+    finding = f"{row.status}: {row.message}"
+    if row.status in PASSING:
+        return "", finding
+    if not row.required:
+        return "skipped", f"not required: {finding}"
+    if row.status == "VIOLATED":
+        return "failure", finding
+    if row.status == "ERROR":
+        return "error", finding
+    # UNKNOWN, SKIPPED, NOT APPLICABLE, not run: nothing established
+    if allow_unknown:
+        return "skipped", f"not established (allowed by allow_unknown): {finding}"
+    return ("failure" if unknown == "failure" else "error"), finding
+
+
 def render_junit(cert: Certificate, *, unknown: str = "failure") -> str:
     """JUnit XML (a <testsuites> document) for the certificate."""
     if unknown not in UNKNOWN_POLICIES:
         raise ValueError(f"unknown must be one of {UNKNOWN_POLICIES}; got {unknown!r}")
     rows = C.check_rows(cert)
+    allow_unknown = bool((cert.settings or {}).get("allow_unknown", False))
     name = (cert.system or {}).get("name", "system")
     suite_name = f"certify.{name}"
-    counts = {"failures": 0, "errors": 0, "skipped": 0}
+    counts = {"failure": 0, "error": 0, "skipped": 0}
     cases = []
     for row in rows:
         case = ET.Element("testcase", {"classname": suite_name, "name": row.name,
                                        "time": f"{row.seconds or 0.0:.3f}"})
+        element, msg = case_outcome(row, unknown, allow_unknown)
         text = _numbers_text(row)
-        tag_prefix = "" if row.required else "[not required] "
-        msg = f"{tag_prefix}{row.status}: {row.message}"
-        if row.status == "VIOLATED" or (row.status == "UNKNOWN" and unknown == "failure"):
-            ET.SubElement(case, "failure", {"message": msg, "type": row.status}).text = text
-            counts["failures"] += 1
-        elif row.status == "ERROR" or row.status == "UNKNOWN":
-            ET.SubElement(case, "error", {"message": msg, "type": row.status}).text = text
-            counts["errors"] += 1
-        else:
-            if row.status == "SKIPPED":
-                ET.SubElement(case, "skipped", {"message": msg})
-                counts["skipped"] += 1
-            ET.SubElement(case, "system-out").text = text
+        if element == "skipped":
+            ET.SubElement(case, element, {"message": msg})
+        elif element:  # a failure or error carries the numbers of both sides itself
+            ET.SubElement(case, element, {"message": msg, "type": row.status}).text = text
+        if element:
+            counts[element] += 1
+        ET.SubElement(case, "system-out").text = text
         cases.append(case)
     total_time = sum(r.seconds or 0.0 for r in rows)
-    attrs = {"name": suite_name, "tests": str(len(cases)),
-             **{k: str(v) for k, v in counts.items()}, "time": f"{total_time:.3f}"}
-    root = ET.Element("testsuites", {"name": "certify", **{k: v for k, v in attrs.items()
-                                                           if k != "name"}})
-    suite = ET.SubElement(root, "testsuite", {**attrs, "timestamp": cert.created or ""})
+    attrs = {"tests": str(len(cases)), "failures": str(counts["failure"]),
+             "errors": str(counts["error"]), "time": f"{total_time:.3f}"}
+    # junit-10.xsd: <testsuites> has no `skipped` attribute; <testsuite> has one
+    root = ET.Element("testsuites", {"name": "certify", **attrs})
+    suite = ET.SubElement(root, "testsuite", {"name": suite_name, **attrs,
+                                              "skipped": str(counts["skipped"]),
+                                              "timestamp": cert.created or ""})
     props = ET.SubElement(suite, "properties")
     ck = cert.checkpoint or {}
     for key, value in (("verdict", cert.verdict), ("summary", cert.summary),

@@ -344,7 +344,7 @@ def _check_table(doc: _Doc, cert: Certificate) -> None:
 def _verdict(doc: _Doc, cert: Certificate) -> None:
     colour = C.VERDICT_COLOURS.get(cert.verdict, "#374151")
     big = Run(cert.verdict, 20, "bold", "white")
-    summ = Run(cert.summary, 9.5, color="white")
+    summ = Run(C.verdict_summary(cert), 9.5, color="white")
     ck = cert.checkpoint or {}
     meta = Run(f"checkpoint {ck.get('path', C.DASH)} \u00b7 sha256 "
                f"{str(ck.get('sha256', ''))[:16]}\u2026 \u00b7 created {cert.created or C.DASH}",

@@ -115,11 +115,28 @@ def test_iss_never_larger_than_theorem3(lam, eps, L, vbar, e0):
 
 
 def test_no_contraction_no_bound():
+    """lam_cert <= 0 settles it: no bound exists (NOT APPLICABLE), not "unknown"."""
     r = check_bounds(problem(), lam_cert=-0.5, eps_bar=0.1, L=1.0, vbar=0.15)
-    assert r.status == Status.UNKNOWN
+    assert r.status == Status.NOT_APPLICABLE
+    assert r.message.startswith("no error bound exists: lam_cert = -0.5 <= 0")
     assert not r.iss.applicable and not r.theorem3.applicable
     assert "lam_cert = -0.5 <= 0: no contraction was certified, so no bound exists" in r.iss.reason
     assert "no bound exists" in r.message
+
+
+def test_bound_larger_than_the_box_is_valid_but_vacuous():
+    """VdP's X = [-2, 2] x [-3, 3] has half-diagonal sqrt(13) = 3.606: a bound above it is
+    flagged, in words and in the field; one below it is not."""
+    big = check_bounds(problem(), lam_cert=0.5, eps_bar=0.0, L=40.0, vbar=0.15)  # bias 6
+    assert big.status == Status.PROVED and big.iss.bias == pytest.approx(6.0)
+    assert big.box_half_diagonal == pytest.approx(math.sqrt(13.0))
+    assert big.vacuous and "valid but vacuous: larger than the box" in big.message
+    small = check_bounds(problem(), lam_cert=0.5, eps_bar=0.0, L=20.0, vbar=0.15)  # bias 3
+    assert small.status == Status.PROVED and not small.vacuous
+    assert "vacuous" not in small.message
+    # with lam_cert <= 0 and an invalid input too, it stays UNKNOWN
+    bad = check_bounds(problem(), lam_cert=-1.0, eps_bar=float("nan"), L=1.0, vbar=0.15)
+    assert bad.status == Status.UNKNOWN and not bad.vacuous
 
 
 def test_missing_and_nonfinite_inputs():

@@ -60,7 +60,9 @@ def test_linear_ground_truth_certified_exit_0(workdir, capsys):
     lam = 0.3
     problem = linear_problem(A, C, K, lam=lam)
     path = save_problem(workdir / "lin.ckpt", problem)
-    code, out, _ = run_cli(capsys, "run", path, "--json", "cert.json", "--quiet")
+    # 3 s: longer than one time constant 1/(2 lam_cert) = 1.13 s, so the runs say something
+    code, out, _ = run_cli(capsys, "run", path, "--json", "cert.json", "--quiet",
+                           "--sim-time", "3")
     assert code == 0, out
     assert out.startswith("CERTIFIED")
     cert = json.loads((workdir / "cert.json").read_text())

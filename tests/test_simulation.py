@@ -161,14 +161,20 @@ def test_planted_breach_of_a_proved_certificate_is_an_error():
     assert res2.status == Status.VIOLATED
 
 
-def test_no_bound_is_skipped_but_still_simulated():
+def test_no_bound_is_not_applicable_but_still_simulated():
+    """Runs simulated with nothing to compare them with: NOT APPLICABLE (not "SKIPPED"),
+    a short message, and the runs in the result's table."""
     problem = linear_problem()
     bounds = check_bounds(problem, lam_cert=-0.2, eps_bar=0.0, L=1.0, vbar=0.15)
     res = check_simulation(problem, bounds, fast(sim_time=1.0), certified=False)
-    assert res.status == Status.SKIPPED and "no bound exists" in res.message
+    assert res.status == Status.NOT_APPLICABLE and "no bound exists" in res.message
+    assert res.message.startswith("not applicable: no proved error bound to compare with")
+    assert "of 5 runs left the validity conditions" in res.message and len(res.message) < 400
     assert len(res.runs) == 5 and all(r.bound == [] and r.max_ratio is None for r in res.runs)
+    assert all(r.window is not None and r.start for r in res.runs)
     res_none = check_simulation(problem, None, fast(sim_time=1.0), certified=False)
-    assert res_none.status == Status.SKIPPED and "no bounds were computed" in res_none.message
+    assert res_none.status == Status.NOT_APPLICABLE
+    assert "no bounds were computed" in res_none.message
 
 
 def test_vdp_source_protocol_leaves_X():
@@ -281,3 +287,87 @@ xhat0 = [0.0, 0.0, 0.0]
     res = check_simulation(problem, bounds, fast(sim_time=3.0), certified=True)
     assert res.status == Status.PASSED, res.message
     assert all(not r.breach for r in res.runs)
+
+
+# ----- batched integration, starts, valid windows ------------------------------------------
+
+def test_doubled_runs_share_the_batch_and_equal_separate_integrations():
+    """The 2 dt runs ride in the dt batch (no extra right-hand-side calls) and give the same
+    numbers, bit for bit, as integrating them on their own."""
+    from certify.integrate import simulate_doubled
+
+    vdp = load_system("vdp")
+    net = random_network(2, 1, seed=1)
+    x0 = torch.tensor([[0.5, 0.2], [1.0, -1.0], [0.1, 0.1]], dtype=torch.float64)
+    xh = 0.9 * x0
+    noise = bounded_noise(200, 3, 1, 0.15, 0.01, seed=1)
+    calls = []
+    f = vdp.f
+    vdp.f = lambda s: (calls.append(1), f(s))[1]
+    try:
+        fine, coarse = simulate_doubled(vdp, net, x0, xh, dt=0.01, steps=200, noise=noise,
+                                        doubled=[0, 2], doubled_steps=60)
+    finally:
+        del vdp.f
+    assert len(calls) == 4 * 200  # one f call per stage, the doubled runs included
+    alone = simulate(vdp, net, x0, xh, dt=0.01, steps=200, noise=noise)
+    assert torch.equal(fine.x, alone.x) and torch.equal(fine.xhat, alone.xhat)
+    ref = simulate(vdp, net, x0[[0, 2]], xh[[0, 2]], dt=0.02, steps=60,
+                   noise=noise[:120:2][:, [0, 2]])
+    assert torch.equal(coarse.x, ref.x) and torch.equal(coarse.xhat, ref.xhat)
+
+
+def test_starts_keep_the_plant_in_X_with_small_errors_in_the_P_norm():
+    """Chosen starts: the plant alone stays in X the longest; W(0) = half the room, so xhat(0)
+    is in X; with room for the bound's radius the checkable form is said to hold."""
+    from certify.sim_starts import ellipsoid_room, plant_windows
+
+    vdp = load_system("vdp")
+    P = np.array([[2.0, 0.5], [0.5, 1.0]])
+    ics = initial_conditions(vdp, 6, seed=0, P=P, horizon=5.0, vbar=0.1, L_is_local=True,
+                             radius=0.01)
+    assert ics.labels[0].startswith("source x0") and len(ics.labels) == 6
+    x0, xh0 = ics.x0[1:].numpy(), ics.xhat0[1:].numpy()
+    window, room = plant_windows(vdp, P, ics.x0[1:], horizon=5.0, y_margin=0.1)
+    # VdP's limit cycle leaves X: only starts near the unstable origin stay in for 5 s
+    assert np.all(window >= 4.0) and np.all(np.abs(x0) < 1.0)
+    W0 = np.sqrt(np.einsum("ri,ij,rj->r", x0 - xh0, P, x0 - xh0))
+    assert np.allclose(W0, 0.5 * room, rtol=1e-9)
+    assert np.all(room <= ellipsoid_room(vdp.X, P, x0) + 1e-12)
+    assert np.all((xh0 >= vdp.X[:, 0]) & (xh0 <= vdp.X[:, 1]))
+    assert all("checkable form of 'xhat stays in X' holds" in n for n in ics.notes[1:]
+               if f"room {0.01:.3g}" not in n)
+    wide = initial_conditions(vdp, 3, seed=0, P=P, horizon=5.0, radius=50.0)
+    assert all("cannot hold" in n for n in wide.notes[1:])
+
+
+def test_all_windows_shorter_than_a_time_constant_is_inconclusive():
+    """lam_cert = 0.01 is a true (loose) rate here, its time constant 1/(2 lam) = 50 s; runs
+    of 1 s compare almost nothing: UNKNOWN (inconclusive evidence), not PASSED."""
+    problem = linear_problem()
+    slow = check_bounds(problem, lam_cert=0.01, eps_bar=0.0, L=1.0, vbar=0.15)
+    res = check_simulation(problem, slow, fast(sim_time=1.0), certified=True)
+    assert res.status == Status.UNKNOWN and res.time_constant == pytest.approx(50.0)
+    assert res.message.startswith("inconclusive evidence: no breach")
+    assert all(r.window is not None and r.window <= 1.0 + 1e-9 for r in res.runs)
+    good = check_bounds(problem, lam_cert=0.5, eps_bar=0.0, L=1.0, vbar=0.15)
+    res2 = check_simulation(problem, good, fast(sim_time=2.0), certified=True)
+    assert res2.status == Status.PASSED and res2.time_constant == pytest.approx(1.0)
+
+
+def test_vdp_certified_runs_stay_valid_beyond_a_time_constant():
+    """Issue 8.5: on the certified VdP observer the old random starts left the conditions
+    within 0.03-0.07 s; chosen starts stay valid for more than one time constant."""
+    from certify.checkpoint import load
+
+    ck = load("examples/vdp_certified.ckpt")
+    bounds = check_bounds(ck.problem, lam_cert=2.53, eps_bar=0.0, L=78.7, vbar=0.15,
+                          eps_bar_P=0.0, L_is_local=True)
+    assert bounds.vacuous  # 29.3 > the box's half-diagonal 3.6
+    res = check_simulation(ck.problem, bounds, fast(sim_time=2.0, sim_dt=2e-3,
+                                                    sim_initial_conditions=4),
+                           certified=True)
+    assert res.status == Status.PASSED, res.message
+    chosen = [r for r in res.runs if r.label.startswith("start")]
+    assert len(chosen) == 3 and all(r.window > res.time_constant for r in chosen)
+    assert len(res.message) < 500 and "see the table of runs" in res.message

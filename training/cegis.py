@@ -14,8 +14,9 @@ tangents, and autograd for the small loss head only.
 (`certify.checks.mpdi.falsify_mpdi`: grid + adversarial ascent, float64); if nothing is above
 -margin/2, the sound prover (`certify.prover.prove_mpdi`) with a box budget; then the
 counterexamples (with small seeded jitter) and the centres of the prover's unproved leaf
-boxes (lifted to the coordinates the leaf projection drops by a small search) join the
-collocation set. It stops at the first PROVED round or when the round/time budget is spent.
+boxes (full dimension, or lifted to the coordinates a projection drops by a small search)
+join the collocation set (any number of states and outputs). It stops at the first PROVED
+round or when the round/time budget is spent.
 Nothing here is trusted for the certificate: `certify run` re-verifies the checkpoint.
 
 Seeded and deterministic as long as the in-loop proofs end on their box budget
@@ -34,6 +35,7 @@ import numpy as np
 import torch
 
 from certify.checks.mpdi import falsify_mpdi
+from certify.gain.buffered import ChunkBuffers
 from certify.kernels import mpdi_lam_max, sym
 from certify.network import GainNetwork
 from certify.parallel import torch_threads
@@ -45,7 +47,7 @@ from certify.system import System
 from training import losses
 from training.collocation import collocation_points
 from training.optim import Adam
-from training.train import LossValues, Objective, _Chunk
+from training.train import LossValues, Objective
 
 Log = Callable[[str], None]
 
@@ -173,7 +175,7 @@ class CertObjective(Objective):
         self.r_all = (y.to(torch.float64) - system.h(xhat.to(torch.float64))).to(dt)
         self.m = n + p  # forward tangents for every input column (xhat and y)
         widths = [n + p, *[layer.weight.shape[0] for layer in net.layers]]
-        self.chunks = [_Chunk(ch.Z, ch.C, widths, self.m, not self.structural)
+        self.chunks = [ChunkBuffers(ch.Z, ch.C, widths, self.m, not self.structural)
                        for ch in self.chunks]
         self.last_lip = 0.0
         self.last_lip_max = 0.0  # max ||dk/dy||_F over the collocation points
@@ -229,7 +231,8 @@ class CertObjective(Objective):
 
 
 def warm_start_network(system: System, hidden: tuple[int, ...], *, K: Any = None,
-                       structure: str = "structural", seed: int = 0) -> GainNetwork:
+                       structure: str = "structural", seed: int = 0,
+                       activation: str = "tanh") -> GainNetwork:
     """A float64 network whose MLP output is exactly zero (last layer zero) and whose linear
     injection buffer is K: its gain is exactly K (y - h(xhat)) (K = None: zero gain).
 
@@ -237,7 +240,8 @@ def warm_start_network(system: System, hidden: tuple[int, ...], *, K: Any = None
     """
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))
-        net = GainNetwork(system.n, system.p, hidden, structure=structure).double()
+        net = GainNetwork(system.n, system.p, hidden, structure=structure,
+                          activation=activation).double()
     with torch.no_grad():
         net.layers[-1].weight.zero_()
         net.layers[-1].bias.zero_()
@@ -273,32 +277,52 @@ def jittered(points: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, copies: i
     return torch.cat([points, extra])
 
 
+def leaf_boxes(boxes: dict[str, Any], d: int, statuses: tuple[str, ...] = ("unknown",
+                                                                          "violated")
+               ) -> tuple[torch.Tensor, torch.Tensor, list[int]]:
+    """The prover's leaves with a status in `statuses`: lo, hi [m, k] and the coordinates
+    of X x Y (d of them) they span.
+
+    Leaves come in full dimension (k = d) or projected: `boxes["dims"]` names the k
+    coordinates when present, else they are the first k (the prover's (0, 1) projection).
+    """
+    status = boxes.get("status", [])
+    keep = [i for i, s in enumerate(status) if s in statuses]
+    lo = torch.as_tensor(np.asarray(boxes.get("lo", []), dtype=np.float64).reshape(len(status),
+                                                                                  -1)[keep])
+    hi = torch.as_tensor(np.asarray(boxes.get("hi", []), dtype=np.float64).reshape(len(status),
+                                                                                  -1)[keep])
+    k = lo.shape[1] if lo.ndim == 2 else 0
+    dims = [int(i) for i in boxes.get("dims", range(k))]
+    if len(dims) != k or any(not 0 <= i < d for i in dims) or len(set(dims)) != k:
+        raise ValueError(f"prover leaves span {k} coordinates but name {dims} (of {d})")
+    return lo, hi, dims
+
+
 def unproved_points(problem: Problem, outcome: ProofOutcome, lam: float, *, limit: int,
                     per_leaf: int = 16, generator: torch.Generator) -> torch.Tensor:
-    """Centres of the prover's unproved leaves (status unknown/violated) as points of X x Y.
+    """Points of X x Y inside the prover's unproved leaves (status unknown/violated).
 
-    The prover reports its leaves projected on the first two coordinates; the other
-    coordinates are chosen by a small seeded search (`per_leaf` samples each) for the largest
-    lam_max(D) at that centre. The `limit` worst points are returned, [m, n + p].
+    In each leaf (`leaf_boxes`: full dimension, or projected on some coordinates), `per_leaf`
+    seeded candidates: the leaf's centre and uniform points of the leaf on its coordinates,
+    uniform in X x Y on the others; the one with the largest lam_max(D) is kept. The `limit`
+    worst are returned, [m, n + p]. Any n and p.
     """
-    boxes = outcome.boxes or {}
-    status = boxes.get("status", [])
-    keep = [i for i, s in enumerate(status) if s != "proved"]
     s = problem.system
     full = np.concatenate([s.X, s.Y], 0)
     lo_all = torch.as_tensor(full[:, 0], dtype=torch.float64)
     hi_all = torch.as_tensor(full[:, 1], dtype=torch.float64)
     d = full.shape[0]
-    if not keep or limit <= 0:
+    lo_l, hi_l, dims = leaf_boxes(outcome.boxes or {}, d)
+    m = lo_l.shape[0]
+    if m == 0 or limit <= 0:
         return torch.empty(0, d, dtype=torch.float64)
-    lo2 = torch.as_tensor(np.asarray(boxes["lo"], dtype=np.float64)[keep])
-    hi2 = torch.as_tensor(np.asarray(boxes["hi"], dtype=np.float64)[keep])
-    centres = 0.5 * (lo2 + hi2)  # [m, 2]
-    m = centres.shape[0]
-    proj = min(2, d)
     pts = lo_all + (hi_all - lo_all) * torch.rand(m, per_leaf, d, generator=generator,
                                                   dtype=torch.float64)
-    pts[:, :, :proj] = centres[:, None, :proj]
+    inner = lo_l[:, None] + (hi_l - lo_l)[:, None] * torch.rand(
+        m, per_leaf, len(dims), generator=generator, dtype=torch.float64)
+    inner[:, 0] = 0.5 * (lo_l + hi_l)  # the leaf's centre is always a candidate
+    pts[:, :, dims] = inner
     flat = pts.reshape(-1, d)
     n = problem.n
     with torch.no_grad():
@@ -393,16 +417,24 @@ def _cegis(system: System, network: GainNetwork, P: np.ndarray, lam: float,
         else:
             t0 = time.perf_counter()
             remaining = cs.budget_seconds - (time.perf_counter() - t_start)
-            proof = prove_mpdi(problem, seconds=max(1.0, min(cs.proof_seconds, remaining)),
-                               max_boxes=cs.proof_boxes, seeds=top)
+            try:
+                proof = prove_mpdi(problem, seconds=max(1.0, min(cs.proof_seconds, remaining)),
+                                   max_boxes=cs.proof_boxes, seeds=top)
+            except NotImplementedError as exc:  # the prover cannot enclose this activation
+                proof, status, rstatus = None, Status.UNKNOWN, "UNKNOWN"
+                if str(exc) not in notes:
+                    notes.append(str(exc))
+                    say(notes[-1])
             t_proof = time.perf_counter() - t0
-            status, vol = proof.status, proof.stats.proved_volume_fraction
-            rstatus, upper = proof.status.value, proof.upper
-            if proof.status is Status.VIOLATED and proof.counterexample is not None:
+            if proof is not None:
+                status, vol = proof.status, proof.stats.proved_volume_fraction
+                rstatus, upper = proof.status.value, proof.upper
+            if proof is not None and proof.status is Status.VIOLATED \
+                    and proof.counterexample is not None:
                 c = proof.counterexample
                 pt = torch.tensor([c.xhat + c.y], dtype=torch.float64)
                 new.append(jittered(pt, lo, hi, cs.jitter, cs.jitter_scale, gen))
-            elif proof.status is Status.UNKNOWN:
+            elif proof is not None and proof.status is Status.UNKNOWN:
                 new.append(unproved_points(problem, proof, lam, limit=cs.add_per_round,
                                            generator=gen))
         added = torch.cat(new)[: cs.add_per_round] if new else torch.empty(0, d)

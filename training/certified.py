@@ -123,7 +123,7 @@ def train_certified(system: System, config: TrainConfig, *, P: np.ndarray | None
         K = None
         start = {"source": "--metric (no warm start)", "kappa_P": float(np.linalg.cond(P))}
     net = warm_start_network(system, config.hidden, K=K, structure="structural",
-                             seed=config.seed)
+                             seed=config.seed, activation=config.activation)
     cs = settings or cegis_settings(config)
     if log is not None:
         warm = "none" if K is None else f"K = {np.round(K.numpy().ravel(), 3).tolist()}"

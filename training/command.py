@@ -54,6 +54,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="full-batch Adam iterations (paper: 500)")
     parser.add_argument("--lbfgs-iters", type=int, default=None, dest="lbfgs_iters",
                         help="L-BFGS iterations (paper: 500)")
+    parser.add_argument("--activation", default=None,
+                        help="hidden-layer activation: tanh (default), sigmoid, softplus, silu, "
+                             "elu, gelu (C^1 only: relu is refused)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -131,7 +134,8 @@ def _config_from_args(args: argparse.Namespace, system: Any) -> Any:
     return make_config(system, preset, lam=getattr(args, "lam", None), P=metric,
                        seed=getattr(args, "seed", None), points=getattr(args, "points", None),
                        hidden=hidden, adam_iters=getattr(args, "adam_iters", None),
-                       lbfgs_iters=getattr(args, "lbfgs_iters", None))
+                       lbfgs_iters=getattr(args, "lbfgs_iters", None),
+                       activation=getattr(args, "activation", None))
 
 
 def run_train(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
@@ -153,7 +157,8 @@ def run_train(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     quiet = bool(getattr(args, "quiet", False))
     if not quiet:
         print(f"training {system.name} with preset {config.preset}: lam {config.lam:g}, "
-              f"{config.points} points, hidden {','.join(map(str, config.hidden))}, "
+              f"{config.points} points, hidden {','.join(map(str, config.hidden))} "
+              f"{config.activation}, "
               f"Adam {config.adam_iters} + L-BFGS {config.lbfgs_iters}, seed {config.seed}",
               file=out, flush=True)
     if quiet:

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from certify import activations
 from certify.errors import CertifyError, SettingsError
 from certify.network import STRUCTURES
 from certify.system import System, validate_metric
@@ -30,7 +31,7 @@ DTYPES = ("float32", "float64")
 FLAGS = {
     "lam": "--lam", "P": "--metric", "seed": "--seed", "points": "--points",
     "hidden": "--hidden", "adam_iters": "--adam-iters", "lbfgs_iters": "--lbfgs-iters",
-    "preset": "--preset",
+    "preset": "--preset", "activation": "--activation",
 }
 
 
@@ -56,6 +57,7 @@ class TrainConfig:
     margin: float = 0.0  # eigenvalue losses only: penalise lam_max(D) > -margin
     structure: str = "direct"
     dtype: str = "float32"
+    activation: str = "tanh"  # a C^1 activation of certify.activations
 
     def __post_init__(self) -> None:
         validate(self)
@@ -122,6 +124,12 @@ def validate(c: TrainConfig) -> None:
         raise _fail("structure", f"one of {list(STRUCTURES)}", c.structure)
     if c.dtype not in DTYPES:
         raise _fail("dtype", f"one of {list(DTYPES)}", c.dtype)
+    if not isinstance(c.activation, str):
+        raise _fail("activation", f"one of {activations.names()}", c.activation)
+    try:
+        activations.get(c.activation)
+    except ValueError as exc:
+        raise SettingsError(f"training: activation (--activation): {exc}") from None
 
 
 def check_for_system(c: TrainConfig, system: System) -> None:

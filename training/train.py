@@ -5,10 +5,12 @@ its Jacobian in xhat, and the gradient of the loss with respect to the weights. 
 autograd implementation (double backward) costs about 45 ms per evaluation here; this module
 instead evaluates the MLP trunk by hand:
 
-- forward mode for the n Jacobian columns, value and tangent rows stacked in one buffer so
-  each layer is one or two matrix products (no Python loop over points);
-- a hand-written reverse pass through that forward-mode computation (the derivative of
-  s = 1 - tanh^2 is -2 tanh s, so the second-order term costs one fused multiply-add);
+- forward mode for the n Jacobian columns by the one propagation of the gain
+  (`certify.gain.propagate` with `certify.gain.buffered.ChunkArithmetic`): value and tangent
+  rows stacked in one buffer so each layer is one matrix product (no Python loop over points);
+- a hand-written reverse pass through that forward-mode computation; the activation's own
+  reverse rule (`Activation.chain_pre`) brings in f'' (for tanh, f'' = -2 f f': one fused
+  multiply-add);
 - preallocated buffers, float32 (the checkpoint and the verifier stay float64);
 - autograd only for the small loss head on [B, n, n] matrices, so any n, p, either structure,
   the linear injection K and every loss kind share one code path.
@@ -30,6 +32,8 @@ from typing import Any
 import torch
 
 from certify.checkpoint import versions
+from certify.gain import propagate
+from certify.gain.buffered import ChunkArithmetic, ChunkBuffers
 from certify.kernels import sym
 from certify.network import GainNetwork
 from certify.parallel import torch_threads
@@ -61,32 +65,6 @@ class LossValues:
         return {"total": self.total, "mpdi": self.mpdi, "bc": self.bc}
 
 
-class _Chunk:
-    """Constants and work buffers for one chunk of C collocation points."""
-
-    def __init__(self, Z: torch.Tensor, C: int, widths: list[int], m: int,
-                 with_bc: bool) -> None:
-        self.C = C
-        self.R = self.C * (2 if with_bc else 1)  # value rows: collocation (+ BC) points
-        self.Z = Z
-        rows, dt = self.R + m * self.C, Z.dtype
-        self.pre = [torch.empty(self.R, widths[1], dtype=dt)]  # layer 0: value rows only
-        self.X: list[torch.Tensor] = [Z]
-        self.S: list[torch.Tensor] = [torch.empty(0)]
-        self.G = [torch.empty(self.R, widths[1], dtype=dt)]
-        self.GX: list[torch.Tensor] = [torch.empty(0)]
-        for i in range(1, len(widths) - 1):
-            self.X.append(torch.empty(rows, widths[i], dtype=dt))
-            self.S.append(torch.empty(self.R, widths[i], dtype=dt))
-            self.pre.append(torch.empty(rows, widths[i + 1], dtype=dt))
-            self.G.append(torch.empty(rows, widths[i + 1], dtype=dt))
-            self.GX.append(torch.empty(rows, widths[i], dtype=dt))
-        self.gs = [torch.empty(self.C, w, dtype=dt) for w in widths]
-        self.ones = torch.ones(self.R, dtype=dt)
-        self.grads = [torch.empty(b, a, dtype=dt) if k == 0 else torch.empty(b, dtype=dt)
-                      for a, b in zip(widths[:-1], widths[1:]) for k in (0, 1)]
-
-
 class Objective:
     """The training loss of `net` over fixed collocation points, with its weight gradient.
 
@@ -107,6 +85,7 @@ class Objective:
         self.N = xhat.shape[0]
         self.weights, self.loss, self.margin = weights, loss, float(margin)
         self.structural = net.structure == "structural"
+        self.spec = net.spec()  # references the parameters: optimisers update them in place
         self.params: list[torch.Tensor] = []
         for layer in net.layers:
             self.params += [layer.weight, layer.bias]
@@ -126,13 +105,13 @@ class Objective:
         self.D0 = D0.to(dt).contiguous()
         self.r = (y64 - hx).to(dt) if self.structural else None
         self.Hx = Hx.to(dt) if (self.structural and Hx is not None) else None
-        self.chunks: list[_Chunk] = []
+        self.chunks: list[ChunkBuffers] = []
         for lo in range(0, self.N, max(1, int(chunk_points))):
             hi = min(self.N, lo + int(chunk_points))
             z = torch.cat([x64[lo:hi], y64[lo:hi]], dim=1)
             if not self.structural:  # BC rows: k(x, h(x)); zero by construction if structural
                 z = torch.cat([z, torch.cat([x64[lo:hi], hx[lo:hi]], dim=1)], dim=0)
-            self.chunks.append(_Chunk(z.to(dt).contiguous(), hi - lo, widths, self.m,
+            self.chunks.append(ChunkBuffers(z.to(dt).contiguous(), hi - lo, widths, self.m,
                                       not self.structural))
         self.evaluations = 0
         self.workers = max(1, min(int(workers), len(self.chunks)))
@@ -156,29 +135,18 @@ class Objective:
 
     # ----- trunk: forward mode with stacked value/tangent rows ---------------------------
     @torch.no_grad()
-    def _forward(self, ch: _Chunk) -> tuple[torch.Tensor, torch.Tensor]:
-        Ws, bs = self.params[0::2], self.params[1::2]
-        R, C, m = ch.R, ch.C, self.m
-        torch.mm(ch.Z, Ws[0].T, out=ch.pre[0]).add_(bs[0])
-        w0t = Ws[0][:, :m].T  # [m, h0]: the first layer's tangent, the same at every point
-        one = torch.ones((), dtype=ch.Z.dtype)
-        for i in range(1, len(Ws)):
-            X, S = ch.X[i], ch.S[i]
-            t = X[:R]
-            torch.tanh(ch.pre[i - 1][:R], out=t)
-            torch.addcmul(one, t, t, value=-1.0, out=S)  # s = 1 - tanh^2
-            A = X[R:].view(m, C, -1)
-            U = w0t.unsqueeze(1) if i == 1 else ch.pre[i - 1][R:].view(m, C, -1)
-            torch.mul(S[:C].unsqueeze(0), U, out=A)
-            torch.mm(X, Ws[i].T, out=ch.pre[i])  # value and tangent rows at once
-            ch.pre[i][:R].add_(bs[i])  # the bias enters the value rows only
-        last = ch.pre[-1]
-        return last[:R], last[R:].view(m, C, -1)
+    def _forward(self, ch: ChunkBuffers) -> tuple[torch.Tensor, torch.Tensor]:
+        """N and its first m input derivatives at the chunk's points, by the one propagation
+        (`certify.gain.propagate`) over the chunk's buffers: value rows [R, out] and
+        tangents [m, C, out]."""
+        out = propagate(self.spec, ChunkArithmetic(ch), ch.Z, self.m)
+        return out.value, out.jac
 
     @torch.no_grad()
-    def _backward(self, ch: _Chunk, g_val: torch.Tensor, g_tan: torch.Tensor) -> None:
+    def _backward(self, ch: ChunkBuffers, g_val: torch.Tensor, g_tan: torch.Tensor) -> None:
         """Reverse pass through `_forward`: this chunk's weight gradient into `ch.grads`."""
         Ws = self.params[0::2]
+        act = self.spec.activation
         grads = ch.grads
         R, C, m = ch.R, ch.C, self.m
         L = len(Ws) - 1
@@ -205,8 +173,8 @@ class Objective:
                 for j in range(1, m):
                     gs.addcmul_(gA[j], U[j])
                 torch.mul(gA, S[:C].unsqueeze(0), out=ch.G[i - 1][R:].view(m, C, -1))
-            gt[:C].addcmul_(gs, X[:C], value=-2.0)  # ds/dpre = -2 tanh s
-            torch.mul(gt, S, out=ch.G[i - 1][:R])
+            # through a = f(pre), s = f'(pre): d/dpre = gt f' + gs f'' (tangent rows only)
+            act.chain_pre(gt, gs, ch.pre[i - 1][:R], X[:R], S, ch.G[i - 1][:R])
         G0 = ch.G[0]
         torch.mm(G0.T, ch.Z, out=grads[0])
         grads[0][:, :m].add_(w0_tangent_grad)
@@ -336,7 +304,8 @@ def _new_network(system: System, config: TrainConfig) -> GainNetwork:
     """The initial network, seeded without touching the global RNG state."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
-        net = GainNetwork(system.n, system.p, config.hidden, structure=config.structure)
+        net = GainNetwork(system.n, system.p, config.hidden, structure=config.structure,
+                          activation=config.activation)
     return net.to(getattr(torch, config.dtype))
 
 

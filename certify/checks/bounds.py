@@ -7,6 +7,12 @@ on the boundary-condition residual over X) and `L` (a sound Lipschitz bound of k
 Nothing here is sampled: a bound is applicable only when every input is a finite sound
 number, and its conditions of validity (a)-(d) are stated beside it in words.
 
+Status words: PROVED (a bound holds); NOT APPLICABLE when lam_cert <= 0 (no contraction, so
+no bound exists at all); UNKNOWN when an input is not finite or not a valid bound; SKIPPED
+when an input was not established. A proved ultimate bound larger than half the diagonal of
+X is true but says little: the result is marked `vacuous` and its message says "valid but
+vacuous: larger than the box".
+
 Bounds, with e = x - xhat, W = ||P^(1/2) e||, c = ||P^(1/2)||_2 (eps_bar + L vbar):
 
 - theorem3 (P = I, lam > 2, eta = lam - 2):
@@ -162,8 +168,9 @@ def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | N
 
     All inputs must be sound: `lam_cert` a proved lower bound on the rate (metric
     `problem.P`), `eps_bar`, `L` (and `eps_bar_P`, `L_P`) proved upper bounds. PROVED when the
-    ISS bound is applicable; SKIPPED when an input was not established (None); UNKNOWN when
-    one is not finite or lam_cert <= 0.
+    ISS bound is applicable; NOT APPLICABLE when lam_cert <= 0 (no bound exists); SKIPPED
+    when an input was not established (None); UNKNOWN when one is not finite or negative.
+    A proved ultimate bound above half the diagonal of X is flagged `vacuous`.
     """
     if vbar is None or isinstance(vbar, bool) or not math.isfinite(float(vbar)) or vbar < 0:
         raise SettingsError(f"settings noise must be a number >= 0; got {vbar!r}")
@@ -186,6 +193,7 @@ def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | N
     elif lam <= 0:
         invalid.append(f"lam_cert = {lam:.6g} <= 0: no contraction was certified, so no bound "
                        "exists")
+    no_rate = lam is not None and math.isfinite(lam) and lam <= 0
     for nm, v, what in (("eps_bar", eps, "the residual check"),
                         ("L", Lf, "the Lipschitz check")):
         r = _describe_missing(nm, v, what)
@@ -235,23 +243,38 @@ def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | N
         c = sqrtP_norm * (eps + Lf * vbar)  # type: ignore[operator]
     validity = validity_conditions(problem, vbar=vbar, L_is_local=L_is_local, c=c, lam=lam)
 
+    half_diagonal = box_half_diagonal(problem)
+    vacuous = False
     if iss.applicable:
         assert lam is not None
         applicable = [b for b in (theorem3, iss, iss_metric) if b.applicable]
         best = min(applicable, key=lambda b: float(b.bias or 0.0))
         t3 = (f"applicable, ultimate bound {theorem3.bias:.4g}" if theorem3.applicable
               else f"not applicable ({theorem3.reason})")
+        vacuous = float(best.bias or 0.0) > half_diagonal
+        size = (f"; valid but vacuous: larger than the box, whose half-diagonal is "
+                f"{half_diagonal:.4g}" if vacuous else "")
         status = Status.PROVED
         msg = (f"error bound proved at vbar = {vbar:g}: the error contracts at rate "
                f"2 lam_cert = {2 * lam:.4g} in the P-norm; ultimate bound on ||e|| "
-               f"{best.bias:.4g} ({best.name}); Theorem 3 as stated: {t3}. Valid only under "
-               "conditions (a)-(d).")
+               f"{best.bias:.4g} ({best.name}{size}); Theorem 3 as stated: {t3}. Valid only "
+               "under conditions (a)-(d).")
+    elif no_rate and not [r for r in invalid if not r.startswith("lam_cert")]:
+        status = Status.NOT_APPLICABLE
+        msg = "no error bound exists: " + "; ".join(common)
     else:
         status = Status.UNKNOWN if invalid else Status.SKIPPED
         msg = "no error bound: " + "; ".join(common)
     return BoundsResult(status=status, message=msg, vbar=vbar, lam_cert=lam, eps_bar=eps, L=Lf,
                         theorem3=theorem3, iss=iss, iss_metric=iss_metric, validity=validity,
-                        kappa_P=kappa, L_is_local=bool(L_is_local))
+                        kappa_P=kappa, L_is_local=bool(L_is_local),
+                        box_half_diagonal=half_diagonal, vacuous=vacuous)
+
+
+def box_half_diagonal(problem: Problem) -> float:
+    """Half the Euclidean diagonal of X: the largest ||x - c|| over X from its centre."""
+    X = np.asarray(problem.system.X, dtype=np.float64)
+    return float(0.5 * np.linalg.norm(X[:, 1] - X[:, 0]))
 
 
 def initial_value(which: str, e0: np.ndarray, P: np.ndarray) -> np.ndarray:
@@ -308,12 +331,14 @@ def ultimate_bound_per_unit_noise(*, lam_cert: float | None, eps_bar: float | No
 
 # ----------------------------------------------------------------------------- check protocol
 
-def _bias_quantity(label: str, b: BoundResult | None) -> Quantity:
+def _bias_quantity(label: str, b: BoundResult | None, r: BoundsResult) -> Quantity:
     if b is None:
         return Quantity(label, None, "not computed")
     if not b.applicable:
-        return Quantity(label, None, "not applicable")
-    return Quantity(label, b.bias)
+        return Quantity(label, None, "no bound exists" if r.status == Status.NOT_APPLICABLE
+                        else "not applicable")
+    big = r.box_half_diagonal is not None and float(b.bias or 0.0) > r.box_half_diagonal
+    return Quantity(label, b.bias, suffix=" (vacuous: larger than the box)" if big else "")
 
 
 class BoundsCheck(Check):
@@ -328,8 +353,11 @@ class BoundsCheck(Check):
     def run(self, context: Context) -> BoundsResult:
         rate, res, lip = (context.result(n) for n in ("rate", "residual", "lipschitz"))
         lam_cert = None
-        if rate is not None:  # a sampled rate <= 0 already rules a bound out; else the proof
-            lam_cert = rate.sampled_upper if rate.sampled_upper <= 0 else rate.proved_lower
+        if rate is not None:  # a witnessed rate <= 0 (VIOLATED) rules a bound out; else proof
+            violated = rate.status == Status.VIOLATED and rate.sampled_upper <= 0
+            lam_cert = rate.sampled_upper if violated else rate.proved_lower
+            if not violated and lam_cert is not None and lam_cert <= 0:
+                lam_cert = None  # a proved lower bound <= 0 is no rate, but not "none exists"
         # sup ||P^(1/2) k(x, h(x))|| is known exactly only when k vanishes there by design
         eps_bar_P = 0.0 if res is not None and res.structural else None
         return check_bounds(
@@ -340,7 +368,9 @@ class BoundsCheck(Check):
 
     def present(self, r: BoundsResult, certificate: Any) -> Presentation:
         numbers = [Quantity("vbar", r.vbar, sig=6), Quantity("lam_cert", r.lam_cert, sig=6),
-                   Quantity("eps_bar", r.eps_bar, sig=6), Quantity("L", r.L, sig=6)]
+                   Quantity("eps_bar", r.eps_bar, sig=6), Quantity("L", r.L, sig=6),
+                   Quantity("box half-diagonal", r.box_half_diagonal, sig=6),
+                   Quantity("vacuous (larger than the box)", r.vacuous)]
         for b in (r.theorem3, r.iss, r.iss_metric):
             if b is not None and b.applicable:
                 numbers += [Quantity(f"{b.name} bias", b.bias, sig=6),
@@ -349,15 +379,19 @@ class BoundsCheck(Check):
             elif b is not None:
                 numbers.append(Quantity(b.name, f"not applicable: {b.reason}"))
         return Presentation(
-            sampled=_bias_quantity("Theorem 3 (as stated): ultimate bias", r.theorem3),
-            proved=_bias_quantity("ISS bound: ultimate bias", r.iss),
+            sampled=_bias_quantity("Theorem 3 (as stated): ultimate bias", r.theorem3, r),
+            proved=_bias_quantity("ISS bound: ultimate bias", r.iss, r),
             setting=(Quantity("v\u0304 =", r.vbar),
                      Quantity("\u03bb_cert used:", r.lam_cert, "none")),
             numbers=tuple(numbers),
             facts=(Quantity("Status", r.status.value), Quantity("Noise level v\u0304", r.vbar),
                    Quantity("\u03bb_cert used", r.lam_cert, "none: no bound"),
                    Quantity("\u03b5\u0304 used", r.eps_bar), Quantity("L used", r.L),
-                   Quantity("cond(P)", r.kappa_P)))
+                   Quantity("cond(P)", r.kappa_P),
+                   Quantity("Half-diagonal of X", r.box_half_diagonal, "not recorded"),
+                   Quantity("Size", ("valid but vacuous: larger than the box" if r.vacuous
+                                     else "smaller than the box") if r.status == Status.PROVED
+                            else None, "no bound")))
 
 
 CHECK = BoundsCheck()

@@ -28,6 +28,7 @@ from certify.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import LipschitzResult, Status
 from certify.settings import VerifySettings
+from certify.witness import dk_dy_norm_lower
 
 _F64 = torch.float64
 _NULL_PROGRESS = NullProgress()
@@ -47,12 +48,13 @@ def sqrtm_psd(P: np.ndarray) -> np.ndarray:
 
 
 def naive_bound(net: GainNetwork, n: int, out: np.ndarray | None = None) -> float:
-    """prod ||W_i||_2 over the y-path (tanh is 1-Lipschitz) + ||K||_2, rounded up; direct only."""
+    """prod ||W_i||_2 over the y-path times Lip(f)^H (tanh: 1) + ||K||_2, rounded up; direct
+    only."""
     Ws, Wo = mlp_in_y(net, n)
     K = net.K.detach().to(_F64).numpy()
     if out is not None:
         Wo, K = out @ Wo, out @ K
-    prod = float(np.prod([np.linalg.norm(W, 2) for W in [*Ws, Wo]]))
+    prod = float(np.prod([np.linalg.norm(W, 2) for W in [*Ws, Wo]])) * net.act.lipschitz ** len(Ws)
     return (prod + float(np.linalg.norm(K, 2))) * _ROUND_UP ** (len(Ws) + 3)
 
 
@@ -60,16 +62,19 @@ def structural_local_naive(problem: Problem) -> float | None:
     """A sound bound on sup ||dk/dy||_2 over X x Y for k = G (y - h) + K (y - h).
 
     dk/dy dy = reshape(dN/dy dy) r + (G + K) dy, so ||dk/dy|| <= L_N ||r||max + ||G||max +
-    ||K||, with L_N the naive constant of the MLP in y, ||G||_2 <= ||G||_F <= || |W_out| 1 +
-    |b_out| ||_2 (|tanh| <= 1) and ||r|| from the interval enclosure of h over X.
+    ||K||, with L_N the naive constant of the MLP in y, ||G||_2 <= ||G||_F <= || |W_out| 1 c +
+    |b_out| ||_2 (c = sup |f|: 1 for tanh; None for an unbounded activation) and ||r|| from
+    the interval enclosure of h over X.
     """
     from certify.intervals import h_enclosure
 
     net, system = problem.network, problem.system
     Ws, Wo = mlp_in_y(net, system.n)
-    LN = float(np.prod([np.linalg.norm(W, 2) for W in [*Ws, Wo]]))
+    if not math.isfinite(net.act.value_bound):
+        return None
+    LN = float(np.prod([np.linalg.norm(W, 2) for W in [*Ws, Wo]])) * net.act.lipschitz ** len(Ws)
     b = net.layers[-1].bias.detach().to(_F64).numpy()
-    Gmax = float(np.linalg.norm(np.abs(Wo).sum(1) + np.abs(b)))
+    Gmax = float(np.linalg.norm(np.abs(Wo).sum(1) * net.act.value_bound + np.abs(b)))
     X = torch.as_tensor(system.X, dtype=_F64)
     hl, hh = h_enclosure(system, X[None, :, 0], X[None, :, 1])
     hl, hh = hl[0].numpy(), hh[0].numpy()
@@ -85,19 +90,25 @@ def dk_dy_norms(problem: Problem, z: torch.Tensor) -> torch.Tensor:
     """||dk/dy(xhat, y)||_2 at z = (xhat, y) [B, n+p] -> [B] (differentiable; NaN stays NaN)."""
     n = problem.n
     J = gain_terms(problem.system, problem.network, z[:, :n], z[:, n:], with_dy=True).dk_dy
-    if J.shape[-1] == 1:
-        return torch.linalg.vector_norm(J[..., 0], dim=-1)
     finite = torch.isfinite(J).all(dim=-1).all(dim=-1)
     safe = torch.where(finite[:, None, None], J, torch.zeros_like(J))  # SVD fails on NaN
-    return torch.where(finite, torch.linalg.matrix_norm(safe, ord=2),
-                       torch.full_like(J[:, 0, 0], float("nan")))
+    # scale by a power of two per point (exact) so that huge gains do not overflow the norm
+    e = torch.frexp(safe.detach().abs().amax((-1, -2)).clamp_min(2.0 ** -1000)).exponent
+    safe = torch.ldexp(safe, -e[:, None, None])
+    if J.shape[-1] == 1:
+        norm = torch.linalg.vector_norm(safe[..., 0], dim=-1)
+    else:
+        norm = torch.linalg.matrix_norm(safe, ord=2)
+    return torch.where(finite, torch.ldexp(norm, e), torch.full_like(J[:, 0, 0], float("nan")))
 
 
 def sampled_lower(problem: Problem, points: int = 20_000, starts: int = 16, steps: int = 60,
                   seed: int = 0) -> tuple[float, list[float]]:
     """max ||dk/dy||_2 over a grid of X x Y, then projected ascent from the best points.
 
-    Every value is a float64 evaluation at a concrete point: a lower bound on the supremum.
+    The search runs on float64 values; the number returned is a SOUND lower bound of
+    ||dk/dy||_2 at the best point found (`certify.witness.dk_dy_norm_lower`), so it is a
+    lower bound on the supremum whatever the rounding.
     """
     box = np.vstack([problem.system.X, problem.system.Y])
     out = maximize_over_box(lambda z: dk_dy_norms(problem, z), box[:, 0], box[:, 1],
@@ -105,7 +116,8 @@ def sampled_lower(problem: Problem, points: int = 20_000, starts: int = 16, step
                             task="Lipschitz grid")
     if not math.isfinite(out.best_value):
         return float("nan"), out.best_point.tolist()
-    return float(out.best_value), out.best_point.tolist()
+    sound = float(dk_dy_norm_lower(problem, torch.as_tensor(out.best_point)[None])[0])
+    return (sound if math.isfinite(sound) else float("nan")), out.best_point.tolist()
 
 
 def lipsdp_for(problem: Problem, metric_weighted: bool = False,
@@ -123,7 +135,7 @@ def lipsdp_for(problem: Problem, metric_weighted: bool = False,
         L = float(np.linalg.norm(Wo[:, problem.n:] + K, 2)) * _ROUND_UP
         return sdp.SdpResult(Status.PROVED, "affine in y: exact", L, solver="closed-form",
                              raw_value=L, verified=True)
-    return sdp.lipsdp_neuron(Ws, Wo, K, method=method)
+    return sdp.lipsdp_neuron(Ws, Wo, K, method=method, slope=net.act.slope_bounds)
 
 
 def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
@@ -194,7 +206,7 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
         status, msg = Status.UNKNOWN, "no finite sound bound; " + "; ".join(parts)
     elif not math.isfinite(sampled):
         status, msg = Status.UNKNOWN, "dk/dy is NaN/Inf at some points; " + "; ".join(parts)
-    elif sampled > value * (1 + 1e-9) + 1e-12:
+    elif sampled > value:  # both sound: a sound lower bound above a sound upper one
         status = Status.ERROR
         msg = (f"BUG: sampled ||dk/dy|| = {sampled:.6g} at {where} exceeds the sound bound "
                f"{value:.6g} ({which}); " + "; ".join(parts))

@@ -25,6 +25,7 @@ from certify.intervals import h_enclosure, jacobian_f_enclosure
 from certify.prover import kernel_basis_with_error
 from certify.results import MetricResult, Status
 from certify.system import System
+from certify.witness import invisible_mode_certified
 
 DEFAULT_MARGIN = 1e-2
 DEFAULT_KAPPA_MAX = 1e4
@@ -218,7 +219,7 @@ def _diagnose(system: System, lam: float, margin: float, Z: np.ndarray, C: np.nd
     """Why the vertex SDP failed: a pointwise witness, a sampled infeasibility, or neither."""
     x = _grid(system, grid_points)
     w = unobservable_witness(system, lam, x, C)
-    if w is not None:
+    if w is not None and invisible_mode_certified(system, C, lam, w[0], w[1]):
         xw, mu, _ = w
         yw = system.h(torch.as_tensor(xw[None])).numpy()[0]
         tiny = 1e-12 * (1.0 + abs(mu))
@@ -236,11 +237,16 @@ def _diagnose(system: System, lam: float, margin: float, Z: np.ndarray, C: np.nd
     J = system.jac_f(x).numpy()
     take = np.linspace(0, len(J) - 1, min(len(J), 400)).astype(int)
     res = sdp.metric_sdp(J[take], Z, lam, margin=margin, kappa_max=kappa_max)
+    if w is not None:
+        return (Status.UNKNOWN, f"numerical evidence, not a proof: at xhat = {_fmt(w[0])} the "
+                f"linearisation seems to have a mode {w[1].real:.4g} that the output does not "
+                f"see (PBH residual {w[2]:.2g}) and that is not faster than -2 lam; it could "
+                "not be confirmed in exact interval arithmetic", w[0].tolist(), None)
     if res.status is Status.VIOLATED:
-        return (Status.VIOLATED, f"no constant metric with cond P <= {kappa_max:g} satisfies "
+        return (Status.UNKNOWN, f"numerical evidence, not a proof: the solver (Clarabel) "
+                f"reports that no constant metric with cond P <= {kappa_max:g} satisfies "
                 f"the kernel condition with margin {margin:g} even at {len(take)} sampled "
-                "points of X (Clarabel: infeasible); every point is feasible on its own, so "
-                "the obstruction is that no single P fits all of them", None, None)
+                "points of X; the infeasibility certificate is not verified", None, None)
     return (Status.UNKNOWN, "the SDP over the vertex enclosure failed "
             f"({res.message}) but sampled points admit a metric: the interval enclosure of "
             "Jf is too coarse; raise `subdivisions` or reduce the margin", None, None)

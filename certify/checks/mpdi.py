@@ -22,6 +22,7 @@ from certify.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import Counterexample, MpdiResult, Status
 from certify.settings import VerifySettings
+from certify.witness import is_witness, mpdi_lower
 
 
 def joint_box(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
@@ -54,6 +55,19 @@ def counterexamples_from(search: SearchOutcome, n: int, above: float | None = No
     return out
 
 
+def sound_counterexamples(problem: Problem, candidates: list[Counterexample],
+                          lam: float | None = None) -> list[Counterexample]:
+    """The candidates whose SOUND lower bound of lam_max(D) is > 0 (`certify.witness`), with
+    that bound recorded; the others are near-ties (float error could make them look > 0)."""
+    if not candidates:
+        return []
+    z = torch.tensor([[*c.xhat, *c.y] for c in candidates], dtype=torch.float64)
+    bounds = mpdi_lower(problem, z, lam).tolist()
+    for c, b in zip(candidates, bounds):
+        c.sound_bound = float(b)
+    return [c for c in candidates if is_witness(c.sound_bound)]
+
+
 def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | None = None,
                  progress: Progress | None = None) -> SearchOutcome:
     """Grid + adversarial search for the largest lam_max(D) (float64 values throughout).
@@ -61,13 +75,25 @@ def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | Non
     The grid is swept with a float32 copy of the kernel as a screen; every point that could be
     above 0 and every top candidate is re-evaluated in float64 (see `maximize_over_box`).
     """
+    from certify.device import resolve_device
+    from certify.executor import current_executor
+
+    device = resolve_device(settings.device)
+    problem = problem.on(device)  # the grid and the ascent run on settings.device
     lo, hi = joint_box(problem)
     exact = GridKernel(problem, lam)
     screen = GridKernel(problem, lam, dtype=torch.float32) if settings.float32_screen else None
+    executor, remote = current_executor(), None
+    if executor.workers > 1:  # the sweep on the run's Dask workers (certify.remote)
+        from certify.remote import mpdi_grid_chunk, mpdi_payload
+
+        remote = (executor, mpdi_grid_chunk, mpdi_payload(
+            problem, exact.lam, settings.float32_screen, settings.device))
     return maximize_over_box(exact, lo, hi, grid_points=settings.grid_points,
                              starts=settings.adversarial_starts, steps=settings.adversarial_steps,
                              top_k=settings.top_counterexamples, seed=settings.seed,
-                             screen=screen, progress=progress, task="MPDI grid")
+                             screen=screen, progress=progress, task="MPDI grid", remote=remote,
+                             device=device)
 
 
 def check_mpdi(problem: Problem, settings: VerifySettings, *,
@@ -88,13 +114,16 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
         return MpdiResult(status=Status.UNKNOWN, upper=None, seconds=time.perf_counter() - t0,
                           message=f"lam_max(D) is NaN/Inf at {search.nonfinite} grid points: "
                                   "nothing can be proved", **common)
-    if search.best_value > 0:
-        cex = counterexamples_from(search, n, above=0.0)
+    cex = sound_counterexamples(problem, counterexamples_from(search, n, above=0.0))
+    near_tie = search.best_value > 0 and not cex
+    if cex:
+        common["worst"] = cex[0]
         return MpdiResult(
             status=Status.VIOLATED, upper=None, counterexamples=cex,
             seconds=time.perf_counter() - t0,
             message=(f"D is not negative semidefinite: lam_max(D) = {search.best_value:.4g} > 0 "
-                     f"at xhat={_fmt(cex[0].xhat)}, y={_fmt(cex[0].y)}; "
+                     f"at xhat={_fmt(cex[0].xhat)}, y={_fmt(cex[0].y)} (sound lower bound "
+                     f"{cex[0].sound_bound:.3g}); "
                      f"{100 * search.above_fraction:.3g}% of {search.grid_points} grid points "
                      "violate it"), **common)
     seeds = torch.as_tensor(search.top_points, dtype=torch.float64)
@@ -112,13 +141,22 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
         return MpdiResult(status=Status.VIOLATED, upper=outcome.upper, counterexamples=[cex],
                           proof=outcome.stats, seconds=time.perf_counter() - t0,
                           message=(f"prover found lam_max(D) = {cex.value:.4g} > 0 at "
-                                   f"xhat={_fmt(cex.xhat)}, y={_fmt(cex.y)}"), **common)
+                                   f"xhat={_fmt(cex.xhat)}, y={_fmt(cex.y)} (sound lower "
+                                   f"bound {cex.sound_bound:.3g})"), **common)
     if outcome.status == Status.PROVED and outcome.upper is not None and outcome.upper <= 0:
         return MpdiResult(status=Status.PROVED, upper=outcome.upper, proof=outcome.stats,
                           seconds=time.perf_counter() - t0,
                           message=(f"proved D <= 0 on all of X x Y: max lam_max(D) in "
                                    f"[{common['lower']:.4g}, {outcome.upper:.4g}]"), **common)
     best = "none" if outcome.upper is None else f"{outcome.upper:.4g}"
+    if near_tie or common["lower"] > 0:
+        return MpdiResult(
+            status=Status.UNKNOWN, upper=outcome.upper, proof=outcome.stats,
+            seconds=time.perf_counter() - t0,
+            message=(f"near-tie: lam_max(D) evaluates to {common['lower']:.4g} > 0 in float64, "
+                     "but no point has a sound lower bound > 0 (the value is within rounding "
+                     f"error of 0); best proved upper bound {best}: neither proved nor "
+                     "violated"), **common)
     return MpdiResult(
         status=Status.UNKNOWN, upper=outcome.upper, proof=outcome.stats,
         seconds=time.perf_counter() - t0,

@@ -30,12 +30,14 @@ from certify.checks.metric import (
     sub_boxes,
 )
 from certify.falsify import projected_ascent
+from certify.intervals import h_enclosure
 from certify.kernels import lam_max
 from certify.progress import NullProgress, Progress
 from certify.prover import kernel_basis_with_error
 from certify.results import NecessaryResult, Status
 from certify.settings import VerifySettings
 from certify.system import System, validate_metric
+from certify.witness import is_witness, manifold_lower
 
 _F64 = torch.float64
 _NULL_PROGRESS = NullProgress()
@@ -246,6 +248,18 @@ def vertex_upper_bound(system: System, P: np.ndarray, lam: float, subdivisions: 
     return float(vals.max() + 64 * n * np.finfo(float).eps * (Snorm + 1.0) + 3 * z_err * Snorm)
 
 
+def sound_witness_value(system: System, P: np.ndarray, lam: float, x: torch.Tensor
+                        ) -> float:
+    """Sound lower bound of q at x (`certify.witness.manifold_lower`), or NaN when h(x) is
+    not soundly inside Y (then x is no witness on the manifold)."""
+    x = torch.as_tensor(x, dtype=_F64).reshape(1, -1)
+    hl, hh = h_enclosure(system, x, x)
+    Y = torch.as_tensor(system.Y, dtype=_F64)
+    if not bool(((hl >= Y[:, 0]) & (hh <= Y[:, 1])).all()):
+        return float("nan")
+    return float(manifold_lower(system, P, lam, x)[0])
+
+
 # ----------------------------------------------------------------------------------------
 # the check
 # ----------------------------------------------------------------------------------------
@@ -324,12 +338,13 @@ def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
         with torch.no_grad():
             price, chord = residual_price(system, Pt, lam, torch.stack(dirs), x[sel])
     progress.update(task)
-    ytol = 1e-12 * (1.0 + float(np.abs(Pn).max()) * (1.0 + 2 * lam))
     upper: float | None = None
-    if q_max > ytol:
+    q_sound = sound_witness_value(system, Pn, lam, xw) if q_max > 0 else None
+    if is_witness(q_sound):
         status = Status.VIOLATED
-        msg = (f"q = {q_max:.6g} > 0 at xhat = {_fmt(xw)}, y = {_fmt(y_w)}: no C^1 gain meets "
-               "the MPDI and the boundary condition together with this P and lam")
+        msg = (f"q = {q_max:.6g} > 0 at xhat = {_fmt(xw)}, y = {_fmt(y_w)} (sound lower bound "
+               f"{q_sound:.3g}): no C^1 gain meets the MPDI and the boundary condition "
+               "together with this P and lam")
     else:
         upper = vertex_upper_bound(system, Pn, lam)
         if upper is None or upper > 0:
@@ -345,6 +360,11 @@ def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
             status = Status.PROVED
             msg = (f"q <= {upper:.4g} on all of {{xhat in X : h(xhat) in Y}} (sound bound); "
                    f"largest value found {q_max:.4g}")
+        elif q_max > 0:
+            status = Status.UNKNOWN
+            msg = (f"near-tie: q evaluates to {q_max:.4g} > 0 at xhat = {_fmt(xw)} in float64, "
+                   "but no sound lower bound > 0 there (within rounding error of 0) and no "
+                   f"sound bound <= 0 (best {upper if upper is not None else 'none'})")
         else:
             status = Status.UNKNOWN
             msg = (f"largest q found {q_max:.4g} <= 0, but no sound bound <= 0 "

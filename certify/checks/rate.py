@@ -19,6 +19,7 @@ from certify.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import MpdiResult, RateResult, Status
 from certify.settings import VerifySettings
+from certify.witness import is_witness, rate_sign_lower
 
 
 def check_rate(problem: Problem, settings: VerifySettings, *,
@@ -46,8 +47,14 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
     sampled_upper = -search.best_value
     worst = counterexamples_from(search, n)[:1]
     worst_cex = worst[0] if worst else None
+    witnessed = False
     if worst_cex is not None:
         worst_cex.value = sampled_upper  # the pointwise rate at that point
+        z = torch.tensor([[*worst_cex.xhat, *worst_cex.y]], dtype=torch.float64)
+        # sound: lam_max(He{P J}) >= this bound there; >= 0 proves rate <= 0 at the point
+        sign_lower = float(rate_sign_lower(problem, z)[0])
+        worst_cex.sound_bound = sign_lower
+        witnessed = is_witness(sign_lower, strict=False)
     proved_lower = problem.lam if mpdi is not None and mpdi.status == Status.PROVED else None
     if prove and search.nonfinite == 0 and sampled_upper > 0:
         from certify.prover import prove_rate
@@ -61,11 +68,17 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
     if search.nonfinite:
         return RateResult(Status.UNKNOWN, "the rate is NaN/Inf at some grid points",
                           problem.lam, sampled_upper, None, worst_cex, seconds)
-    if sampled_upper <= 0:
+    if sampled_upper <= 0 and witnessed:
         status, msg = Status.VIOLATED, (
             f"no contraction: at xhat={worst_cex.xhat}, y={worst_cex.y} the pointwise rate is "
-            f"{sampled_upper:.4g} <= 0, so lam_cert <= {sampled_upper:.4g} and no error bound "
-            "exists")
+            f"{sampled_upper:.4g} <= 0 (sound: lam_max(He{{P J}}) >= {worst_cex.sound_bound:.3g}"
+            f" >= 0 there), so lam_cert <= 0 and no error bound exists")
+    elif sampled_upper <= 0:
+        status, msg = Status.UNKNOWN, (
+            f"near-tie: the pointwise rate evaluates to {sampled_upper:.4g} <= 0 in float64 at "
+            f"xhat={worst_cex.xhat if worst_cex else None}, but within rounding error of 0 "
+            "(no sound bound decides its sign); lam_cert is neither proved positive nor "
+            "shown <= 0")
     elif proved_lower is not None and proved_lower > 0:
         status, msg = Status.PROVED, (
             f"lam_cert in [{proved_lower:.4g}, {sampled_upper:.4g}] (design lam {problem.lam:g}; "

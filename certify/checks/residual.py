@@ -14,6 +14,7 @@ from certify.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import ResidualResult, Status
 from certify.settings import VerifySettings
+from certify.witness import residual_lower
 
 
 def residual_norm(problem: Problem, x: torch.Tensor) -> torch.Tensor:
@@ -46,8 +47,10 @@ def check_residual(problem: Problem, settings: VerifySettings, *,
 
     upper, _, _ = bound_residual(problem, seconds=settings.residual_seconds,
                                  max_boxes=settings.max_boxes)
-    sampled = max(search.best_value, 0.0)
     worst = search.best_point.tolist()
+    # the reported eps_bar >= value is a SOUND lower bound at the worst point found
+    sound = float(residual_lower(problem, torch.as_tensor(worst, dtype=torch.float64)[None])[0])
+    sampled = max(sound, 0.0) if sound == sound else 0.0
     if upper is None or upper != upper:
         return ResidualResult(Status.UNKNOWN, f"eps_bar >= {sampled:.4g} (sampled); no sound "
                               f"upper bound within residual_seconds={settings.residual_seconds:g}",

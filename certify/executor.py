@@ -1,0 +1,222 @@
+"""Where chunks of work run: in this process, or on a Dask cluster (local or remote).
+
+Branch and bound, the MPDI grid sweep and the residual/rate proofs cut their work into chunks
+and call `executor.map(fn, items)` (or `map_chunks(fn, payload, items)`); results come back
+in the order of `items`, so what the caller merges is identical whichever executor ran it.
+
+- `SerialExecutor()`: the default; runs `fn(item)` here, in order.
+- `DaskExecutor(workers=N)`: starts a `dask.distributed.LocalCluster` of N worker processes
+  with one thread each (torch single-threaded inside, see `certify.parallel`).
+- `DaskExecutor(scheduler="tcp://host:port")`: connects to a running Dask scheduler (a
+  dask-jobqueue cluster on SLURM/PBS, Kubernetes, `dask scheduler` by hand). The connection
+  times out after `connect_timeout` seconds with a `SettingsError` (one line, exit 2).
+
+A worker that dies mid-task loses nothing: Dask re-runs the tasks it held on the other
+workers (and a LocalCluster's nanny restarts the process). Tasks are pure functions of their
+arguments, so a re-run returns the same result. `fn` must be picklable: a module-level
+function; the data it needs travels as plain data (`payload`), sent to each worker once
+(`map_chunks` scatters it), and a worker builds its evaluator from it once per process
+(`worker_cache`). Dask is imported only when a `DaskExecutor` is made.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import pickle
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol, runtime_checkable
+
+from certify.errors import SettingsError
+
+#: seconds to wait for a scheduler given by address before giving up (exit 2)
+CONNECT_TIMEOUT = 5.0
+
+#: evaluators each worker process keeps (keyed by payload digest), least recently used dropped
+CACHE_SIZE = 4
+
+
+@runtime_checkable
+class Executor(Protocol):
+    """Runs `fn` over `items`, results in the order of `items`."""
+
+    workers: int
+
+    def map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> list[Any]: ...
+
+    def close(self) -> None: ...
+
+
+class SerialExecutor:
+    """Everything in this process, in order (the default; no dependency)."""
+
+    workers = 1
+    description = "serial (this process)"
+
+    def map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> list[Any]:
+        return [fn(item) for item in items]
+
+    def map_chunks(self, fn: Callable[..., Any], payload: Any,
+                   items: Sequence[tuple]) -> list[Any]:
+        return [fn(payload, *item) for item in items]
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> SerialExecutor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _call_with_payload(fn: Callable[..., Any], payload: Any, item: tuple) -> Any:
+    """Task body of `DaskExecutor.map_chunks` (module level: picklable)."""
+    return fn(payload, *item)
+
+
+class DaskExecutor:
+    """Chunks on a Dask cluster: a LocalCluster of `workers` processes, or `scheduler`."""
+
+    def __init__(self, workers: int | None = None, scheduler: str | None = None, *,
+                 connect_timeout: float = CONNECT_TIMEOUT) -> None:
+        if (workers is None) == (scheduler is None):
+            raise ValueError("DaskExecutor needs exactly one of workers= or scheduler=")
+        try:
+            from dask.distributed import Client, LocalCluster
+        except ImportError:  # pragma: no cover - dask is a declared extra
+            raise SettingsError("--workers/--scheduler need dask.distributed: pip install "
+                                "'certify[dask]'") from None
+        self._cluster = None
+        if scheduler is not None:
+            address = str(scheduler).strip()
+            if not address:
+                raise SettingsError("--scheduler must be an address like tcp://host:8786")
+            try:
+                self.client = Client(address, timeout=f"{connect_timeout}s",
+                                     set_as_default=False)
+            except (OSError, TimeoutError, ValueError, TypeError) as exc:
+                reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise SettingsError(f"--scheduler {address}: cannot connect to a Dask "
+                                    f"scheduler within {connect_timeout:g} s ({reason})"
+                                    ) from None
+            self.workers = max(1, len(self.client.scheduler_info().get("workers", {})))
+            self.description = f"dask scheduler {address} ({self.workers} workers)"
+        else:
+            if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+                raise SettingsError(f"--workers must be an int >= 1; got {workers!r}")
+            self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1,
+                                         processes=True, dashboard_address=None,
+                                         silence_logs=logging.ERROR)
+            self.client = Client(self._cluster, set_as_default=False)
+            self.client.wait_for_workers(workers, timeout=120)
+            self.workers = workers
+            self.description = f"dask LocalCluster ({workers} processes x 1 thread)"
+
+    def map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> list[Any]:
+        if not len(items):
+            return []
+        futures = self.client.map(fn, list(items), pure=False)
+        return self.client.gather(futures)
+
+    def map_chunks(self, fn: Callable[..., Any], payload: Any,
+                   items: Sequence[tuple]) -> list[Any]:
+        """`[fn(payload, *item) for item in items]` on the cluster; `payload` is sent to the
+        workers once (scattered), not once per task."""
+        if not len(items):
+            return []
+        shared = self.client.scatter(payload, broadcast=True, hash=False)
+        futures = self.client.map(_call_with_payload, [fn] * len(items), [shared] * len(items),
+                                  list(items), pure=False)
+        return self.client.gather(futures)
+
+    def worker_pids(self) -> dict[str, int]:
+        """Worker address -> process id (for tests that kill one)."""
+        import os
+
+        return self.client.run(os.getpid)
+
+    def close(self) -> None:
+        try:
+            self.client.close()
+        finally:
+            if self._cluster is not None:
+                self._cluster.close()
+
+    def __enter__(self) -> DaskExecutor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def executor_from_settings(settings: Any) -> SerialExecutor | DaskExecutor:
+    """The executor `settings.workers` / `settings.scheduler` ask for (serial by default).
+
+    A scheduler address wins over `workers`; `workers = 1` without a scheduler is serial
+    (no cluster is started for one process)."""
+    scheduler = getattr(settings, "scheduler", "") or None
+    workers = int(getattr(settings, "workers", 1) or 1)
+    if scheduler is not None:
+        return DaskExecutor(scheduler=scheduler)
+    if workers > 1:
+        return DaskExecutor(workers=workers)
+    return SerialExecutor()
+
+
+# ----- the executor of the running verification ------------------------------------------
+
+_current: list[Any] = []
+
+
+def current_executor() -> Any:
+    """The executor of the verification in progress (`using`), else a SerialExecutor."""
+    return _current[-1] if _current else SerialExecutor()
+
+
+class using:  # noqa: N801 - used as a context manager, like a function
+    """`with using(executor): ...` makes it `current_executor()` for the block."""
+
+    def __init__(self, executor: Any) -> None:
+        self.executor = executor
+
+    def __enter__(self) -> Any:
+        _current.append(self.executor)
+        return self.executor
+
+    def __exit__(self, *exc: object) -> None:
+        _current.remove(self.executor)
+
+
+# ----- worker side: build once per process -----------------------------------------------
+
+_cache: OrderedDict[str, Any] = OrderedDict()
+
+
+def payload_key(payload: Any) -> str:
+    """A digest of plain-data `payload` (pickled), to cache what a worker builds from it."""
+    return hashlib.sha256(pickle.dumps(payload, protocol=4)).hexdigest()
+
+
+def worker_cache(key: str, build: Callable[[], Any]) -> Any:
+    """`build()` once per process per key (the last `CACHE_SIZE` kept)."""
+    if key in _cache:
+        _cache.move_to_end(key)
+        return _cache[key]
+    value = build()
+    _cache[key] = value
+    while len(_cache) > CACHE_SIZE:
+        _cache.popitem(last=False)
+    return value
+
+
+def chunk_ranges(total: int, pieces: int, align: int = 1) -> list[tuple[int, int]]:
+    """[0, total) cut into at most `pieces` contiguous (start, stop) ranges of near-equal size
+    (boundaries multiples of `align` except the last), in order."""
+    if total <= 0:
+        return []
+    pieces = max(1, min(pieces, -(-total // max(align, 1))))
+    step = -(-total // pieces)
+    step = -(-step // align) * align
+    return [(s, min(total, s + step)) for s in range(0, total, step)]

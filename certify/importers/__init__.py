@@ -1,0 +1,78 @@
+"""Gain networks trained elsewhere: ONNX, TorchScript, or a state_dict of Linear layers.
+
+`read_model(path, n, p)` recognises the file, reads its weights and graph without running
+anything, checks them against the spec's n and p and returns an `ImportedModel`; refusals are
+`ModelImportError` (one line naming the node; exit 2 on the CLI). `certify import` writes the
+model as a normal checkpoint; `certify run MODEL --system SPEC` verifies it in memory
+(`certify.importers.command`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from certify.importers.result import (
+    ImportedModel,
+    ModelImportError,
+    check_activation,
+    finish,
+    supported_activations,
+)
+
+__all__ = ["ImportedModel", "ModelImportError", "detect_format", "read_model"]
+
+FORMATS = ("onnx", "torchscript", "state_dict")
+
+
+def detect_format(path: Path) -> str:
+    """'onnx', 'torchscript' or 'state_dict', from the file's first bytes (and .onnx)."""
+    from certify.importers.torch_model import is_torchscript
+
+    with open(path, "rb") as fh:
+        head = fh.read(4)
+    if head.startswith(b"PK"):
+        return "torchscript" if is_torchscript(path) else "state_dict"
+    if head.startswith(b"\x80"):
+        return "state_dict"  # a pickle (torch's legacy format), read data-only
+    return "onnx"  # protobuf has no magic number; the ONNX reader says if it is not one
+
+
+def read_model(path: str | Path, n: int, p: int, *, activation: str | None = None,
+               structure: str | None = None) -> ImportedModel:
+    """Read a model file as a gain network for a system with n states and p outputs.
+
+    `activation` is required for a state_dict (it carries none); for ONNX and TorchScript it
+    is optional and must agree with the graph. `structure` ("direct"/"structural") is needed
+    only when the output width does not decide it (p = 1).
+    """
+    from certify.checkpoint import sha256_file
+
+    path = Path(path)
+    if not path.is_file():
+        raise ModelImportError(f"model {path} not found" if not path.exists()
+                               else f"model {path} is not a regular file")
+    fmt = detect_format(path)
+    notes: list[str] = []
+    if activation is not None:
+        activation = check_activation(activation, f"{path}: --activation")
+    if fmt == "state_dict":
+        from certify.importers.torch_model import read_state_dict
+
+        layers = read_state_dict(path)
+        if activation is None and len(layers) > 1:
+            raise ModelImportError(f"{path}: a state_dict carries no activation; give "
+                                   f"--activation NAME ({', '.join(supported_activations())})")
+        found = activation
+    else:
+        if fmt == "onnx":
+            from certify.importers.onnx_model import read_onnx as reader
+        else:
+            from certify.importers.torch_model import read_torchscript as reader
+        builder, layers = reader(path, n, p)
+        found, notes = builder.activation, builder.notes
+        if activation is not None and found is not None and activation != found:
+            raise ModelImportError(f"{path}: the model's graph uses {found} "
+                                   f"({builder.activation_node}); --activation {activation} "
+                                   "disagrees")
+    return finish(layers, found, n=n, p=p, structure=structure, source_format=fmt,
+                  path=str(path), sha256=sha256_file(path), notes=notes)

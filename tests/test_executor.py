@@ -1,0 +1,184 @@
+"""certify.executor: serial and Dask executors give the same results in the same order; a
+killed worker loses nothing; a bad scheduler address is exit 2 with one line; the policy
+keys workers/scheduler/device are read from [tool.certify]."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from certify.executor import (
+    DaskExecutor,
+    SerialExecutor,
+    chunk_ranges,
+    current_executor,
+    executor_from_settings,
+    using,
+)
+from certify.settings import VerifySettings
+
+from .cli_helpers import run_cli, save_linear
+from .conftest import random_network
+
+
+def slow_square(x: int) -> int:
+    """A task that takes long enough for a worker to be killed in the middle of it."""
+    time.sleep(0.4)
+    return x * x
+
+
+def offset(payload: dict, a: int, b: int) -> list[int]:
+    return [payload["base"] + i for i in range(a, b)]
+
+
+@pytest.fixture(scope="module")
+def dask2():
+    ex = DaskExecutor(workers=2)
+    yield ex
+    ex.close()
+
+
+def test_chunk_ranges_cover_in_order():
+    assert chunk_ranges(10, 3) == [(0, 4), (4, 8), (8, 10)]
+    assert chunk_ranges(100, 4, align=16) == [(0, 32), (32, 64), (64, 96), (96, 100)]
+    assert chunk_ranges(5, 10) == [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5)]
+    assert chunk_ranges(0, 3) == []
+
+
+def test_serial_is_the_default():
+    assert isinstance(current_executor(), SerialExecutor)
+    assert isinstance(executor_from_settings(VerifySettings()), SerialExecutor)
+    ex = SerialExecutor()
+    assert ex.map(abs, [-3, 1, -2]) == [3, 1, 2]
+    assert ex.map_chunks(offset, {"base": 10}, [(0, 2), (2, 3)]) == [[10, 11], [12]]
+    with using(ex):
+        assert current_executor() is ex
+    assert current_executor() is not ex
+
+
+def test_dask_map_keeps_order(dask2):
+    assert dask2.workers == 2
+    items = list(range(-40, 0))
+    assert dask2.map(abs, items) == [abs(i) for i in items]
+    assert dask2.map_chunks(offset, {"base": 5}, [(0, 3), (3, 4), (4, 4)]) == [[5, 6, 7], [8],
+                                                                            []]
+
+
+def test_killed_worker_changes_nothing(dask2):
+    """SIGKILL one worker process while the tasks run: Dask re-runs its tasks elsewhere (and
+    the nanny restarts it); the results are the same, in order."""
+    pids = list(dask2.worker_pids().values())
+    assert len(pids) == 2 and os.getpid() not in pids
+    victim = pids[0]
+    killer = threading.Timer(0.6, lambda: os.kill(victim, signal.SIGKILL))
+    killer.start()
+    try:
+        out = dask2.map(slow_square, list(range(10)))
+    finally:
+        killer.cancel()
+    assert out == [i * i for i in range(10)]
+    dask2.client.wait_for_workers(2, timeout=60)
+    assert victim not in dask2.worker_pids().values()  # it really died
+
+
+def test_problem_payload_rebuilds_the_same_problem(system3):
+    from certify.gridkernel import GridKernel
+    from certify.problem import Problem
+    from certify.remote import problem_from_payload, problem_payload
+
+    problem = Problem(system=system3, network=random_network(3, 2, seed=3), lam=0.5,
+                      P=system3.P)
+    payload = problem_payload(problem)
+    import pickle
+
+    assert all(not isinstance(v, torch.Tensor) for v in payload["state"].values())
+    again = problem_from_payload(pickle.loads(pickle.dumps(payload)))
+    z = torch.rand(50, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    z = torch.as_tensor(np.vstack([system3.X, system3.Y])[:, 0]) + z * torch.as_tensor(
+        np.diff(np.vstack([system3.X, system3.Y]), axis=1)[:, 0])
+    assert torch.equal(GridKernel(problem)(z), GridKernel(again)(z))
+    assert problem_from_payload(payload) is problem_from_payload(payload)  # built once
+
+
+def test_mpdi_grid_on_dask_equals_serial(system3, dask2):
+    """The MPDI falsifier's grid sweep on 2 Dask workers finds the same points and values
+    and counts the same violations as in this process."""
+    from certify.checks.mpdi import falsify_mpdi
+    from certify.problem import Problem
+
+    problem = Problem(system=system3, network=random_network(3, 2, seed=5), lam=0.5,
+                      P=system3.P)
+    settings = VerifySettings(grid_points=40_000, adversarial_starts=4, adversarial_steps=5)
+    serial = falsify_mpdi(problem, settings)
+    with using(dask2):
+        remote = falsify_mpdi(problem, settings)
+    assert serial.grid_points == remote.grid_points
+    assert serial.above_threshold == remote.above_threshold and serial.above_threshold > 0
+    assert serial.best_value == remote.best_value
+    assert np.array_equal(serial.top_points, remote.top_points)
+    assert np.array_equal(serial.top_values, remote.top_values)
+
+
+def test_bad_scheduler_is_exit_2_one_line(tmp_path, capsys):
+    ckpt = save_linear(tmp_path / "lin.ckpt")
+    t0 = time.perf_counter()
+    code, out, err = run_cli(capsys, "run", ckpt, "--no-config", "--scheduler",
+                             "tcp://127.0.0.1:9", "--json", str(tmp_path / "c.json"))
+    assert code == 2 and err.count("\n") == 1
+    assert err.startswith("certify: error: --scheduler tcp://127.0.0.1:9: cannot connect")
+    assert not (tmp_path / "c.json").exists()
+    assert time.perf_counter() - t0 < 60  # the connect timeout, not a hang
+
+
+def test_policy_keys_from_pyproject(tmp_path, monkeypatch, capsys):
+    from certify.config import load_settings
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "pyproject.toml").write_text(
+        '[tool.certify]\nworkers = 3\nscheduler = "tcp://10.0.0.1:8786"\ndevice = "cpu"\n')
+    settings, _ = load_settings({})
+    assert (settings.workers, settings.scheduler, settings.device) == \
+        (3, "tcp://10.0.0.1:8786", "cpu")
+    settings, _ = load_settings({"workers": 2, "scheduler": ""})
+    assert (settings.workers, settings.scheduler) == (2, "")
+    (tmp_path / "pyproject.toml").write_text("[tool.certify]\nworkers = 0\n")
+    ckpt = save_linear(tmp_path / "lin.ckpt")
+    code, _, err = run_cli(capsys, "run", ckpt)
+    assert code == 2 and "workers must be an int >= 1; got 0" in err and err.count("\n") == 1
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_cuda_without_cuda_is_exit_2(tmp_path, monkeypatch, capsys):
+    ckpt = save_linear(tmp_path / "lin.ckpt")
+    code, _, err = run_cli(capsys, "run", ckpt, "--no-config", "--device", "cuda")
+    assert code == 2 and "--device cuda: torch sees no CUDA device" in err
+    assert err.count("\n") == 1
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "pyproject.toml").write_text('[tool.certify]\ndevice = "cuda"\n')
+    code, _, err = run_cli(capsys, "run", ckpt)
+    assert code == 2 and "no CUDA device" in err
+    code, _, err = run_cli(capsys, "run", ckpt, "--no-config", "--device", "tpu")
+    assert code == 2 and "device must be 'cpu' or 'cuda'" in err
+
+
+def test_device_cpu_explicitly_is_the_same_path(system3):
+    """`device = "cpu"` runs the device-aware grid/ascent path (points made on the device,
+    random numbers drawn on the CPU and moved): same outcome as the default."""
+    from certify.checks.mpdi import falsify_mpdi
+    from certify.device import resolve_device
+    from certify.problem import Problem
+
+    problem = Problem(system=system3, network=random_network(3, 2, seed=7), lam=0.5,
+                      P=system3.P)
+    assert problem.on("cpu") is problem and resolve_device("cpu") == torch.device("cpu")
+    base = dict(grid_points=5000, adversarial_starts=4, adversarial_steps=5)
+    a = falsify_mpdi(problem, VerifySettings(**base))
+    b = falsify_mpdi(problem, VerifySettings(**base, device="cpu"))
+    assert a.best_value == b.best_value and np.array_equal(a.top_points, b.top_points)
+    assert problem.P_t.device.type == "cpu"

@@ -1,0 +1,131 @@
+"""Hand-written ONNX graphs: the forms other exporters write (MatMul + Add, GELU's factors in
+another order) are read as the same network; graphs that are not one chain are refused."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from certify.importers import ModelImportError, read_model
+
+from .test_import import export
+
+onnx = pytest.importorskip("onnx")
+from onnx import TensorProto, helper, numpy_helper  # noqa: E402
+
+RNG = np.random.default_rng(7)
+W1, B1 = RNG.normal(size=(3, 4)), RNG.normal(size=4)  # MatMul layout: [in, out]
+W2, B2 = RNG.normal(size=(4, 2)), RNG.normal(size=2)
+
+
+def write(path, nodes, output="k", extra=()) -> str:
+    """A float64 graph z[batch, 3] -> output, with the two layers' weights as initializers."""
+    inits = [numpy_helper.from_array(a, name) for name, a in
+             (("W1", W1), ("B1", B1), ("W2", W2), ("B2", B2), *extra)]
+    graph = helper.make_graph(
+        nodes, "g", [helper.make_tensor_value_info("z", TensorProto.DOUBLE, ["batch", 3])],
+        [helper.make_tensor_value_info(output, TensorProto.DOUBLE, ["batch", 2])], inits)
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), path)
+    return str(path)
+
+
+def scalar(name: str, value: float) -> tuple[str, np.ndarray]:
+    return name, np.array(value, dtype=np.float64)
+
+
+def first_layer() -> list:
+    return [helper.make_node("MatMul", ["z", "W1"], ["m1"], name="mm1"),
+            helper.make_node("Add", ["m1", "B1"], ["u"], name="bias1")]
+
+
+def second_layer(h: str) -> list:
+    return [helper.make_node("MatMul", [h, "W2"], ["m2"], name="mm2"),
+            helper.make_node("Add", ["B2", "m2"], ["k"], name="bias2")]
+
+
+GELU_REORDERED = [  # (x * 0.5) * (erf(x * 0.7071...) + 1), constants as float32 roundings
+    helper.make_node("Mul", ["u", "half"], ["hu"], name="g1"),
+    helper.make_node("Mul", ["u", "isqrt2"], ["s"], name="g2"),
+    helper.make_node("Erf", ["s"], ["e"], name="g3"),
+    helper.make_node("Add", ["e", "one"], ["e1"], name="g4"),
+    helper.make_node("Mul", ["hu", "e1"], ["h"], name="g5")]
+GELU_CONSTANTS = (scalar("half", 0.5), scalar("one", 1.0),
+                  scalar("isqrt2", float(np.float32(1 / np.sqrt(2)))))
+SILU = [helper.make_node("Sigmoid", ["u"], ["sg"], name="s1"),
+        helper.make_node("Mul", ["sg", "u"], ["h"], name="s2")]
+
+
+@pytest.mark.parametrize("activation, nodes, extra", [
+    ("tanh", [helper.make_node("Tanh", ["u"], ["h"], name="act")], ()),
+    ("silu", SILU, ()),
+    ("gelu", GELU_REORDERED, GELU_CONSTANTS),
+])
+def test_matmul_add_and_reordered_patterns(tmp_path, activation, nodes, extra):
+    path = write(tmp_path / "m.onnx", first_layer() + nodes + second_layer("h"), extra=extra)
+    imported = read_model(path, 2, 1)
+    assert imported.activation == activation and imported.hidden == [4]
+    assert np.array_equal(imported.layers[0].W, W1.T) and np.array_equal(imported.layers[1].b, B2)
+
+
+def test_matmul_add_network_values(tmp_path):
+    path = write(tmp_path / "m.onnx", first_layer() + [
+        helper.make_node("Tanh", ["u"], ["h"], name="act")] + second_layer("h"))
+    net = read_model(path, 2, 1).network()
+    z = RNG.normal(size=(8, 3))
+    expected = np.tanh(z @ W1 + B1) @ W2 + B2
+    np.testing.assert_allclose(net(torch.as_tensor(z)).numpy(), expected, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("nodes, extra, message", [
+    ([helper.make_node("Tanh", ["u"], ["h"], name="act"),
+      helper.make_node("MatMul", ["h", "W2"], ["dead"], name="dead"),
+      helper.make_node("Identity", ["u"], ["k"], name="out")], (),
+     "node 'mm1' (MatMul): its output or input is shared with another branch"),
+    ([helper.make_node("Tanh", ["u"], ["h"], name="act"),
+      helper.make_node("MatMul", ["h", "W2"], ["a"], name="head"),
+      helper.make_node("MatMul", ["z", "Wskip"], ["b"], name="skip"),
+      helper.make_node("Add", ["a", "b"], ["k"], name="sum")],
+     (("Wskip", RNG.normal(size=(3, 2))),),
+     "node 'skip' (MatMul): reads an earlier layer's output"),
+    ([helper.make_node("Mul", ["u", "half"], ["h"], name="scale")] + second_layer("h")[:1]
+     + [helper.make_node("Identity", ["m2"], ["k"], name="out")], (scalar("half", 0.5),),
+     "node 'scale' (Mul): the elementwise operations ending here are not a supported "
+     "activation"),
+    (GELU_REORDERED[:3] + [helper.make_node("Add", ["e", "one"], ["e1"], name="g4"),
+                           helper.make_node("Mul", ["hu", "e1"], ["h"], name="g5")]
+     + second_layer("h"), (scalar("half", 0.5), scalar("one", 1.0), scalar("isqrt2", 0.7)),
+     "node 'g5' (Mul): the elementwise operations ending here are not a supported"),
+    ([helper.make_node("Tanh", ["u"], ["h"], name="act"),
+      helper.make_node("MatMul", ["h", "W2"], ["m2"], name="mm2"),
+      helper.make_node("Add", ["m2", "Bbad"], ["k"], name="bias2")],
+     (("Bbad", np.array([1.0, np.inf])),), "node 'bias2' (Add): weight 'Bbad' contains NaN"),
+])
+def test_graphs_that_are_not_a_supported_chain_are_refused(tmp_path, nodes, extra, message):
+    path = write(tmp_path / "m.onnx", first_layer() + nodes, extra=extra)
+    with pytest.raises(ModelImportError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        read_model(path, 2, 1)
+
+
+def test_torchscript_dropout_in_eval_mode_is_a_no_op(tmp_path):
+    model = nn.Sequential(nn.Linear(3, 4), nn.Tanh(), nn.Dropout(0.1), nn.Linear(4, 2))
+    model = model.double().eval()
+    imported = read_model(export(model, tmp_path / "d.pt", "script", ()), 2, 1)
+    assert imported.hidden == [4]
+    model.train()
+    with pytest.raises(ModelImportError, match=r"\(aten::dropout\): dropout in training mode"):
+        read_model(export(model, tmp_path / "t.pt", "script", ()), 2, 1)
+
+
+def test_structure_for_p_1_and_activation_that_disagrees(tmp_path):
+    path = write(tmp_path / "m.onnx", first_layer() + [
+        helper.make_node("Tanh", ["u"], ["h"], name="act")] + second_layer("h"))
+    assert read_model(path, 2, 1).structure == "direct"  # n = n*p = 2: direct unless asked
+    structural = read_model(path, 2, 1, structure="structural")
+    assert structural.structure == "structural"
+    assert structural.network().architecture()["structure"] == "structural"
+    with pytest.raises(ModelImportError, match=r"uses tanh \(node 'act' \(Tanh\)\); "
+                                               "--activation sigmoid disagrees"):
+        read_model(path, 2, 1, activation="sigmoid")
+    assert read_model(path, 2, 1, activation="Tanh").activation == "tanh"

@@ -1,0 +1,122 @@
+"""Hostile and undefined specs (issues 8.2, 8.4, 12.3): built exactly as written, checked on
+the box, refused with exit 2 and one line; the same expressions on a box where they are
+defined still work."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import sympy
+import torch
+
+from certify.errors import SpecError
+from certify.parse import LIMITS, parse_expression
+from certify.system import System
+
+from .cli_helpers import run_cli
+
+X_BAD = "[[-1.0, 1.0], [-1.0, 1.0]]"
+X_GOOD = "[[0.5, 1.0], [-1.0, 1.0]]"
+
+
+def spec(f: list[str], X: str = X_BAD, h: str = "x1") -> str:
+    fs = ", ".join(f'"{e}"' for e in f)
+    return (f'name = "t"\nstates = ["x1", "x2"]\noutputs = ["y"]\nf = [{fs}]\nh = ["{h}"]\n'
+            f"[box]\nX = {X}\nY = [[-1.0, 1.0]]\n[design]\nlam = 0.5\n")
+
+
+UNDEFINED = [
+    (["-sqrt(x1)**2", "-x2"], "f[0]", "'x1' raised to the non-integer power", "x1 in [-1, 0"),
+    (["-x1", "-x2*(x1-0.3)/(x1-0.3)"], "f[1]", "division by 'x1 - 0.3'", "x1 in [0.29"),
+    (["exp(log(x1))", "-x2"], "f[0]", "log of 'x1'", "x1 in [-1, 0"),
+    (["x1**2/x1", "-x2"], "f[0]", "division by 'x1'", "x1 in [-0.0"),
+    (["-abs(x1)", "-x2"], "f[0]", "abs is not differentiable", "x1 in [-0.0"),
+    (["-x1", "-x2 + x1**x2"], "f[1]", "needs a positive base", "x1 in [-1"),
+    (["-x1", "-x2 + tan(2*x1)"], "f[1]", "tan of '2 * x1'", "x1 in ["),
+]
+
+
+@pytest.mark.parametrize("f, which, reason, part", UNDEFINED)
+def test_undefined_on_the_box_is_refused_by_check(tmp_path, capsys, f, which, reason, part):
+    path = tmp_path / "s.toml"
+    path.write_text(spec(f))
+    code, out, err = run_cli(capsys, "check", str(path), "--no-synthesis")
+    assert code == 2, out + err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert which in err and reason in err and part in err
+
+
+def test_undefined_spec_refused_by_train_before_any_work(tmp_path, capsys):
+    path = tmp_path / "s.toml"
+    path.write_text(spec(["-sqrt(x1)**2", "-x2*(x1-0.3)/(x1-0.3)"]))
+    code, _, err = run_cli(capsys, "train", str(path), "--preset", "tiny", "-o",
+                           str(tmp_path / "o.ckpt"))
+    assert code == 2 and "not defined and smooth" in err and err.count("\n") == 1
+    assert not (tmp_path / "o.ckpt").exists()
+
+
+def test_same_expressions_where_defined_are_kept_as_written():
+    s = System.from_text(spec(["-sqrt(x1)**2", "-x2*(x1-0.3)/(x1-0.3) + exp(log(x1)) "
+                               "+ x1**2/x1 - 2*x1"], X=X_GOOD))
+    x = torch.tensor([[0.75, 0.5], [0.5, -1.0]], dtype=torch.float64)
+    f = s.f(x)
+    assert torch.allclose(f[:, 0], -x[:, 0]) and torch.allclose(f[:, 1], -x[:, 1])
+    J = s.jac_f(x)
+    assert torch.allclose(J, torch.tensor([[-1.0, 0.0], [0.0, -1.0]], dtype=torch.float64))
+    # the tree is the one written, not a simplified one
+    assert s.f_expr[0].has(sympy.Pow) and s.f_expr[0] != -sympy.Symbol("x1", real=True)
+
+
+def test_abs_where_one_signed_is_resolved_and_differentiable():
+    s = System.from_text(spec(["-abs(x1)*x1 - x1", "-x2 - abs(x1 - 2)"], X=X_GOOD))
+    assert not any(e.has(sympy.Abs) for e in s.f_expr)
+    x = torch.tensor([[0.75, 0.5]], dtype=torch.float64)
+    assert torch.allclose(s.f(x), torch.tensor([[-0.75**2 - 0.75, -0.5 - 1.25]],
+                                               dtype=torch.float64))
+    assert torch.allclose(s.jac_f(x), torch.tensor([[[-2 * 0.75 - 1, 0.0], [1.0, -1.0]]],
+                                                   dtype=torch.float64))
+
+
+HOSTILE = [
+    ("9**9**9", "exponent"),
+    ("+".join(["x1"] * 10_000), "characters long"),
+    ("+".join(["x1"] * 900), "syntax nodes"),
+    ("-(" * 70 + "x1" + ")" * 70, "nested"),
+    ("1" + "0" * 40 + "*x1", "larger than"),
+    ("x1**1000000", "beyond"),
+    ("(-1)**0.5 + x1", "no finite real value"),
+    ("1/0 + x1", "divides by zero"),
+    ("exp(1000) * x1", "no finite real value"),
+    ("10.0**300 * 10.0**300 * x1", "beyond"),
+]
+
+
+@pytest.mark.parametrize("text, words", HOSTILE)
+def test_hostile_expressions_are_refused_in_one_line(text, words):
+    names = {"x1": sympy.Symbol("x1", real=True)}
+    with pytest.raises(SpecError) as info:
+        parse_expression(text, names, where="spec t.toml: f[0]")
+    msg = str(info.value)
+    assert words in msg and "\n" not in msg and msg.startswith("spec t.toml: f[0]")
+    assert len(msg) < 300
+
+
+def test_limits_are_the_documented_ones():
+    assert LIMITS.max_chars <= 10_000 and LIMITS.max_nodes <= 5_000
+    assert math.isfinite(LIMITS.max_constant)
+
+
+def test_singularity_inside_the_box_is_never_certified(tmp_path, capsys):
+    """1/(x1 - 0.3) has a pole inside X: refused up front, so nothing is ever PROVED."""
+    path = tmp_path / "s.toml"
+    path.write_text(spec(["-x1 + 0.001/(x1 - 0.3)", "-x2"]))
+    code, _, err = run_cli(capsys, "check", str(path), "--no-synthesis")
+    assert code == 2 and "division by 'x1 - 0.3'" in err
+
+
+def test_enclosure_slack_is_refined_not_refused():
+    """(x1 - 0.1)^2 + 0.09 > 0 everywhere, but its naive enclosure over [-1, 1] contains 0."""
+    s = System.from_text(spec(["-x1 + 1/(x1**2 + 0.1 - 0.2*x1)", "-x2"]))
+    assert np.isfinite(s.f(torch.zeros(1, 2, dtype=torch.float64)).numpy()).all()

@@ -1,0 +1,145 @@
+"""Soundness of decisions (issue 8.1): a verdict needs a sound bound behind it.
+
+A near-tie (exact lam_max(D) = -1.1e-17, float closed form +2.2e-16) must never be VIOLATED;
+a planted real violation still is, with its sound lower bound recorded in the JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from fractions import Fraction
+
+import numpy as np
+import pytest
+import torch
+
+from certify.intervals import Interval
+from certify.kernels import mpdi_lam_max
+from certify.witness import mpdi_lower, rayleigh_lower
+
+from .cli_helpers import FAST_POLICY, run_cli, save_problem
+from .planted import linear_problem
+
+# D = He{A} + 2 lam I with lam = 1/2 is [[d1, b], [b, d2]] exactly (every constant is a double
+# and d2 - 1 + 1 is exact); det D = d1 d2 - b^2 >= 0, so lam_max(D) = -1.1e-17 <= 0 exactly,
+# while the float closed form gives +2.2e-16.
+D1, B, D2 = -3.3862991333007812, 0.7026252746582031, -0.14578814722351496
+A_TIE = np.array([[D1 - 1.0, B], [B, D2 - 1.0]])
+C_TIE = np.array([[1.0, 0.0]])
+
+
+def _tie_problem():
+    return linear_problem(A_TIE, C_TIE, np.zeros((2, 1)), lam=0.5)
+
+
+def test_the_tie_is_a_tie():
+    d1, b, d2 = (Fraction(v) for v in (D1, B, D2))
+    assert d1 * d2 - b * b >= 0 and d1 < 0 and d2 < 0  # exact: D <= 0
+    assert A_TIE[1, 1] + 1.0 == D2
+    pr = _tie_problem()
+    z = torch.tensor([[0.25, -0.5, 0.25]], dtype=torch.float64)
+    assert float(mpdi_lam_max(pr.system, pr.network, pr.P_t, 0.5, z[:, :2], z[:, 2:])[0]) > 0
+    assert float(mpdi_lower(pr, z)[0]) <= 0
+
+
+@pytest.fixture
+def workdir(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "pyproject.toml").write_text(FAST_POLICY)
+    return tmp_path
+
+
+def test_tie_is_never_violated_through_the_cli(workdir, capsys):
+    path = save_problem(workdir / "tie.ckpt", _tie_problem())
+    code, out, err = run_cli(capsys, "run", path, "--json", "c.json", "--skip",
+                             "simulation,lipschitz", "--proof-seconds", "3",
+                             "--max-boxes", "2000")
+    assert code in (0, 3), out + err
+    cert = json.loads((workdir / "c.json").read_text())
+    mpdi, rate = cert["checks"]["mpdi"], cert["checks"]["rate"]
+    assert mpdi["status"] in ("PROVED", "UNKNOWN") and not mpdi["counterexamples"]
+    if mpdi["status"] == "UNKNOWN":
+        assert "near-tie" in mpdi["message"]
+    assert rate["status"] != "VIOLATED"
+    assert "Traceback" not in err
+
+
+def test_planted_violation_found_with_sound_bound(workdir, capsys):
+    A = np.array([[0.25, 1.0], [-1.0, -2.0]])  # He{A} + I has lam_max >= 1.25 > 0 everywhere
+    path = save_problem(workdir / "bad.ckpt", linear_problem(A, C_TIE, np.zeros((2, 1)),
+                                                              lam=0.5))
+    code, out, err = run_cli(capsys, "run", path, "--json", "c.json", "--skip",
+                             "simulation,lipschitz")
+    assert code == 1, out + err
+    cert = json.loads((workdir / "c.json").read_text())
+    cex = cert["checks"]["mpdi"]["counterexamples"][0]
+    assert cert["checks"]["mpdi"]["status"] == "VIOLATED"
+    assert 0 < cex["sound_bound"] <= cex["value"]
+    assert "sound lower bound" in cert["checks"]["mpdi"]["message"]
+
+
+def test_rayleigh_lower_is_below_every_member_and_nan_never_decides():
+    gen = torch.Generator().manual_seed(0)
+    S = torch.randn(64, 4, 4, generator=gen, dtype=torch.float64)
+    S = S + S.transpose(-1, -2)
+    rad = torch.rand(64, 4, 4, generator=gen, dtype=torch.float64) * 1e-3
+    rad = rad + rad.transpose(-1, -2)
+    A = Interval(S - rad, S + rad)
+    low = rayleigh_lower(A)
+    for t in (0.0, 1.0, -1.0):
+        member = S + t * rad
+        assert bool((torch.linalg.eigvalsh(member)[..., -1] >= low).all())
+    exact_top = torch.linalg.eigvalsh(S)[..., -1]
+    assert bool((exact_top - low < 1e-2).all())  # and it is tight
+    bad = Interval(S.clone(), S.clone())
+    bad.hi[0, 1, 2] = float("nan")
+    assert torch.isnan(rayleigh_lower(bad)[0])
+
+
+# ----- NaN / Inf never decide anything -------------------------------------------------
+
+def test_nan_weight_in_checkpoint_is_refused_at_load(workdir, capsys):
+    path = save_problem(workdir / "ok.ckpt", linear_problem(A_TIE, C_TIE, np.zeros((2, 1)),
+                                                            lam=0.5))
+    data = torch.load(path, weights_only=True)
+    key = next(k for k in data["state_dict"] if k.endswith("weight"))
+    data["state_dict"][key] = data["state_dict"][key].clone()
+    data["state_dict"][key].view(-1)[0] = float("nan")
+    torch.save(data, workdir / "nan.ckpt")
+    code, out, err = run_cli(capsys, "run", str(workdir / "nan.ckpt"))
+    assert code == 2 and "contains NaN or Inf" in err and err.count("\n") == 1
+
+
+def test_spec_overflowing_inside_the_box_is_refused(workdir, capsys):
+    (workdir / "s.toml").write_text(
+        'name = "t"\nstates = ["x1", "x2"]\noutputs = ["y"]\n'
+        'f = ["-x1 + 1e-300*exp(exp(7*x1))", "-x2"]\nh = ["x1"]\n'
+        "[box]\nX = [[-1.0, 1.0], [-1.0, 1.0]]\nY = [[-1.0, 1.0]]\n[design]\nlam = 0.5\n")
+    code, _, err = run_cli(capsys, "check", "s.toml", "--no-synthesis")
+    assert code == 2 and "is not finite" in err and "x1 in [" in err
+
+
+def test_overflowing_network_is_never_proved(workdir, capsys):
+    """Weights x1e307: D, k and ||dk/dy|| overflow somewhere; nothing is PROVED from Inf and
+    any VIOLATED stands on a finite sound bound."""
+    pr = linear_problem(A_TIE, C_TIE, np.zeros((2, 1)), lam=0.5, hidden=(6, 6))
+    net = pr.network.double()
+    gen = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for layer in net.layers:
+            layer.weight.copy_(torch.randn(layer.weight.shape, generator=gen))
+        net.layers[-1].weight.mul_(1e307)
+    from certify.problem import Problem
+
+    path = save_problem(workdir / "inf.ckpt", Problem(pr.system, net, pr.lam, pr.P))
+    code, out, err = run_cli(capsys, "run", path, "--json", "c.json", "--skip", "simulation",
+                             "--proof-seconds", "2")
+    assert code in (1, 3), out + err
+    checks = json.loads((workdir / "c.json").read_text())["checks"]
+    assert checks["mpdi"]["status"] != "PROVED" and checks["residual"]["status"] != "PROVED"
+    for cex in checks["mpdi"]["counterexamples"]:
+        assert isinstance(cex["sound_bound"], float) and 0 < cex["sound_bound"] < math.inf
+    assert checks["lipschitz"]["value"] is None or checks["lipschitz"]["value"] < math.inf
+    assert checks["lipschitz"]["sampled"] != checks["lipschitz"]["sampled"] \
+        or checks["lipschitz"]["sampled"] >= 0
