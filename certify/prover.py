@@ -95,10 +95,44 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
     return evaluate
 
 
+def mpdi_box_chunk(payload: dict, lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+    """Executor task (module level, picklable): the MPDI box evaluation of one chunk; the
+    evaluator is rebuilt from plain data once per worker process (`certify.remote`)."""
+    from certify.executor import worker_cache
+    from certify.parallel import torch_threads
+    from certify.remote import problem_from_payload
+
+    def build():
+        base = {k: payload[k] for k in ("spec", "name", "architecture", "state", "lam", "P")}
+        problem = problem_from_payload(base)
+        return _mpdi_evaluator(problem, payload["prove_lam"],
+                               make_preconditioner(problem.P_t), payload["taylor"],
+                               payload["crown"])
+
+    evaluate = worker_cache("mpdi-boxes:" + payload["key"], build)
+    with torch_threads(1):
+        return evaluate(lo, hi)
+
+
+def _mpdi_remote(problem: Problem, lam: float, taylor: bool | str, crown: bool,
+                 executor: object) -> tuple | None:
+    """(chunk_fn, payload) for a multi-worker executor, else None (evaluate in process)."""
+    if getattr(executor, "workers", 1) <= 1:
+        return None
+    from certify.executor import payload_key
+    from certify.remote import problem_payload
+
+    payload = problem_payload(problem)
+    payload.update(prove_lam=float(lam), taylor=taylor, crown=bool(crown))
+    payload["key"] = payload_key(payload)
+    return mpdi_box_chunk, payload
+
+
 def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 60.0,
                max_boxes: int = 2_000_000, progress: Progress | None = None,
                seeds: object | None = None, batch: int = 1024, taylor: bool | str = True,
-               keep_leaves: int = 5000, crown: bool = True) -> ProofOutcome:
+               keep_leaves: int = 5000, crown: bool = True,
+               executor: object | None = None) -> ProofOutcome:
     """Decide D(xhat, y) <= 0 over X x Y for rate `lam` (default problem.lam) and P.
 
     PROVED: every sub-box has a sound bound lam_max(D) <= 0. VIOLATED: a point (a box
@@ -106,16 +140,22 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
     (`seconds`, `max_boxes`) or NaN/Inf in some bound; `upper` is then the best bound.
     `taylor=False` uses plain interval arithmetic only (for comparison); `crown=False` keeps
     the forward Taylor models without backward linear bound propagation (the pre-issue-9 prover).
+    `executor`: where the rounds' boxes are evaluated (default `current_executor()`; the
+    verdict and bounds do not depend on it).
     """
+    from certify.executor import current_executor
+
     progress = progress or NullProgress()
     lam = float(problem.lam if lam is None else lam)
     pc = make_preconditioner(problem.P_t)
     lo, hi = _root(problem)
     n = problem.n
+    executor = current_executor() if executor is None else executor
     out = branch_and_bound(
         lo, hi, _mpdi_evaluator(problem, lam, pc, taylor, crown), threshold=0.0, seconds=seconds,
         max_boxes=max_boxes, batch=batch, progress=progress, task="mpdi proof",
-        seeds=_seed_box(seeds, lo.shape[0]), keep_leaves=keep_leaves)
+        seeds=_seed_box(seeds, lo.shape[0]), keep_leaves=keep_leaves, executor=executor,
+        remote=_mpdi_remote(problem, lam, taylor, crown, executor))
     cex = None
     if out.best_point is not None:
         pt = out.best_point[None]
