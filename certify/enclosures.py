@@ -52,8 +52,10 @@ from certify.bounds.preconditioner import (  # noqa: F401
 )
 from certify.bounds.side import (  # noqa: F401
     dk_dy_box_upper,
+    dk_dy_box_upper_crown,
     manifold_enclosure,
     residual_box_upper,
+    residual_box_upper_crown,
 )
 from certify.bounds.taylor import (  # noqa: F401
     TM,

@@ -18,10 +18,12 @@ from certify.bnb import Box, BoxEval, branch_and_bound
 from certify.enclosures import (
     Preconditioner,
     dk_dy_box_upper,
+    dk_dy_box_upper_crown,
     make_preconditioner,
     manifold_enclosure,
     mpdi_box_bounds,
     residual_box_upper,
+    residual_box_upper_crown,
     to_lam_max_D,
 )
 from certify.intervals import ROUNDING, h_enclosure, up
@@ -200,13 +202,20 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     n = problem.n
     P = problem.P_t
 
+    level = _Level(rel_tol, tol)
+
     def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
-        bb = mpdi_box_bounds(problem, blo, bhi, 0.0, pc=pc)
+        c = 0.5 * (blo + bhi)
+        val = -2.0 * pointwise_rate(problem.system, problem.network, P, c[:, :n], c[:, n:])
+        cv = torch.nan_to_num(val, nan=-math.inf)
+        level.best = max(level.best, float(cv.max())) if len(cv) else level.best
+        lv = level.value()  # phi-level -> mu-level (mu / c_min or mu / c_max <= lv)
+        screen = None if not math.isfinite(lv) else (lv * pc.c_min if lv >= 0
+                                                      else lv * pc.c_max)
+        bb = mpdi_box_bounds(problem, blo, bhi, 0.0, pc=pc, screen=screen)
         mu = bb.upper
         ub = torch.where(mu >= 0, up(mu / pc.c_min), up(mu / pc.c_max))
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
-        c = 0.5 * (blo + bhi)
-        val = -2.0 * pointwise_rate(problem.system, problem.network, P, c[:, :n], c[:, n:])
         return BoxEval(upper=ub, centre_value=val, score=bb.score)
 
     out = branch_and_bound(lo, hi, evaluate, threshold=None, tol=tol, rel_tol=rel_tol,
@@ -223,6 +232,36 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     return RateOutcome(lower=lower, upper_sampled=upper_sampled, stats=out.stats, worst=worst)
 
 
+class _Level:
+    """The closing level of a maximisation branch and bound, tracked from the centre values
+    the evaluator sees (the same points `branch_and_bound` ranks): boxes whose cheap bound is
+    already at or below it skip the expensive bound. Only the choice of bound depends on it,
+    never soundness."""
+
+    def __init__(self, rel_tol: float, tol: float) -> None:
+        self.best = -math.inf
+        self.rel_tol, self.tol = rel_tol, tol
+
+    def value(self) -> float:
+        if not math.isfinite(self.best):
+            return math.inf
+        return self.best + max(self.tol, self.rel_tol * abs(self.best))
+
+    def tighten(self, cheap: torch.Tensor, centre: torch.Tensor, tight) -> torch.Tensor:
+        """min(cheap, tight(mask)) on the boxes whose cheap bound is above the level."""
+        cv = torch.nan_to_num(centre, nan=-math.inf)
+        if len(cv):
+            self.best = max(self.best, float(cv.max()))
+        work = ~(cheap <= self.value())
+        if not bool(work.any()):
+            return cheap
+        out = cheap.clone()
+        t = tight(work)
+        out[work] = torch.where(torch.isnan(t) | torch.isnan(cheap[work]), cheap[work],
+                                torch.minimum(cheap[work], t))
+        return out
+
+
 def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_000_000,
                    progress: Progress | None = None, rel_tol: float = 1e-3,
                    batch: int = 1024) -> tuple[float | None, list[float] | None, ProofStats]:
@@ -235,8 +274,12 @@ def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 
     s = problem.system
     X = torch.as_tensor(s.X, dtype=torch.float64)
 
+    level = _Level(rel_tol, 1e-12)
+
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
         ub, cen = residual_box_upper(s, problem.network, lo, hi)
+        ub = level.tighten(ub, cen, lambda m: residual_box_upper_crown(
+            s, problem.network, lo[m], hi[m])[0])
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         return BoxEval(upper=ub, centre_value=cen, score=None)
 
@@ -255,8 +298,12 @@ def bound_dk_dy(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_0
     entry magnitudes; exact for p = 1). None when a box stayed NaN/Inf."""
     lo, hi = _root(problem)
 
+    level = _Level(rel_tol, 1e-12)
+
     def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
         ub, cen = dk_dy_box_upper(problem.system, problem.network, blo, bhi)
+        ub = level.tighten(ub, cen, lambda m: dk_dy_box_upper_crown(
+            problem.system, problem.network, blo[m], bhi[m])[0])
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         return BoxEval(upper=ub, centre_value=cen, score=None)
 

@@ -152,3 +152,34 @@ def test_hertz_bound_is_sound_and_never_above_centre_plus_radius(seed: int, n: i
     assert bool((torch.linalg.eigvalsh(S)[..., -1].amax(1) <= ub).all())
     weyl = lam_max_upper_point(C) + rho_upper(R)
     assert bool((ub <= weyl + 1e-9 * (1 + weyl.abs())).all())
+
+
+@SETTINGS
+@given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-6, 1e-2, 0.1, 0.5]),
+       g=st.sampled_from([1.0, 3.0]))
+def test_side_bounds_with_crown_contain_points(seed: int, scale: float, g: float) -> None:
+    from certify.bounds.side import dk_dy_box_upper_crown, residual_box_upper_crown
+    from certify.kernels import gain_terms
+
+    torch.manual_seed(seed)
+    s = load_system("vdp")
+    net = GainNetwork(2, 1, (7, 7, 7), K=torch.randn(2, 1))
+    with torch.no_grad():
+        for layer in net.layers:
+            layer.weight.mul_(g)
+    net = net.double()
+    gen = torch.Generator().manual_seed(seed)
+    box = torch.as_tensor(np.concatenate([s.X, s.Y]))
+    c = box[:, 0] + torch.rand(8, 3, generator=gen, dtype=F64) * (box[:, 1] - box[:, 0])
+    lo, hi = c - scale, c + scale
+    z = _points(lo, hi, 200, seed)  # [8, 200, 3]
+    ub, _ = dk_dy_box_upper_crown(s, net, lo, hi)
+    flat = z.reshape(-1, 3)
+    dky = gain_terms(s, net, flat[:, :2], flat[:, 2:]).dk_dy  # [N, 2, 1]
+    nrm = torch.linalg.matrix_norm(dky, ord=2).reshape(8, -1).amax(1)
+    assert bool((nrm <= ub * (1 + 1e-12)).all())
+    ub_r, _ = residual_box_upper_crown(s, net, lo[:, :2], hi[:, :2])
+    xz = _points(lo[:, :2], hi[:, :2], 200, seed).reshape(-1, 2)
+    k = gain_terms(s, net, xz, s.h(xz)).k
+    res = k.norm(dim=-1).reshape(8, -1).amax(1)
+    assert bool((res <= ub_r * (1 + 1e-12) + 1e-300).all())

@@ -138,6 +138,7 @@ class _Layer:
         self.K_a = 2 * self.a_a.abs() * self.pmag + self.m_a.abs() + self.w_a \
             + self.a_a.abs() * (babs + self.Wx)
         self._cols: dict[tuple[int, ...], tuple] = {}
+        self.bslack: torch.Tensor | None = None  # |pre - (W x + b)| (composed first layers)
 
     def qmag(self, cols: torch.Tensor) -> torch.Tensor:
         """|Q_l^j| <= |s_l| |t_l^j|, [B, h, J]."""
@@ -200,6 +201,8 @@ def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
             Lt = LQ * st
         bias = bias + bterm.sum(-1) + Lpre @ lay.b
         err = err + gamma(2 * h + 8) * E.sum(-1) + gamma(4) * bias.abs()
+        if lay.bslack is not None:
+            err = err + up((Lpre.abs() * lay.bslack).sum(-1) * (1 + gamma(h + 2)))
         if li > 0:
             La = Lpre @ lay.W
             LQ = Lt @ lay.W if LQ is not None else None
@@ -230,11 +233,13 @@ def _queries(Wrows: torch.Tensor, J: int, B: int) -> tuple[torch.Tensor, torch.T
     return L, sign
 
 
-def forward_bounds(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
-                   cols: list[int] | None = None, crown: bool = True) -> ForwardBounds:
+def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: torch.Tensor,
+                   cols: list[int] | None = None, crown: bool = True,
+                   b0_slack: torch.Tensor | None = None) -> ForwardBounds:
     """Ranges of every pre-activation and tangent: interval propagation of the intersected
     ranges, intersected with the Taylor-model ranges and (crown) with backward linear bounds
-    of pre_l and of the tangent columns `cols` (default all), layer by layer."""
+    of pre_l and of the tangent columns `cols` (default all; [] for value-only), layer by
+    layer. b0_slack [B, h0]: a bound on |pre_0 - (W_0 z + b_0)| (a composed first layer)."""
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     B, d = lo.shape
@@ -246,6 +251,8 @@ def forward_bounds(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
     W0, b0 = weights[0]
     eye = torch.eye(d, dtype=torch.float64).expand(B, d, d)
     val = tm_linear(TM(zc, eye, torch.zeros_like(zc)), W0.T, b0, r)  # [B, h]
+    if b0_slack is not None:
+        val = TM(val.c, val.g, up(val.e + b0_slack))
     h0 = W0.shape[0]
     T = TM(W0.T.expand(B, d, h0), torch.zeros(B, d, h0, d, dtype=torch.float64),
            torch.zeros(B, d, h0, dtype=torch.float64))
@@ -258,6 +265,8 @@ def forward_bounds(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
         tans.append(tan_iv)
         Win, bin_ = weights[L - 1]
         layers.append(_Layer(pre_iv, tan_iv, Win, bin_, layers[-1] if layers else None, zmag))
+        if L == 1 and b0_slack is not None:
+            layers[0].bslack = b0_slack[:, None, None, :]
         a, s = tm_tanh_and_dtanh(val, r)
         s_b = TM(s.c.unsqueeze(1), s.g.unsqueeze(1), s.e.unsqueeze(1))
         Tn = tm_mul(s_b, T, r)  # [B, d, h]
@@ -276,6 +285,7 @@ def forward_bounds(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
         tan_iv = Interval(tcur.lo.transpose(1, 2), tcur.hi.transpose(1, 2))
         if crown:
             m = W.shape[0]
+            tangents = len(colt) > 0
             # value queries on pre_L = +-(W_L[i] a_{L-1} + b_L[i])
             La, sign = _queries(W, 1, B)
             bias = (sign * torch.cat([b, b]))[None, :, None].expand(B, 2 * m, 1)
@@ -283,6 +293,8 @@ def forward_bounds(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
             low = _concretize_lower(Lz, c, r)[..., 0].reshape(B, 2, m)
             pre_iv = Interval(torch.maximum(pre_iv.lo, low[:, 0]),
                               torch.minimum(pre_iv.hi, -low[:, 1]))
+            if not tangents:
+                continue
             # tangent queries on t_L^j = +-W_L[i] Q_{L-1}^j
             LQ, _ = _queries(W, len(colt), B)
             Lz, c = _backward(layers, L, None, LQ, torch.zeros(B, 2 * m, len(colt),
@@ -350,6 +362,31 @@ def network_crown_tms(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, cols
     if value:
         val = tm_tighter(val, to_tm(value_crown(net, lo, hi, fb), fb.r))
     return val, TM(c, g, e), fb.r
+
+
+class AffineInputNetwork:
+    """The network z -> N(A x + a) as a network in x (first layer W_0 A, b_0 + W_0 a), for
+    the bounds of k(x, h(x)) with linear h: z = (x, C x). Weights in float64; W_0 A is a
+    float product, so the composed network differs from the exact one by rounding: callers
+    add `input_rounding_slack` (see there)."""
+
+    def __init__(self, net: GainNetwork, A: torch.Tensor, a: torch.Tensor) -> None:
+        ws = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
+        W0, b0 = ws[0]
+        self.W0_exact, self.A, self.a = W0, A.to(torch.float64), a.to(torch.float64)
+        self._weights = [(W0 @ self.A, b0 + W0 @ self.a)] + ws[1:]
+
+    def weights(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        return self._weights
+
+    def first_layer_slack(self, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+        """Bound on |(W0 A) x + (b0 + W0 a) - (W0 (A x + a) + b0)| over the boxes [B, h0]:
+        gamma_k (|W0| |A| |x| + |W0| |a| + |b0|) with k the inner dimensions."""
+        xm = torch.maximum(lo.abs(), hi.abs()).to(torch.float64)
+        k = self.A.shape[0] + 2
+        W0a = self.W0_exact.abs()
+        inner = xm @ (W0a @ self.A.abs()).T + (W0a @ self.a.abs())
+        return up(gamma(k + 2) * 2.0 * (inner + self._weights[0][1].abs()) * (1 + 4 * U) + TINY)
 
 
 def to_tm(le: LinearEnclosure, r: torch.Tensor) -> TM:
