@@ -42,11 +42,15 @@ def _history(hist: list[list[float]], cap: int = 12) -> list[list[float]]:
 
 def _run(prob, seconds: float, max_boxes: int, taylor: object, crown: bool = True,
          batch: int = 1024) -> dict:
+    from certify.bounds.mpdi import STAGE_COUNTS
+
+    before = dict(STAGE_COUNTS)
     t = time.perf_counter()
     out = prove_mpdi(prob, seconds=seconds, max_boxes=max_boxes, taylor=taylor, crown=crown,
                      batch=batch)
     st = out.stats
-    return {"status": out.status.value, "boxes": st.boxes_processed,
+    stages = {k: STAGE_COUNTS[k] - before[k] for k in STAGE_COUNTS}
+    return {"status": out.status.value, "boxes": st.boxes_processed, "stages": stages,
             "seconds": round(time.perf_counter() - t, 3), "upper": out.upper,
             "lower": out.lower, "proved_volume": round(st.proved_volume_fraction, 6),
             "volume_history": _history(st.volume_history)}

@@ -112,7 +112,8 @@ class _Layer:
     A relaxation is stored as f(x) in a x + m + [-w, w]; the lines of `relax` are parallel
     (both sides share the chord slope), so a backward coefficient L picks its side with
     L m - |L| w. K_a, K_Q collect, per unit of |coefficient|, every magnitude whose product
-    with a coefficient is rounded in the pass (the rounding slack is gamma * |L| . K)."""
+    with a coefficient is rounded in the pass; the rounding slack gamma_{2h+8} |L| . K is
+    folded into the intercept radius (w + gamma K), so the pass needs no separate sum."""
 
     def __init__(self, pre: Interval, tan: Interval, W: torch.Tensor, b: torch.Tensor,
                  prev: _Layer | None, zmag: torch.Tensor) -> None:
@@ -135,8 +136,12 @@ class _Layer:
         xmag = zmag if prev is None else prev.amag  # |x| feeding this layer
         self.Wx = e(xmag @ W.abs().T)  # |W| |x|: rounding of L @ W
         babs = b.abs()[None, None, None]
-        self.K_a = 2 * self.a_a.abs() * self.pmag + self.m_a.abs() + self.w_a \
+        K_a = 2 * self.a_a.abs() * self.pmag + self.m_a.abs() + self.w_a \
             + self.a_a.abs() * (babs + self.Wx)
+        h = pre.lo.shape[-1]
+        self.gk = gamma(2 * h + 8)
+        # intercept radius with the rounding slack folded in: L m - |L| (w + gamma K)
+        self.wk_a = up(self.w_a + self.gk * up(K_a * (1 + 8 * U)))
         self._cols: dict[tuple[int, ...], tuple] = {}
         self.bslack: torch.Tensor | None = None  # |pre - (W x + b)| (composed first layers)
 
@@ -145,7 +150,9 @@ class _Layer:
         return self.s.mag().unsqueeze(-1) * _mag(self.tan)[..., cols]
 
     def col_consts(self, cols: torch.Tensor) -> tuple:
-        """(st, SA, MQ, WQ, KQ), each [B, 1, J, h], for the McCormick planes of s * t^j."""
+        """(st, SA, MQ, WKQ), each [B, 1, J, h], for the McCormick planes of s * t^j: the
+        slope on t, the slope on pre through s, the intercept midpoint and its radius with the
+        rounding slack gamma K_Q folded in."""
         key = tuple(int(c) for c in cols)
         if key not in self._cols:
             t = Interval(self.tan.lo[..., cols], self.tan.hi[..., cols])
@@ -165,7 +172,8 @@ class _Layer:
             KQ = ss.abs() * (1 + self.m_s.abs() + self.w_s) + st.abs() * (tmag + Wq) \
                 + mq.abs() + wq + SA.abs() * (2 * self.pmag + self.b.abs()[None, None, None]
                                               + self.Wx) + MQ.abs() + WQ
-            self._cols[key] = (st, SA, MQ, WQ, KQ)
+            WKQ = up(WQ + self.gk * up(KQ * (1 + 8 * U)))
+            self._cols[key] = (st, SA, MQ, WKQ)
         return self._cols[key]
 
 
@@ -176,9 +184,9 @@ def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
     value-only queries), both [B, R, J, h], down to z: returns (Lz [B, R, J, d], c [B, R, J])
     with query >= Lz . (z - zc) + c for every z in the box (real arithmetic).
 
-    Slack: gamma_{2h+8} |L| . K per layer covers every elementwise product, every sum of
-    at most 2h bias terms and the products L @ W (gamma_{h+2} |L| |W| |x|); each update of
-    the running bias adds gamma_4 |bias|."""
+    Slack: gamma_{2h+8} |L| . K per layer (folded into the intercept radii) covers every
+    elementwise product, every sum of at most 2h bias terms and the products L @ W
+    (gamma_{h+2} |L| |W| |x|); each update of the running bias adds gamma_4 |bias|."""
     B, d = lo.shape
     zc = 0.5 * (lo + hi)
     err = torch.zeros_like(bias)
@@ -188,19 +196,16 @@ def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
         h = lay.pre.lo.shape[-1]
         if La is not None:
             Lpre = La * lay.a_a
-            bterm = La * lay.m_a - La.abs() * lay.w_a
-            E = La.abs() * lay.K_a
+            bterm = La * lay.m_a - La.abs() * lay.wk_a
         if LQ is not None:
-            st, SA, MQ, WQ, KQ = lay.col_consts(cols)
+            st, SA, MQ, WKQ = lay.col_consts(cols)
             q_pre = LQ * SA
             Lpre = q_pre if La is None else Lpre + q_pre
-            q_b = LQ * MQ - LQ.abs() * WQ
+            q_b = LQ * MQ - LQ.abs() * WKQ
             bterm = q_b if La is None else bterm + q_b
-            q_e = LQ.abs() * KQ
-            E = q_e if La is None else E + q_e
             Lt = LQ * st
         bias = bias + bterm.sum(-1) + Lpre @ lay.b
-        err = err + gamma(2 * h + 8) * E.sum(-1) + gamma(4) * bias.abs()
+        err = err + gamma(4) * bias.abs()
         if lay.bslack is not None:
             err = err + up((Lpre.abs() * lay.bslack).sum(-1) * (1 + gamma(h + 2)))
         if li > 0:

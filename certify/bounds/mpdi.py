@@ -19,6 +19,9 @@ from certify.problem import Problem
 
 CROWN_GAIN = 100.0  # remainder reduction assumed when choosing boxes for the linear bounds
 
+#: boxes per stage since import (diagnostics for bench/prove_suite.py; never read by proofs)
+STAGE_COUNTS = {"boxes": 0, "taylor": 0, "crown": 0, "crown_closed": 0}
+
 
 @dataclass
 class BoxBounds:
@@ -69,10 +72,12 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     # backward linear bounds, only where stage 2 failed while its affine (vertex) part alone
     # would pass, i.e. where a tighter remainder can decide the box
     work = torch.ones(B, dtype=torch.bool) if screen is None else ~(plain <= screen)
+    STAGE_COUNTS["boxes"] += B
     tay = torch.full_like(plain, float("inf"))
     score = wscore.clone()
     if bool(work.any()):
         wl, wh, wr = lo[work], hi[work], zr[work]
+        STAGE_COUNTS["taylor"] += int(work.sum())
         Jt = jcl_taylor(system, net, wl, wh)
         t_w, s_w, lv = tm_lam_upper(tm_congruence(pc, Jt, lam, wr), wr, parts=True)
         if crown:
@@ -90,6 +95,8 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
                                             value=problem.structural)
                 Jc = jcl_taylor(system, net, al, ah, net_tms=net_tms)
                 t_c, s_c = tm_lam_upper(tm_congruence(pc, Jc, lam, ar), ar)
+                STAGE_COUNTS["crown"] += int(again.sum())
+                STAGE_COUNTS["crown_closed"] += int((t_c <= level).sum())
                 better = torch.nan_to_num(t_c, nan=float("inf")) < t_w[again]
                 idx = torch.nonzero(again).squeeze(-1)[better]
                 t_w[idx] = t_c[better]
