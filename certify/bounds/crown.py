@@ -119,15 +119,11 @@ class _Layer:
                  prev: _Layer | None, zmag: torch.Tensor) -> None:
         self.pre, self.tan, self.W, self.b, self.prev = pre, tan, W, b, prev
         self.s = dtanh_enclosure(pre)
-        rs = relax_dtanh(pre.lo, pre.hi)
         ra = relax_tanh(pre.lo, pre.hi)
-        if not (torch.equal(rs.lower_slope, rs.upper_slope)
-                and torch.equal(ra.lower_slope, ra.upper_slope)):
+        if not torch.equal(ra.lower_slope, ra.upper_slope):
             raise ValueError("backward propagation needs parallel-line relaxations")
         e = lambda x: x[:, None, None, :]  # noqa: E731  [B, h] -> [B, 1, 1, h]
-        self.a_s = e(rs.lower_slope)
-        ms, ws = _midrad_icpt(rs.lower_icpt, rs.upper_icpt)
-        self.m_s, self.w_s = e(ms), e(ws)
+        self.a_s = self.m_s = self.w_s = None  # tanh' relaxation: on first use (col_consts)
         self.a_a = e(ra.lower_slope)
         ma, wa = _midrad_icpt(ra.lower_icpt, ra.upper_icpt)
         self.m_a, self.w_a = e(ma), e(wa)
@@ -154,6 +150,13 @@ class _Layer:
         slope on t, the slope on pre through s, the intercept midpoint and its radius with the
         rounding slack gamma K_Q folded in."""
         key = tuple(int(c) for c in cols)
+        if self.a_s is None:
+            rs = relax_dtanh(self.pre.lo, self.pre.hi)
+            if not torch.equal(rs.lower_slope, rs.upper_slope):
+                raise ValueError("backward propagation needs parallel-line relaxations")
+            self.a_s = rs.lower_slope[:, None, None, :]
+            ms, ws = _midrad_icpt(rs.lower_icpt, rs.upper_icpt)
+            self.m_s, self.w_s = ms[:, None, None, :], ws[:, None, None, :]
         if key not in self._cols:
             t = Interval(self.tan.lo[..., cols], self.tan.hi[..., cols])
             m = mccormick(Interval(self.s.lo.unsqueeze(-1), self.s.hi.unsqueeze(-1)), t)
