@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from certify.bnb import Box, BoxEval, branch_and_bound
+from certify.bounds.mpdi import CROWN_GAIN, estimate_crown_gain
 from certify.enclosures import (
     Preconditioner,
     dk_dy_box_upper,
@@ -83,11 +84,14 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
                     crown: bool = True):
     n = problem.n
     P = problem.P_t
+    gain = CROWN_GAIN
+    if crown and taylor is True:
+        gain = estimate_crown_gain(problem.network, *_root(problem))
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
         # boxes the plain interval bound already proves skip the Taylor / relaxation work
         bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, taylor=taylor, crown=crown,
-                             screen=0.0)
+                             screen=0.0, crown_gain=gain)
         ub = to_lam_max_D(bb.upper, P, pc)
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         c = 0.5 * (lo + hi)

@@ -36,14 +36,17 @@ class BoxBounds:
 
 def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: float,
                     pc: Preconditioner | None = None, taylor: bool | str = True,
-                    crown: bool = True, screen: float | None = None) -> BoxBounds:
+                    crown: bool = True, screen: float | None = None,
+                    crown_gain: float = CROWN_GAIN) -> BoxBounds:
     """Sound upper bounds of max over each box of lam_max(M D M^T), D with rate lam.
 
     taylor: True (first-order Taylor models through the network, the default), "interval"
     (mean-value form with interval second derivatives) or False (plain interval only).
     crown (with taylor=True): the network's Taylor models are tightened entry by entry by
     backward linear bound propagation (`certify.bounds.crown`). screen: boxes whose plain
-    interval bound is already <= screen skip the Taylor / linear-relaxation work."""
+    interval bound is already <= screen skip the Taylor / linear-relaxation work; the linear
+    bounds are tried where a remainder `crown_gain` times smaller would pass (see
+    `estimate_crown_gain`)."""
     system, net = problem.system, problem.network
     if pc is None:
         pc = make_preconditioner(problem.P_t)
@@ -84,7 +87,7 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
             level = 0.0 if screen is None else screen
             # the linear bounds cut the remainder by 10-1000x on small boxes: try them where
             # a 100x smaller remainder would decide the box
-            again = ~(t_w <= level) & (lv + (t_w - lv) / CROWN_GAIN <= level)
+            again = ~(t_w <= level) & (lv + (t_w - lv) / crown_gain <= level)
             if screen is None:
                 again = torch.ones_like(again)
             if bool(again.any()):
@@ -104,3 +107,27 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
         tay[work] = t_w
         score[work] = s_w
     return BoxBounds(nan_min(plain, tay), plain, tay, score)
+
+
+def estimate_crown_gain(net, root_lo: torch.Tensor, root_hi: torch.Tensor,
+                        probes: int = 16) -> float:
+    """How much the linear bounds shrink the Jacobian remainder on small boxes for this
+    network: the median ratio of Taylor-model to linear-bound remainders over `probes`
+    deterministic boxes (1/64 of the root's width) inside the root box, clamped to [2, 1000].
+    Deterministic in the problem, so every worker of a distributed proof chooses alike."""
+    from certify.bounds.crown import forward_bounds, jacobian_crown, to_tm
+
+    d = root_lo.shape[0]
+    g = torch.Generator().manual_seed(1234)
+    w = (root_hi - root_lo).to(torch.float64)
+    c = root_lo + w * (1 / 128 + (1 - 1 / 64) * torch.rand(probes, d, generator=g,
+                                                           dtype=torch.float64))
+    lo, hi = c - w / 128, c + w / 128
+    cols = list(range(d))
+    fb = forward_bounds(net, lo, hi, cols=cols, crown=True)
+    e_cr = to_tm(jacobian_crown(net, lo, hi, cols, fb), fb.r).e
+    ratio = (fb.jac_tm.e / e_cr.clamp_min(1e-300)).flatten()
+    ratio = ratio[torch.isfinite(ratio)]
+    if len(ratio) == 0:
+        return CROWN_GAIN
+    return float(ratio.median().clamp(2.0, 1000.0))
