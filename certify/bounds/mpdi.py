@@ -37,7 +37,8 @@ class BoxBounds:
 def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: float,
                     pc: Preconditioner | None = None, taylor: bool | str = True,
                     crown: bool = True, screen: float | None = None,
-                    crown_gain: float = CROWN_GAIN) -> BoxBounds:
+                    crown_gain: float | CrownGain = CROWN_GAIN,
+                    root_width: torch.Tensor | None = None) -> BoxBounds:
     """Sound upper bounds of max over each box of lam_max(M D M^T), D with rate lam.
 
     taylor: True (first-order Taylor models through the network, the default), "interval"
@@ -87,7 +88,13 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
             level = 0.0 if screen is None else screen
             # the linear bounds cut the remainder by 10-1000x on small boxes: try them where
             # a 100x smaller remainder would decide the box
-            again = ~(t_w <= level) & (lv + (t_w - lv) / crown_gain <= level)
+            gain = crown_gain
+            if isinstance(crown_gain, CrownGain):
+                # the box's radius relative to the root's width (no root: the smallest scale)
+                rel = ((wr / root_width).amax(-1) if root_width is not None
+                       else torch.zeros(len(wr), dtype=torch.float64))
+                gain = crown_gain.at(rel)
+            again = ~(t_w <= level) & (lv + (t_w - lv) / gain <= level)
             if screen is None:
                 again = torch.ones_like(again)
             if bool(again.any()):
@@ -109,25 +116,45 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     return BoxBounds(nan_min(plain, tay), plain, tay, score)
 
 
+@dataclass
+class CrownGain:
+    """Remainder reduction of the linear bounds over the Taylor models, as a function of the
+    box size: gains [K] measured at relative radii [K] (increasing), interpolated in log-log
+    and clamped at the ends. Only decides where the linear bounds are tried."""
+
+    rel_radii: torch.Tensor
+    gains: torch.Tensor
+
+    def at(self, rel_radius: torch.Tensor) -> torch.Tensor:
+        x = torch.log(rel_radius.clamp(self.rel_radii[0], self.rel_radii[-1]))
+        xs, ys = torch.log(self.rel_radii), torch.log(self.gains)
+        i = torch.searchsorted(xs, x.contiguous()).clamp(1, len(xs) - 1)
+        t = (x - xs[i - 1]) / (xs[i] - xs[i - 1])
+        return torch.exp(ys[i - 1] + t * (ys[i] - ys[i - 1]))
+
+
 def estimate_crown_gain(net, root_lo: torch.Tensor, root_hi: torch.Tensor,
-                        probes: int = 16) -> float:
-    """How much the linear bounds shrink the Jacobian remainder on small boxes for this
-    network: the median ratio of Taylor-model to linear-bound remainders over `probes`
-    deterministic boxes (1/64 of the root's width) inside the root box, clamped to [2, 1000].
-    Deterministic in the problem, so every worker of a distributed proof chooses alike."""
+                        probes: int = 12, scales: tuple[float, ...] = (1 / 256, 1 / 64, 1 / 16)
+                        ) -> CrownGain:
+    """How much the linear bounds shrink the Jacobian remainder for this network, at a few box
+    sizes: at each relative radius, the median ratio of Taylor-model to linear-bound remainders
+    over `probes` deterministic boxes inside the root box, clamped to [2, 1e6]. Deterministic
+    in the problem, so every worker of a distributed proof chooses alike."""
     from certify.bounds.crown import forward_bounds, jacobian_crown, to_tm
 
     d = root_lo.shape[0]
     g = torch.Generator().manual_seed(1234)
     w = (root_hi - root_lo).to(torch.float64)
-    c = root_lo + w * (1 / 128 + (1 - 1 / 64) * torch.rand(probes, d, generator=g,
-                                                           dtype=torch.float64))
-    lo, hi = c - w / 128, c + w / 128
+    u = torch.rand(probes, d, generator=g, dtype=torch.float64)
     cols = list(range(d))
-    fb = forward_bounds(net, lo, hi, cols=cols, crown=True)
-    e_cr = to_tm(jacobian_crown(net, lo, hi, cols, fb), fb.r).e
-    ratio = (fb.jac_tm.e / e_cr.clamp_min(1e-300)).flatten()
-    ratio = ratio[torch.isfinite(ratio)]
-    if len(ratio) == 0:
-        return CROWN_GAIN
-    return float(ratio.median().clamp(2.0, 1000.0))
+    gains = []
+    for s in scales:
+        c = root_lo + w * (s + (1 - 2 * s) * u)
+        lo, hi = c - w * s, c + w * s
+        fb = forward_bounds(net, lo, hi, cols=cols, crown=True)
+        e_cr = to_tm(jacobian_crown(net, lo, hi, cols, fb), fb.r).e
+        ratio = (fb.jac_tm.e / e_cr.clamp_min(1e-300)).flatten()
+        ratio = ratio[torch.isfinite(ratio)]
+        gains.append(float(ratio.median().clamp(2.0, 1e6)) if len(ratio) else CROWN_GAIN)
+    return CrownGain(torch.tensor(scales, dtype=torch.float64),
+                     torch.tensor(gains, dtype=torch.float64))
