@@ -3,14 +3,26 @@
 Boxes live in z = (xhat, y) space: lo, hi of shape [B, d], d = n + p. Everything is batched
 over boxes and sound under floating point (the rounding scheme is `certify.intervals.ROUNDING`).
 
-Two enclosures of the (preconditioned) contraction matrix A(z) = M D(z) M^T are combined:
+The implementation lives in `certify.bounds` (one module per job); this module re-exports it.
+Enclosures of the (preconditioned) contraction matrix A(z) = M D(z) M^T, tried in stages per
+box (`certify.bounds.mpdi.mpdi_box_bounds`), the smallest sound bound kept:
 
-- plain interval: value, Jacobian (and second derivatives) of the MLP propagated layer by layer
-  in interval arithmetic, pre-activations tightened by a mean-value form around the box centre;
-- second-order (mean-value / Taylor) form: A(z) in A(c) + sum_m (z_m - c_m) [dA/dz_m](box).
-  Writing [dA/dz_m] = G_m + [-R_m, R_m], lam_max(A(c) + sum_m d_m G_m) is convex in d, so its
-  maximum over |d_m| <= r_m is attained at one of the 2^d vertices (small eigenproblems,
-  vectorised); the remainder adds rho(sum_m r_m R_m + rad A(c)) (Weyl + Perron-Frobenius).
+- plain interval (`bounds.network_interval`): value, Jacobian (and second derivatives) of the
+  MLP propagated layer by layer in interval arithmetic, pre-activations tightened by a
+  mean-value form around the box centre; a box it already decides skips the rest;
+- first-order Taylor models (`bounds.taylor`): A(z) in c + sum_m g_m (z_m - c_m) + [-E, E];
+  lam_max of the affine part is convex in z, so its maximum is at one of the 2^d vertices
+  (small eigenproblems, vectorised); the remainder adds rho(E) or, for n <= 3, enters each
+  vertex matrix entrywise (`bounds.eigen.hertz_upper`);
+- backward linear bound propagation (`bounds.crown`, CROWN-style) through the Jacobian's
+  computation graph with sound relaxations of tanh, tanh' and McCormick products
+  (`bounds.relax`): per Jacobian entry, linear lower and upper functions of z, turned into a
+  Taylor model and kept entry by entry where their remainder is smaller; tried where the
+  Taylor model failed but a remainder shrunk by the network's measured gain would pass.
+
+Eigenvalue bounds of interval matrices (`bounds.eigen`): exact closed form for n <= 2, else
+the smallest of centre + radius (Weyl, Collatz-Wielandt), Gershgorin and the sign-pattern
+vertex bound (Hertz) for n <= 6.
 
 M is the identity for P = I; otherwise M ~ L^-1 (P = L L^T, computed in floating point and
 then used as an exact matrix: by Sylvester's law of inertia D <= 0 iff M D M^T <= 0 for every
