@@ -175,7 +175,9 @@ def part_workers(args: argparse.Namespace, folder: Path) -> None:
         emit({"bench": "scale_workers", "speedup_2_vs_1": round(measured[1][0] / measured[2][0],
                                                                  3)})
     over = measured[2][1] if 2 in measured else measured[1][1]
-    k = 2  # chunks per worker per round (certify.remote.distributed_evaluate)
+    from certify.bnb import CHUNKS_PER_WORKER
+
+    k = CHUNKS_PER_WORKER  # chunks per worker per round
     for workers in (16, 32, 64):
         t_round = t_client + t_eval / workers + over["round_trip_s"] \
             + workers * k * over["per_task_s"]

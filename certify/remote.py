@@ -7,7 +7,8 @@ by the payload's digest (`certify.executor.worker_cache`), so a worker parses th
 builds the network once per proof, not once per chunk.
 
 `mpdi_grid_chunk` is the MPDI grid sweep's chunk task (module level: picklable): the same
-`certify.falsify.sweep_range` the in-process sweep runs, on a range of grid indices.
+`certify.falsify.sweep_range` the in-process sweep runs, on a range of grid indices. The
+prover's box task (`certify.prover.mpdi_box_chunk`) rebuilds its problem here too.
 """
 
 from __future__ import annotations
@@ -93,85 +94,3 @@ def mpdi_grid_chunk(payload: dict[str, Any], start: int, stop: int, tol: float,
                              s, min(stop, s + step), grid["threshold"], tol, grid["keep"])
                  for s in range(start, stop, step)]
     return [(pts.cpu(), vals.cpu(), above, bad) for pts, vals, above, bad in parts]
-
-
-# ----- branch and bound: one round's boxes in chunks --------------------------------------
-
-def distributed_evaluate(executor: Any, chunk_fn: Any, payload: dict[str, Any], *,
-                         per_worker: int = 2, min_boxes: int = 64) -> Any:
-    """An `evaluate(lo, hi) -> BoxEval` for `certify.bnb.branch_and_bound` that cuts each
-    round's boxes into `executor.workers * per_worker` contiguous chunks, evaluates them with
-    `executor.map_chunks(chunk_fn, payload, ...)` and concatenates the results in order.
-
-    Each box's bound depends only on that box, so the concatenation equals one evaluation of
-    all boxes, and branch and bound takes exactly the same path as in one process.
-    """
-    from certify.bnb import BoxEval
-    from certify.executor import chunk_ranges
-
-    def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
-        total = int(lo.shape[0])
-        pieces = executor.workers * per_worker if total >= min_boxes else 1
-        ranges = chunk_ranges(total, pieces)
-        parts = executor.map_chunks(chunk_fn, payload,
-                                    [(lo[a:b].contiguous(), hi[a:b].contiguous())
-                                     for a, b in ranges])
-        if not parts:
-            empty = lo.new_empty(0)
-            return BoxEval(upper=empty, centre_value=empty, score=None)
-        scores = [p.score for p in parts]
-        return BoxEval(upper=torch.cat([p.upper for p in parts]),
-                       centre_value=torch.cat([p.centre_value for p in parts]),
-                       score=None if any(sc is None for sc in scores) else torch.cat(scores))
-
-    return evaluate
-
-
-def box_payload(problem: Problem, kind: str, **options: Any) -> dict[str, Any]:
-    """Plain data for `prover_box_chunk`: the problem, which prover evaluator (`kind`: mpdi,
-    rate, residual) and its options (mpdi: lam, taylor)."""
-    if kind not in _BOX_EVALUATORS:
-        raise ValueError(f"unknown box evaluator {kind!r}")
-    payload = problem_payload(problem)
-    payload.update(kind=kind, options=dict(options))
-    payload["key"] = payload_key(payload)
-    return payload
-
-
-def _mpdi(problem: Problem, lam: float, taylor: bool = True) -> Any:
-    from certify.enclosures import make_preconditioner
-    from certify.prover import _mpdi_evaluator
-
-    return _mpdi_evaluator(problem, lam, make_preconditioner(problem.P_t), taylor)
-
-
-def _rate(problem: Problem) -> Any:
-    from certify.enclosures import make_preconditioner
-    from certify.prover import _rate_evaluator
-
-    return _rate_evaluator(problem, make_preconditioner(problem.P_t))
-
-
-def _residual(problem: Problem) -> Any:
-    from certify.prover import _residual_evaluator
-
-    return _residual_evaluator(problem)
-
-
-_BOX_EVALUATORS = {"mpdi": _mpdi, "rate": _rate, "residual": _residual}
-
-
-def prover_box_chunk(payload: dict[str, Any], lo: torch.Tensor, hi: torch.Tensor) -> Any:
-    """A prover's `evaluate` on boxes [lo, hi] (a worker task; picklable): the same evaluator
-    `certify.prover` uses in-process (`_mpdi_evaluator`, `_rate_evaluator`,
-    `_residual_evaluator`), built once per worker process."""
-    from certify.parallel import torch_threads
-
-    def build() -> Any:
-        problem = problem_from_payload({k: payload[k] for k in
-                                        ("spec", "name", "architecture", "state", "lam", "P")})
-        return _BOX_EVALUATORS[payload["kind"]](problem, **payload["options"])
-
-    evaluate = worker_cache("box:" + payload["key"], build)
-    with torch_threads(1), torch.no_grad():
-        return evaluate(lo, hi)

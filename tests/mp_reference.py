@@ -114,9 +114,9 @@ def _mat(A: np.ndarray) -> mpmath.matrix:
     return mpmath.matrix([[mpmath.mpf(float(v)) for v in row] for row in np.atleast_2d(A)])
 
 
-def network_jacobian_x(layers: Sequence[tuple[np.ndarray, np.ndarray]], z: Sequence[float],
-                       n: int) -> mpmath.matrix:
-    """dk/dxhat of the direct tanh MLP k(z) = W_L tanh(... tanh(W_0 z + b_0) ...) + b_L."""
+def network(layers: Sequence[tuple[np.ndarray, np.ndarray]], z: Sequence[float]
+            ) -> tuple[mpmath.matrix, mpmath.matrix]:
+    """k(z) and dk/dz of the direct tanh MLP k(z) = W_L tanh(... tanh(W_0 z + b_0) ...) + b_L."""
     a = mpmath.matrix([mpmath.mpf(float(v)) for v in z])
     J = mpmath.eye(len(z))
     for W, b in layers[:-1]:
@@ -125,8 +125,30 @@ def network_jacobian_x(layers: Sequence[tuple[np.ndarray, np.ndarray]], z: Seque
         a = mpmath.matrix(t)
         D = mpmath.diag([1 - ti * ti for ti in t])
         J = D * _mat(W) * J
-    J = _mat(layers[-1][0]) * J
-    return J[:, :n] if J.cols > n else J
+    W, b = layers[-1]
+    return _mat(W) * a + _mat(b[:, None]), _mat(W) * J
+
+
+def network_jacobian_x(layers: Sequence[tuple[np.ndarray, np.ndarray]], z: Sequence[float],
+                       n: int) -> mpmath.matrix:
+    """dk/dxhat of the direct tanh MLP."""
+    J = network(layers, z)[1]
+    return J[:, :n]
+
+
+def dk_dy_norm(layers, z: Sequence[float], n: int) -> mpmath.mpf:
+    """||dk/dy||_2 at z (largest singular value, 40 digits)."""
+    with mpmath.workdps(DIGITS):
+        J = network(layers, z)[1]
+        Jy = J[:, n:]
+        return max(mpmath.svd_r(Jy, compute_uv=False))
+
+
+def residual_norm(layers, x: Sequence[float], p: int) -> mpmath.mpf:
+    """||k(x, h(x))||_2 with h(x) = (x_1..x_p), 40 digits."""
+    with mpmath.workdps(DIGITS):
+        k = network(layers, [*x, *x[:p]])[0]
+        return mpmath.sqrt(sum(k[i] ** 2 for i in range(k.rows)))
 
 
 def jacobian_f(spec: RandomSpec, x: Sequence[float]) -> mpmath.matrix:

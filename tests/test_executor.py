@@ -210,7 +210,7 @@ def test_mpdi_proof_on_dask_equals_serial(dask2):
         remote = prove_mpdi(problem, seconds=1e9, max_boxes=5000)
     assert serial.stats.budget_exhausted and remote.stats.budget_exhausted
     built = dask2.client.run(_cached_keys)  # the boxes really went to the workers
-    assert any(k.startswith("box:") for keys in built.values() for k in keys)
+    assert any(k.startswith("mpdi-boxes:") for keys in built.values() for k in keys)
     assert serial.status == remote.status
     assert serial.upper == remote.upper and serial.lower == remote.lower
     assert serial.stats.boxes_processed == remote.stats.boxes_processed
@@ -244,25 +244,3 @@ def test_killed_worker_mid_proof_changes_nothing(dask2):
     assert remote.upper == serial.upper and remote.stats.boxes_processed == \
         serial.stats.boxes_processed
     dask2.client.wait_for_workers(2, timeout=60)
-
-
-def test_rate_and_residual_proofs_on_dask_equal_serial(system3, dask2):
-    """The rate and residual provers use the same mechanism: identical bounds on a box
-    budget, serial vs 2 Dask workers."""
-    from certify.problem import Problem
-    from certify.prover import bound_residual, prove_rate
-
-    problem = _vdp_certified().problem
-    serial = prove_rate(problem, seconds=1e9, max_boxes=4000)
-    with using(dask2):
-        remote = prove_rate(problem, seconds=1e9, max_boxes=4000)
-    assert serial.lower is not None and serial.lower == remote.lower
-    assert serial.upper_sampled == remote.upper_sampled
-    assert serial.stats.boxes_processed == remote.stats.boxes_processed
-    direct = Problem(system=system3, network=random_network(3, 2, seed=2), lam=0.5,
-                     P=system3.P)
-    s_up, s_pt, s_stats = bound_residual(direct, seconds=1e9, max_boxes=3000)
-    with using(dask2):
-        r_up, r_pt, r_stats = bound_residual(direct, seconds=1e9, max_boxes=3000)
-    assert s_up is not None and s_up > 0 and s_up == r_up and s_pt == r_pt
-    assert s_stats.boxes_processed == r_stats.boxes_processed

@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 import sympy
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from certify.errors import SpecError
 from certify.parse import LIMITS, parse_expression
@@ -149,3 +151,24 @@ def test_long_sums_and_products_are_flat_not_deep():
     assert "division by 'x2'" in str(info.value) and len(str(info.value)) < 400
     with pytest.raises(SpecError, match="nested"):
         parse_expression("sin(" * 70 + "x1" + ")" * 70, {"x1": sympy.Symbol("x1")})
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 4), hostile=st.booleans())
+def test_accepted_specs_are_finite_everywhere_and_undefined_ones_refused(seed, n, hostile):
+    """Acceptance is sound: f and Jf are finite at every sampled point of X; a spec with a
+    term undefined somewhere on X is refused."""
+    from .mp_reference import random_spec
+
+    rng = np.random.default_rng(seed)
+    rs = random_spec(rng, n, 1, 2.0, allow_undefined=hostile)
+    if not rs.defined:
+        with pytest.raises(SpecError, match="not defined and smooth"):
+            System.from_text(rs.text)
+        return
+    s = System.from_text(rs.text)
+    X = torch.as_tensor(rs.X)
+    x = X[:, 0] + (X[:, 1] - X[:, 0]) * torch.rand(2000, n, dtype=torch.float64,
+                                                    generator=torch.Generator().manual_seed(seed))
+    x = torch.cat([x, X[:, 0][None], X[:, 1][None]])
+    assert bool(torch.isfinite(s.f(x)).all()) and bool(torch.isfinite(s.jac_f(x)).all())

@@ -208,3 +208,38 @@ def test_manifold_lower_with_a_nonlinear_output_is_below_the_exact_q():
             v = mpmath.matrix([-mpmath.mpf(x2) / 2, 1])
             q = (v.T * S * v)[0] / (v.T * v)[0]
         assert lo <= q and lo >= q - 1e-9, (lo, q)
+
+
+# ----- the float32 screen can only ask for a float64 look, never decide ---------------------
+
+class _LyingScreen:
+    """A float32 'screen' that hides everything (-1000 at every point)."""
+
+    def __init__(self, problem, lam=None, dtype=None, **kw):
+        from certify.gridkernel import GridKernel
+
+        self.real = GridKernel(problem, lam, **kw) if dtype is None else None
+        self.lam = self.real.lam if self.real is not None else lam
+
+    def __call__(self, z: torch.Tensor) -> torch.Tensor:
+        if self.real is not None:
+            return self.real(z)
+        return torch.full((z.shape[0],), -1000.0, dtype=torch.float32, device=z.device)
+
+
+@pytest.mark.parametrize("which", ["tie", "corner"])
+def test_a_lying_float32_screen_never_decides(monkeypatch, which):
+    import certify.checks.mpdi as mpdi_module
+    from certify.settings import VerifySettings
+
+    from .planted import planted_problem
+
+    monkeypatch.setattr(mpdi_module, "GridKernel", _LyingScreen)
+    problem = _tie_problem() if which == "tie" else planted_problem("corner")
+    settings = VerifySettings(grid_points=5000, adversarial_starts=4, adversarial_steps=10,
+                              proof_seconds=20, float32_screen=True)
+    r = mpdi_module.check_mpdi(problem, settings)
+    if which == "tie":
+        assert r.status.value in ("PROVED", "UNKNOWN")
+    else:  # a real violation in 1e-6 of the volume: the prover still finds it, soundly
+        assert r.status.value == "VIOLATED" and r.counterexamples[0].sound_bound > 0

@@ -51,6 +51,9 @@ def test_vacuous_bound_on_the_verdict_line_in_json_and_table_of_runs(workdir, ca
     # JUnit: every check passed or was not required; nothing red
     root = ET.parse(workdir / "c.xml").getroot()
     assert root.get("failures") == "0" and root.get("errors") == "0"
+    # the simulated states are drawn on request only
+    code, _, _ = run_cli(capsys, "report", "c.json", "--html", "t.html", "--trajectories")
+    assert code == 0 and 'id="fig-simulation"' in (workdir / "t.html").read_text()
 
 
 def test_no_bound_is_not_applicable_not_unknown_or_skipped(workdir, capsys):
