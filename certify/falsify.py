@@ -201,7 +201,8 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
             return out
 
         with contextlib.ExitStack() as stack:
-            if remote is not None and getattr(remote[0], "remote", False):
+            if remote is not None and (getattr(remote[0], "remote", False)
+                                       or getattr(remote[0], "workers", 1) > 1):
                 grid = {"lo": lo_t.cpu().numpy(), "hi": hi_t.cpu().numpy(), "shape": shape,
                         "threshold": threshold, "keep": keep, "chunk": chunk}
                 results: Any = _remote_sweep(remote, grid, total, tol, screen is not None,

@@ -198,33 +198,45 @@ def _vdp_certified():
     return checkpoint.load(str(Path(__file__).parents[1] / "examples" / "vdp_certified.ckpt"))
 
 
-def test_mpdi_proof_on_dask_equals_serial(dask2):
-    """Same box budget, serial vs 2 Dask workers: the same verdict, the same proved upper
-    bound and best point value, the same number of boxes (a budget-ended proof, so the bound
-    is an intermediate one and every round must have matched)."""
+#: a box budget that ends the vdp_certified proof before it closes (it needs about 3300)
+BUDGET = 1200
+
+
+@pytest.fixture(scope="module")
+def serial_proof():
     from certify.prover import prove_mpdi
 
     problem = _vdp_certified().problem
-    serial = prove_mpdi(problem, seconds=1e9, max_boxes=5000)
+    return problem, prove_mpdi(problem, seconds=1e9, max_boxes=BUDGET)
+
+
+def _same(a, b) -> None:
+    assert a.status == b.status
+    assert a.upper == b.upper and a.lower == b.lower
+    assert a.stats.boxes_processed == b.stats.boxes_processed
+    assert a.boxes == b.boxes
+
+
+def test_mpdi_proof_on_dask_equals_serial(dask2, serial_proof):
+    """Same box budget, serial vs 2 Dask workers: the same verdict, the same proved upper
+    bound and best point value, the same boxes (a budget-ended proof, so the bound is an
+    intermediate one and every round must have matched)."""
+    from certify.prover import prove_mpdi
+
+    problem, serial = serial_proof
     with using(dask2):
-        remote = prove_mpdi(problem, seconds=1e9, max_boxes=5000)
+        remote = prove_mpdi(problem, seconds=1e9, max_boxes=BUDGET)
     assert serial.stats.budget_exhausted and remote.stats.budget_exhausted
     built = dask2.client.run(_cached_keys)  # the boxes really went to the workers
     assert any(k.startswith("mpdi-boxes:") for keys in built.values() for k in keys)
-    assert serial.status == remote.status
-    assert serial.upper == remote.upper and serial.lower == remote.lower
-    assert serial.stats.boxes_processed == remote.stats.boxes_processed
-    assert serial.boxes == remote.boxes
+    _same(serial, remote)
 
 
-def test_killed_worker_mid_proof_changes_nothing(dask2):
-    """SIGKILL a worker while the MPDI proof runs on 2 workers: PROVED with the same bound."""
+def test_killed_worker_mid_proof_changes_nothing(dask2, serial_proof):
+    """SIGKILL a worker while the MPDI proof runs on 2 workers: the same outcome."""
     from certify.prover import prove_mpdi
-    from certify.results import Status
 
-    problem = _vdp_certified().problem
-    serial = prove_mpdi(problem, seconds=1e9, max_boxes=2_000_000)
-    assert serial.status == Status.PROVED
+    problem, serial = serial_proof
     victim = list(dask2.worker_pids().values())[1]
     killed = threading.Event()
 
@@ -236,11 +248,9 @@ def test_killed_worker_mid_proof_changes_nothing(dask2):
     killer.start()
     try:
         with using(dask2):
-            remote = prove_mpdi(problem, seconds=1e9, max_boxes=2_000_000)
+            remote = prove_mpdi(problem, seconds=1e9, max_boxes=BUDGET)
     finally:
         killer.cancel()
     assert killed.is_set()  # the proof outlasted the timer: the kill was mid-proof
-    assert remote.status == Status.PROVED
-    assert remote.upper == serial.upper and remote.stats.boxes_processed == \
-        serial.stats.boxes_processed
+    _same(serial, remote)
     dask2.client.wait_for_workers(2, timeout=60)
