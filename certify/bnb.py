@@ -7,6 +7,16 @@ split score per dimension. The driver keeps the open boxes as tensors, takes the
 evaluates the children together. A box is closed when its bound is at most `threshold`
 (decision mode: proved) or within `tol` of the best value found (maximisation mode). NaN or
 Inf bounds never close a box; a box split past `max_depth` is set aside as UNKNOWN.
+
+The loop runs in deterministic rounds (the executor contract, `certify.executor`): each round
+takes the `batch` worst open boxes in a fixed order (stable sort on the bound), bisects them,
+evaluates all children with one `evaluate(lo, hi)` call, then closes / sets aside in order.
+With an `executor` of more than one worker and a picklable `remote = (chunk_fn, payload)`
+(`chunk_fn(payload, lo, hi) -> BoxEval`, module level), the children are cut into
+`executor.workers * CHUNKS_PER_WORKER` contiguous chunks evaluated with
+`executor.map_chunks` and concatenated in order, so the boxes, bounds and verdict are those
+of the serial run for the same box budget (up to the last bits of BLAS products whose
+blocking depends on the chunk size; bounds stay sound either way).
 """
 
 from __future__ import annotations
@@ -15,6 +25,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 
@@ -93,6 +104,27 @@ def _take(a: Box, idx: torch.Tensor) -> Box:
     return Box(a.lo[idx], a.hi[idx], a.depth[idx])
 
 
+CHUNKS_PER_WORKER = 2
+
+
+def _evaluate_round(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval],
+                    lo: torch.Tensor, hi: torch.Tensor, executor: Any, remote: Any) -> BoxEval:
+    """One round's evaluation: in process, or chunked over the executor's workers."""
+    if executor is None or getattr(executor, "workers", 1) <= 1 or remote is None \
+            or len(lo) < 2:
+        return evaluate(lo, hi)
+    from certify.executor import chunk_ranges
+
+    chunk_fn, payload = remote
+    ranges = chunk_ranges(len(lo), executor.workers * CHUNKS_PER_WORKER)
+    parts = executor.map_chunks(chunk_fn, payload, [(lo[a:b], hi[a:b]) for a, b in ranges])
+    score = None
+    if all(p.score is not None for p in parts):
+        score = torch.cat([p.score for p in parts])
+    return BoxEval(upper=torch.cat([p.upper for p in parts]),
+                   centre_value=torch.cat([p.centre_value for p in parts]), score=score)
+
+
 def split(box: Box, dims: torch.Tensor) -> Box:
     """Bisect each box along dims [N]; the two halves share the (float) midpoint exactly."""
     N = len(box)
@@ -124,6 +156,8 @@ def branch_and_bound(
     keep_leaves: int = 5000,
     project: tuple[int, int] | None = (0, 1),
     seeds: Box | None = None,
+    executor: Any = None,
+    remote: tuple[Callable[..., BoxEval], Any] | None = None,
 ) -> BnBOutcome:
     """Sound upper bound of max f over [root_lo, root_hi] [d], refining the worst boxes first.
 
@@ -131,6 +165,7 @@ def branch_and_bound(
     centre value > threshold is a violation (stops when `stop_on_violation`). Maximisation
     mode: boxes with upper <= best + max(tol, rel_tol |best|) close; the result `upper` is
     the max over closed and open boxes. Budgets: `seconds` and `max_boxes` (boxes evaluated).
+    `executor` / `remote`: where each round's children are evaluated (module docstring).
     """
     progress = progress or NullProgress()
     t0 = time.perf_counter()
@@ -197,7 +232,7 @@ def branch_and_bound(
             violated = True
 
     open_box = initial_grid(root_lo, root_hi, batch)
-    ev = evaluate(open_box.lo, open_box.hi)
+    ev = _evaluate_round(evaluate, open_box.lo, open_box.hi, executor, remote)
     processed += len(open_box)
     update_best(ev, open_box)
     open_ub = ev.upper
@@ -251,10 +286,10 @@ def branch_and_bound(
         if now - t0 > seconds or processed >= max_boxes:
             budget_exhausted = True
             break
-        # pick the worst boxes
+        # pick the worst boxes (stable order: deterministic rounds)
         key = torch.nan_to_num(open_ub, nan=math.inf)
         k = min(batch, len(open_box))
-        idx = torch.topk(key, k).indices
+        idx = torch.sort(key, descending=True, stable=True).indices[:k]
         mask = torch.zeros(len(open_box), dtype=torch.bool)
         mask[idx] = True
         work = _take(open_box, mask)
@@ -273,7 +308,7 @@ def branch_and_bound(
         dims = torch.argmax(s, -1)
         kids = split(work, dims)
         max_seen_depth = max(max_seen_depth, int(kids.depth.max()))
-        ev = evaluate(kids.lo, kids.hi)
+        ev = _evaluate_round(evaluate, kids.lo, kids.hi, executor, remote)
         processed += len(kids)
         update_best(ev, kids)
         open_box = _cat(open_box, kids)

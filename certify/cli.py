@@ -69,7 +69,10 @@ def _report_flags(p: argparse.ArgumentParser, json_help: str) -> None:
     p.add_argument("--pdf", metavar="PATH", help="write the PDF report")
     p.add_argument("--json", metavar="PATH", help=json_help)
     p.add_argument("--junit", metavar="PATH",
-                   help="write JUnit XML (VIOLATED is a <failure>, ERROR an <error>)")
+                   help="write JUnit XML (a required check that fails is a <failure>, ERROR "
+                        "an <error>; checks not required never fail the build)")
+    p.add_argument("--trajectories", action="store_true",
+                   help="HTML/PDF: also plot each simulated run's true and estimated states")
 
 
 def _model_flags(p: argparse.ArgumentParser, system_help: str) -> None:

@@ -267,7 +267,7 @@ def write_outputs(cert: Any, args: argparse.Namespace, display: Any) -> None:
     if any(targets.values()):
         from reports.render import write_reports
 
-        write_reports(cert, **targets)
+        write_reports(cert, **targets, trajectories=bool(getattr(args, "trajectories", False)))
     if to_stdout:
         _write_json(STDOUT, cert.to_json() + "\n")
     display.finish_step("reports", "written", time.perf_counter() - t0)

@@ -73,7 +73,7 @@ class _Walker:
 
     def name(self, e: sympy.Expr) -> str:
         """How the user wrote sub-expression e (sympy's short form if unknown)."""
-        return self.sources.get(e) or sympy.sstr(e, full_prec=False)
+        return _short(self.sources.get(e) or sympy.sstr(e, full_prec=False))
 
     def walk(self, e: sympy.Expr) -> Interval:
         out = self._walk(e)
@@ -155,6 +155,12 @@ def _away_from_zero(a: Interval, zero: torch.Tensor) -> Interval:
     return Interval(torch.where(zero, one, a.lo), torch.where(zero, one, a.hi))
 
 
+def _short(text: str, limit: int = 80) -> str:
+    """Long expressions are quoted by their start and end (messages stay one short line)."""
+    text = " ".join(text.split())
+    return text if len(text) <= limit else f"{text[:limit // 2 - 2]} ... {text[-limit // 2 + 3:]}"
+
+
 def _describe_box(lo: np.ndarray, hi: np.ndarray, names: Sequence[str]) -> str:
     return ", ".join(f"{n} in [{a:.4g}, {b:.4g}]" for n, a, b in zip(names, lo, hi))
 
@@ -219,7 +225,7 @@ def _refuse(label: str, text: str, issue: _Issue, mask: torch.Tensor, lo: torch.
             hi: torch.Tensor, names: Sequence[str]) -> None:
     part_lo = lo[mask].min(0).values.numpy()
     part_hi = hi[mask].max(0).values.numpy()
-    raise SpecError(f"{label}: {text!r} is not defined and smooth on all of the box: "
+    raise SpecError(f"{label}: {_short(text)!r} is not defined and smooth on all of the box: "
                     f"{issue.reason}, for {_describe_box(part_lo, part_hi, names)}")
 
 

@@ -29,8 +29,8 @@ from certify.errors import SpecError
 class ParseLimits:
     """What one expression may contain (each one is a refusal with exit 2 when exceeded)."""
 
-    max_chars: int = 4000
-    max_nodes: int = 1000
+    max_chars: int = 8000
+    max_nodes: int = 2000
     max_depth: int = 64
     max_int: int = 2**53  # integer literals beyond this are not exact doubles
     max_exponent: float = 100.0  # |k| of a constant exponent of a state expression
@@ -48,6 +48,8 @@ _SYMPY = {
 }
 _CONSTANTS = {"pi": (sympy.pi, math.pi)}
 FUNCTION_NAMES = tuple(sorted(_SYMPY))
+#: Refused with the reason spelled out (abs is allowed only where it is smooth: certify.domain).
+_NON_SMOOTH = {"sign", "floor", "ceil", "round", "max", "min", "heaviside", "Heaviside", "mod"}
 
 _KINDS = {
     ast.Attribute: "attribute access", ast.Subscript: "subscript", ast.Lambda: "lambda",
@@ -65,13 +67,36 @@ def _describe(node: ast.AST) -> str:
     return f"'{text if len(text) <= 60 else text[:57] + '...'}'"
 
 
+_ADDITIVE = (ast.Add, ast.Sub)
+_MULTIPLICATIVE = (ast.Mult, ast.Div)
+
+
+def _chain_kind(op: ast.operator) -> tuple[type, ...] | None:
+    for kind in (_ADDITIVE, _MULTIPLICATIVE):
+        if isinstance(op, kind):
+            return kind
+    return None
+
+
+def _continues_chain(parent: ast.AST, child: ast.AST) -> bool:
+    """child is the left operand of parent in one sum (or one product): a + b + c is a flat
+    sum of three terms, not a nesting of depth three."""
+    if not (isinstance(parent, ast.BinOp) and isinstance(child, ast.BinOp)
+            and child is parent.left):
+        return False
+    kind = _chain_kind(parent.op)
+    return kind is not None and isinstance(child.op, kind)
+
+
 def _depth(node: ast.AST) -> int:
-    """Nesting depth of an expression tree (iterative: a deep tree cannot overflow here)."""
+    """Nesting depth of an expression, sums and products counted flat (iterative: a deep
+    tree cannot overflow the stack here)."""
     best, stack = 0, [(node, 1)]
     while stack:
         cur, d = stack.pop()
         best = max(best, d)
-        stack.extend((child, d + 1) for child in ast.iter_child_nodes(cur))
+        stack.extend((child, d if _continues_chain(cur, child) else d + 1)
+                     for child in ast.iter_child_nodes(cur))
     return best
 
 
@@ -90,9 +115,9 @@ def _tree(text: str, prefix: str, limits: ParseLimits) -> ast.Expression:
     except (RecursionError, MemoryError, ValueError) as exc:
         raise SpecError(f"{prefix}cannot parse the expression: {type(exc).__name__} "
                         "(too deeply nested or too large)") from None
-    nodes = sum(1 for _ in ast.walk(tree))
+    nodes = sum(1 for node in ast.walk(tree) if isinstance(node, ast.expr))
     if nodes > limits.max_nodes:
-        raise SpecError(f"{prefix}expression has {nodes} syntax nodes; the limit is "
+        raise SpecError(f"{prefix}expression has {nodes} terms and operations; the limit is "
                         f"{limits.max_nodes}")
     depth = _depth(tree)
     if depth > limits.max_depth:
@@ -196,10 +221,28 @@ def parse_expression(text: str, names: Mapping[str, sympy.Symbol], where: str = 
 
     def binop(node: ast.BinOp) -> tuple[sympy.Expr, float | None]:
         op = node.op
-        if not isinstance(op, (ast.Add, ast.Sub, ast.Mult, ast.Div, ast.Pow)):
+        if not isinstance(op, (*_ADDITIVE, *_MULTIPLICATIVE, ast.Pow)):
             raise SpecError(f"{prefix}operator in {_describe(node)} is not allowed "
                             "(use + - * / **)")
-        (a, va), (b, vb) = build(node.left), build(node.right)
+        if isinstance(op, ast.Pow):
+            return power(node)
+        # a sum or product of many terms: walk its left spine iteratively (one stack frame
+        # per nesting level, not per term) and build one flat unevaluated Add / Mul
+        kind = _chain_kind(op)
+        spine, cur = [], node
+        while isinstance(cur, ast.BinOp) and isinstance(cur.op, kind):
+            spine.append(cur)
+            cur = cur.left
+        acc, vacc = build(cur)
+        for step in reversed(spine):
+            b, vb = build(step.right)
+            acc, vacc = combine(step, acc, vacc, b, vb)
+        return acc, vacc
+
+    def combine(node: ast.BinOp, a: sympy.Expr, va: float | None, b: sympy.Expr,
+                vb: float | None) -> tuple[sympy.Expr, float | None]:
+        """a (op) b for + - * /, folded when both are constant, else flat and unevaluated."""
+        op = node.op
         if va is not None and vb is not None:  # constant: fold after the float guard
             if isinstance(op, ast.Add):
                 return constant(node, a + b, guarded(node, "+", va, vb))
@@ -207,23 +250,24 @@ def parse_expression(text: str, names: Mapping[str, sympy.Symbol], where: str = 
                 return constant(node, a - b, guarded(node, "+", va, -vb))
             if isinstance(op, ast.Mult):
                 return constant(node, a * b, guarded(node, "*", va, vb))
-            if isinstance(op, ast.Div):
-                return constant(node, a / b, guarded(node, "/", va, vb))
+            return constant(node, a / b, guarded(node, "/", va, vb))
+        if isinstance(op, _ADDITIVE):
+            term = b if isinstance(op, ast.Add) else sympy.Mul(sympy.Integer(-1), b,
+                                                               evaluate=False)
+            left = a.args if (a.is_Add and va is None) else (a,)
+            return sympy.Add(*left, term, evaluate=False), None
+        factor = b if isinstance(op, ast.Mult) else sympy.Pow(b, sympy.Integer(-1),
+                                                              evaluate=False)
+        left = a.args if (a.is_Mul and va is None) else (a,)
+        return sympy.Mul(*left, factor, evaluate=False), None
+
+    def power(node: ast.BinOp) -> tuple[sympy.Expr, float | None]:
+        (a, va), (b, vb) = build(node.left), build(node.right)
+        if va is not None and vb is not None:
             if abs(vb) > _MAX_CONSTANT_EXPONENT:  # exact sympy powers would take forever
                 raise refuse_constant(node, f"has an exponent of {vb:.3g} (limit "
                                       f"{_MAX_CONSTANT_EXPONENT})")
-            value = guarded(node, "**", va, vb)
-            return constant(node, a**b, value)
-        if isinstance(op, ast.Add):
-            return sympy.Add(a, b, evaluate=False), None
-        if isinstance(op, ast.Sub):
-            return sympy.Add(a, sympy.Mul(sympy.Integer(-1), b, evaluate=False),
-                             evaluate=False), None
-        if isinstance(op, ast.Mult):
-            return sympy.Mul(a, b, evaluate=False), None
-        if isinstance(op, ast.Div):
-            return sympy.Mul(a, sympy.Pow(b, sympy.Integer(-1), evaluate=False),
-                             evaluate=False), None
+            return constant(node, a**b, guarded(node, "**", va, vb))
         if vb is not None and abs(vb) > limits.max_exponent:
             raise SpecError(f"{prefix}exponent {_describe(node.right)} = {vb:.3g} in "
                             f"{_describe(node)} is beyond +-{limits.max_exponent:g}")
@@ -236,7 +280,9 @@ def parse_expression(text: str, names: Mapping[str, sympy.Symbol], where: str = 
                             f"(allowed functions: {allowed})")
         fname = node.func.id
         if fname not in _SYMPY:
-            raise SpecError(f"{prefix}unknown function '{fname}' in {_describe(node)} "
+            why = (": it is not smooth and the checks need f and h twice differentiable"
+                   if fname in _NON_SMOOTH else "")
+            raise SpecError(f"{prefix}unknown function '{fname}' in {_describe(node)}{why} "
                             f"(allowed: {allowed})")
         if node.keywords or len(node.args) != 1:
             raise SpecError(f"{prefix}function '{fname}' takes exactly one argument "

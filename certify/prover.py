@@ -15,13 +15,16 @@ import numpy as np
 import torch
 
 from certify.bnb import Box, BoxEval, branch_and_bound
+from certify.bounds.mpdi import CROWN_GAIN, estimate_crown_gain
 from certify.enclosures import (
     Preconditioner,
     dk_dy_box_upper,
+    dk_dy_box_upper_crown,
     make_preconditioner,
     manifold_enclosure,
     mpdi_box_bounds,
     residual_box_upper,
+    residual_box_upper_crown,
     to_lam_max_D,
 )
 from certify.intervals import ROUNDING, h_enclosure, up
@@ -77,12 +80,19 @@ def _seed_box(seeds: object | None, d: int) -> Box | None:
     return Box(pts, pts.clone(), torch.zeros(pts.shape[0], dtype=torch.long))
 
 
-def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bool = True):
+def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bool | str = True,
+                    crown: bool = True):
     n = problem.n
     P = problem.P_t
+    gain = CROWN_GAIN
+    rlo, rhi = _root(problem)
+    if crown and taylor is True:
+        gain = estimate_crown_gain(problem.network, rlo, rhi)
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
-        bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, taylor=taylor)
+        # boxes the plain interval bound already proves skip the Taylor / relaxation work
+        bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, taylor=taylor, crown=crown,
+                             screen=0.0, crown_gain=gain, root_width=rhi - rlo)
         ub = to_lam_max_D(bb.upper, P, pc)
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         c = 0.5 * (lo + hi)
@@ -92,26 +102,67 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
     return evaluate
 
 
+def mpdi_box_chunk(payload: dict, lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+    """Executor task (module level, picklable): the MPDI box evaluation of one chunk; the
+    evaluator is rebuilt from plain data once per worker process (`certify.remote`)."""
+    from certify.executor import worker_cache
+    from certify.parallel import torch_threads
+    from certify.remote import problem_from_payload
+
+    def build():
+        base = {k: payload[k] for k in ("spec", "name", "architecture", "state", "lam", "P")}
+        problem = problem_from_payload(base)
+        return _mpdi_evaluator(problem, payload["prove_lam"],
+                               make_preconditioner(problem.P_t), payload["taylor"],
+                               payload["crown"])
+
+    evaluate = worker_cache("mpdi-boxes:" + payload["key"], build)
+    with torch_threads(1):
+        return evaluate(lo, hi)
+
+
+def _mpdi_remote(problem: Problem, lam: float, taylor: bool | str, crown: bool,
+                 executor: object) -> tuple | None:
+    """(chunk_fn, payload) for a multi-worker executor, else None (evaluate in process)."""
+    if getattr(executor, "workers", 1) <= 1:
+        return None
+    from certify.executor import payload_key
+    from certify.remote import problem_payload
+
+    payload = problem_payload(problem)
+    payload.update(prove_lam=float(lam), taylor=taylor, crown=bool(crown))
+    payload["key"] = payload_key(payload)
+    return mpdi_box_chunk, payload
+
+
 def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 60.0,
                max_boxes: int = 2_000_000, progress: Progress | None = None,
-               seeds: object | None = None, batch: int = 1024, taylor: bool = True,
-               keep_leaves: int = 5000) -> ProofOutcome:
+               seeds: object | None = None, batch: int = 1024, taylor: bool | str = True,
+               keep_leaves: int = 5000, crown: bool = True,
+               executor: object | None = None) -> ProofOutcome:
     """Decide D(xhat, y) <= 0 over X x Y for rate `lam` (default problem.lam) and P.
 
     PROVED: every sub-box has a sound bound lam_max(D) <= 0. VIOLATED: a point (a box
     centre or one of `seeds` [m, n+p]) with float64 lam_max(D) > 0. UNKNOWN: budget spent
     (`seconds`, `max_boxes`) or NaN/Inf in some bound; `upper` is then the best bound.
-    `taylor=False` uses plain interval arithmetic only (for comparison).
+    `taylor=False` uses plain interval arithmetic only (for comparison); `crown=False` keeps
+    the forward Taylor models without backward linear bound propagation (the pre-issue-9 prover).
+    `executor`: where the rounds' boxes are evaluated (default `current_executor()`; the
+    verdict and bounds do not depend on it).
     """
+    from certify.executor import current_executor
+
     progress = progress or NullProgress()
     lam = float(problem.lam if lam is None else lam)
     pc = make_preconditioner(problem.P_t)
     lo, hi = _root(problem)
     n = problem.n
+    executor = current_executor() if executor is None else executor
     out = branch_and_bound(
-        lo, hi, _mpdi_evaluator(problem, lam, pc, taylor), threshold=0.0, seconds=seconds,
+        lo, hi, _mpdi_evaluator(problem, lam, pc, taylor, crown), threshold=0.0, seconds=seconds,
         max_boxes=max_boxes, batch=batch, progress=progress, task="mpdi proof",
-        seeds=_seed_box(seeds, lo.shape[0]), keep_leaves=keep_leaves)
+        seeds=_seed_box(seeds, lo.shape[0]), keep_leaves=keep_leaves, executor=executor,
+        remote=_mpdi_remote(problem, lam, taylor, crown, executor))
     cex = None
     if out.best_point is not None:
         pt = out.best_point[None]
@@ -156,13 +207,20 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     n = problem.n
     P = problem.P_t
 
+    level = _Level(rel_tol, tol)
+
     def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
-        bb = mpdi_box_bounds(problem, blo, bhi, 0.0, pc=pc)
+        c = 0.5 * (blo + bhi)
+        val = -2.0 * pointwise_rate(problem.system, problem.network, P, c[:, :n], c[:, n:])
+        cv = torch.nan_to_num(val, nan=-math.inf)
+        level.best = max(level.best, float(cv.max())) if len(cv) else level.best
+        lv = level.value()  # phi-level -> mu-level (mu / c_min or mu / c_max <= lv)
+        screen = None if not math.isfinite(lv) else (lv * pc.c_min if lv >= 0
+                                                      else lv * pc.c_max)
+        bb = mpdi_box_bounds(problem, blo, bhi, 0.0, pc=pc, screen=screen)
         mu = bb.upper
         ub = torch.where(mu >= 0, up(mu / pc.c_min), up(mu / pc.c_max))
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
-        c = 0.5 * (blo + bhi)
-        val = -2.0 * pointwise_rate(problem.system, problem.network, P, c[:, :n], c[:, n:])
         return BoxEval(upper=ub, centre_value=val, score=bb.score)
 
     out = branch_and_bound(lo, hi, evaluate, threshold=None, tol=tol, rel_tol=rel_tol,
@@ -179,6 +237,36 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     return RateOutcome(lower=lower, upper_sampled=upper_sampled, stats=out.stats, worst=worst)
 
 
+class _Level:
+    """The closing level of a maximisation branch and bound, tracked from the centre values
+    the evaluator sees (the same points `branch_and_bound` ranks): boxes whose cheap bound is
+    already at or below it skip the expensive bound. Only the choice of bound depends on it,
+    never soundness."""
+
+    def __init__(self, rel_tol: float, tol: float) -> None:
+        self.best = -math.inf
+        self.rel_tol, self.tol = rel_tol, tol
+
+    def value(self) -> float:
+        if not math.isfinite(self.best):
+            return math.inf
+        return self.best + max(self.tol, self.rel_tol * abs(self.best))
+
+    def tighten(self, cheap: torch.Tensor, centre: torch.Tensor, tight) -> torch.Tensor:
+        """min(cheap, tight(mask)) on the boxes whose cheap bound is above the level."""
+        cv = torch.nan_to_num(centre, nan=-math.inf)
+        if len(cv):
+            self.best = max(self.best, float(cv.max()))
+        work = ~(cheap <= self.value())
+        if not bool(work.any()):
+            return cheap
+        out = cheap.clone()
+        t = tight(work)
+        out[work] = torch.where(torch.isnan(t) | torch.isnan(cheap[work]), cheap[work],
+                                torch.minimum(cheap[work], t))
+        return out
+
+
 def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_000_000,
                    progress: Progress | None = None, rel_tol: float = 1e-3,
                    batch: int = 1024) -> tuple[float | None, list[float] | None, ProofStats]:
@@ -191,8 +279,12 @@ def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 
     s = problem.system
     X = torch.as_tensor(s.X, dtype=torch.float64)
 
+    level = _Level(rel_tol, 1e-12)
+
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
         ub, cen = residual_box_upper(s, problem.network, lo, hi)
+        ub = level.tighten(ub, cen, lambda m: residual_box_upper_crown(
+            s, problem.network, lo[m], hi[m])[0])
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         return BoxEval(upper=ub, centre_value=cen, score=None)
 
@@ -211,8 +303,12 @@ def bound_dk_dy(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_0
     entry magnitudes; exact for p = 1). None when a box stayed NaN/Inf."""
     lo, hi = _root(problem)
 
+    level = _Level(rel_tol, 1e-12)
+
     def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
         ub, cen = dk_dy_box_upper(problem.system, problem.network, blo, bhi)
+        ub = level.tighten(ub, cen, lambda m: dk_dy_box_upper_crown(
+            problem.system, problem.network, blo[m], bhi[m])[0])
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         return BoxEval(upper=ub, centre_value=cen, score=None)
 

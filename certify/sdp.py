@@ -37,7 +37,14 @@ from typing import Any
 import numpy as np
 
 from certify.results import Status
-from certify.sdp_ipm import check_lipsdp_lmi, lipsdp_lmi, lipsdp_pdip, one_thread
+from certify.sdp_ipm import (
+    check_lipsdp_lmi,
+    lipsdp_lmi,
+    lipsdp_pdip,
+    norm2_upper,
+    one_thread,
+    pow2_exponent,
+)
 
 __all__ = ["SdpResult", "lipsdp_neuron", "lipsdp_lmi", "check_lipsdp_lmi", "metric_sdp",
            "observer_sdp"]
@@ -177,25 +184,6 @@ def _lipsdp_clarabel(Ws: list[np.ndarray], W_out: np.ndarray, Kx: np.ndarray,
     return res, [np.asarray(ti.value, dtype=np.float64) for ti in t], float(rho.value)
 
 
-def _pow2_exponent(A: np.ndarray, big: float = 2.0**32) -> int:
-    """e with 2^-e A well scaled (max |entry| in [1/2, 1)), or 0 when A is moderate already
-    or the scaling would not be exact (an entry would lose bits by underflow)."""
-    mag = float(np.abs(A).max(initial=0.0))
-    if mag == 0.0 or (1.0 / big <= mag <= big):
-        return 0
-    e = int(np.frexp(mag)[1])
-    scaled = np.ldexp(A, -e)
-    return e if np.array_equal(np.ldexp(scaled, e), A) else 0
-
-
-def _norm2_upper(A: np.ndarray) -> float:
-    """A sound upper bound of ||A||_2 (SVD relative error covered by 64 (m + n) u)."""
-    if A.size == 0 or not np.any(A):
-        return 0.0
-    m, n = A.shape
-    return float(np.linalg.norm(A, 2) * (1.0 + 64.0 * (m + n) * _U) + 1e-300)
-
-
 def lipsdp_neuron(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | None = None,
                   *, method: str = "ipm", strictness: float = 1e-7,
                   slope: tuple[float, float] = (0.0, 1.0)) -> SdpResult:
@@ -232,12 +220,12 @@ def lipsdp_neuron(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | N
     if sa < 0:
         method = "clarabel"  # the interior-point solver is written for the [0, 1] structure
     if any(not np.any(W) for W in [*Ws, W_out]):
-        L = _norm2_upper(Kx)
+        L = norm2_upper(Kx)
         return SdpResult(Status.PROVED, "a layer is exactly zero: the MLP is constant in y, "
                          "so L = ||K||_2 exactly", L, solver="closed-form", raw_value=L,
                          verified=True, seconds=time.perf_counter() - t0)
-    a = _pow2_exponent(Ws[0])
-    b = _pow2_exponent(np.concatenate([W_out, Kx], axis=1))
+    a = pow2_exponent(Ws[0])
+    b = pow2_exponent(np.concatenate([W_out, Kx], axis=1))
     Ws_s = [np.ldexp(Ws[0], -a), *Ws[1:]]
     Wo_s, K_s = np.ldexp(W_out, -b), np.ldexp(Kx, -(a + b))
     if not np.array_equal(np.ldexp(K_s, a + b), Kx):

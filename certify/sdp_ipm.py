@@ -1,5 +1,6 @@
-"""LipSDP-Neuron's LMI in numpy: its construction, its independent re-check, and the dense
-primal-dual interior-point method that solves it (the fast default route).
+"""LipSDP-Neuron's LMI in numpy: its construction, its independent re-check, the exact
+power-of-two scaling of extreme weights, and the dense primal-dual interior-point method
+that solves it (the fast default route).
 
 Split from `certify.sdp` (the cvxpy side, the driver and its fallbacks). The IPM's answer
 is never trusted as it stands: `certify.sdp.lipsdp_neuron` rebuilds the LMI here at the
@@ -31,6 +32,25 @@ class IpmOutcome:
     rho: float | None
     iterations: int = 0
     seconds: float = 0.0
+
+
+def pow2_exponent(A: np.ndarray, big: float = 2.0**32) -> int:
+    """e with 2^-e A well scaled (max |entry| in [1/2, 1)), or 0 when A is moderate already
+    or the scaling would not be exact (an entry would lose bits by underflow)."""
+    mag = float(np.abs(A).max(initial=0.0))
+    if mag == 0.0 or (1.0 / big <= mag <= big):
+        return 0
+    e = int(np.frexp(mag)[1])
+    scaled = np.ldexp(A, -e)
+    return e if np.array_equal(np.ldexp(scaled, e), A) else 0
+
+
+def norm2_upper(A: np.ndarray) -> float:
+    """A sound upper bound of ||A||_2 (SVD relative error covered by 64 (m + n) u)."""
+    if A.size == 0 or not np.any(A):
+        return 0.0
+    m, n = A.shape
+    return float(np.linalg.norm(A, 2) * (1.0 + 64.0 * (m + n) * _U) + 1e-300)
 
 
 def lipsdp_lmi(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray | None,

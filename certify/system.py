@@ -1,7 +1,8 @@
 """System specs: TOML -> a validated `System` with sympy, Jacobians and batched torch maps.
 
-A spec names the states and outputs, gives `f` and `h` as expression strings (parsed by
-the whitelist parser of `certify.expr`), the boxes X and Y, and the design settings. The
+A spec names the states and outputs, gives `f` and `h` as expression strings (parsed as
+written by `certify.parse`, then checked to be defined and smooth on X by `certify.domain`),
+the boxes X and Y, and the design settings. The
 built-ins live in `certify/systems/*.toml`; users pass a path to their own file.
 """
 

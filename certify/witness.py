@@ -241,6 +241,19 @@ def manifold_lower(system, P: np.ndarray | torch.Tensor, lam: float, x: torch.Te
     return torch.where(bad, torch.full_like(q, _NAN), q)
 
 
+def manifold_witness_lower(system, P: np.ndarray, lam: float, x: torch.Tensor) -> float:
+    """Sound lower bound of q at one point x, or NaN when h(x) is not soundly inside Y
+    (then x is no witness on the output manifold)."""
+    from certify.intervals import h_enclosure
+
+    x = torch.as_tensor(x, dtype=_F64).reshape(1, -1)
+    hl, hh = h_enclosure(system, x, x)
+    Y = torch.as_tensor(system.Y, dtype=_F64)
+    if not bool(((hl >= Y[:, 0]) & (hh <= Y[:, 1])).all()):
+        return _NAN
+    return float(manifold_lower(system, P, lam, x)[0])
+
+
 def invisible_mode_certified(system, C: np.ndarray, lam: float, x: np.ndarray,
                              mu: complex) -> bool:
     """Soundly confirm a PBH witness: a real eigenpair (mu, v) of Jf(x) with C v = 0 and

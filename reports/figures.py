@@ -2,8 +2,14 @@
 
 Each `fig_*` function is pure: it takes a `Certificate`, reads `certificate.figures` and the
 check results, and returns a `matplotlib.figure.Figure`, or None when its data is missing
-(every figure is optional). `render_figures` draws them all once to PNG so the HTML and
-PDF reports embed identical images.
+(every figure is optional). A figure records what it actually drew (`drawn(fig)`: a zero
+contour, counterexamples, a worst point...), and its caption is written from that record,
+so a caption never mentions what is not there. Point markers (worst point, witness,
+counterexamples) are drawn with clip_on=False inside a margin added around the box, so a
+marker on a corner is whole, inside the axes, clear of the title, and counterexamples are
+drawn above the worst-point star. `render_figures` draws them all once to PNG so the HTML
+and PDF reports embed identical images; the simulation figures are in
+`reports.figures_sim` (the trajectories only on request).
 """
 
 from __future__ import annotations
@@ -21,7 +27,6 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
 from matplotlib.colors import Normalize, TwoSlopeNorm
 from matplotlib.figure import Figure
-from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
 
@@ -73,7 +78,30 @@ def _grid(cert: Certificate, key: str) -> tuple[np.ndarray, np.ndarray, np.ndarr
 def _new(height: float, width: float = WIDTH) -> Figure:
     fig = Figure(figsize=(width, height), layout="constrained")
     FigureCanvasAgg(fig)
+    fig.certify_drawn = {}  # type: ignore[attr-defined]
     return fig
+
+
+def drawn(fig: Figure) -> dict[str, Any]:
+    """What a figure of this module drew: element name -> detail (a count, a value)."""
+    return getattr(fig, "certify_drawn", {})
+
+
+def mark(fig: Figure, element: str, detail: Any = True) -> None:
+    """Record that `element` is drawn in `fig` (the caption is written from these)."""
+    drawn(fig)[element] = detail
+
+
+#: margin around the box, as a fraction of each side, where markers on its edge are drawn
+MARKER_MARGIN = 0.05
+
+
+def _box_limits(ax: Any, x: np.ndarray, y: np.ndarray) -> None:
+    """Axes limits: the box plus a margin, so an edge marker fits inside the axes."""
+    for values, setter in ((x, ax.set_xlim), (y, ax.set_ylim)):
+        lo, hi = float(np.min(values)), float(np.max(values))
+        pad = MARKER_MARGIN * (hi - lo if hi > lo else 1.0)
+        setter(lo - pad, hi + pad)
 
 
 def _names(cert: Certificate) -> list[str]:
@@ -82,32 +110,45 @@ def _names(cert: Certificate) -> list[str]:
 
 def _heatmap(fig: Figure, ax: Any, x: np.ndarray, y: np.ndarray, v: np.ndarray, *,
              label: str, diverging: bool, cmap: str = "viridis") -> None:
-    """pcolormesh with a colour bar; diverging maps are centred on zero with a zero contour."""
+    """pcolormesh with a colour bar; diverging maps are centred on zero with a zero contour.
+
+    The axes extend past the box by `MARKER_MARGIN` (white); cells where the value is
+    undefined (NaN) are drawn grey. What is drawn is recorded with `mark`.
+    """
+    from matplotlib.colors import ListedColormap
+
+    _box_limits(ax, x, y)
+    nan = ~np.isfinite(v)
+    if nan.any():
+        ax.pcolormesh(x, y, np.where(nan, 1.0, np.nan), shading="nearest",
+                      cmap=ListedColormap(["#d1d5db"]), vmin=0, vmax=2, rasterized=True)
+        mark(fig, "undefined cells")
     finite = v[np.isfinite(v)]
     if finite.size == 0:
         ax.text(0.5, 0.5, "no finite values", ha="center", va="center", transform=ax.transAxes)
         return
     lo, hi = float(finite.min()), float(finite.max())
+    mark(fig, "range", (lo, hi))
     if hi - lo <= 1e-12 * max(1.0, abs(hi)):
         ax.pcolormesh(x, y, np.ma.masked_invalid(v), shading="nearest", cmap="Greys",
                       vmin=lo - 1, vmax=lo + 3, rasterized=True)
         ax.text(0.5, 0.5, f"{label} = {fmt(lo)} everywhere on the grid", ha="center",
                 va="center", transform=ax.transAxes, fontsize=10,
                 bbox={"fc": "white", "ec": "#9ca3af", "boxstyle": "round"})
-        ax.set_xlim(x.min(), x.max())
-        ax.set_ylim(y.min(), y.max())
+        mark(fig, "constant", lo)
         return
     if diverging and lo < 0 < hi:
         norm: Normalize = TwoSlopeNorm(vmin=lo, vcenter=0.0, vmax=hi)
         cmap = "RdBu_r"
+        mark(fig, "two signs")
     elif diverging:
         # one sign only: keep blue for negative, red for positive
         cmap = "Reds" if lo >= 0 else "Blues_r"
         norm = Normalize(vmin=lo, vmax=hi if hi > lo else lo + 1e-12)
+        mark(fig, "one sign", "positive" if lo >= 0 else "negative")
     else:
         norm = Normalize(vmin=lo, vmax=hi if hi > lo else lo + 1e-12)
     masked = np.ma.masked_invalid(v)
-    ax.set_facecolor("#d1d5db")  # shows through where values are NaN
     mesh = ax.pcolormesh(x, y, masked, shading="nearest", cmap=cmap, norm=norm,
                          rasterized=True)
     cb = fig.colorbar(mesh, ax=ax, shrink=0.95, pad=0.02)
@@ -117,16 +158,23 @@ def _heatmap(fig: Figure, ax: Any, x: np.ndarray, y: np.ndarray, v: np.ndarray, 
             warnings.simplefilter("ignore")
             cs = ax.contour(x, y, masked, levels=[0.0], colors="black", linewidths=1.4)
         cb.ax.axhline(0.0, color="black", lw=1.2)
-        if cs.allsegs and any(len(s) for s in cs.allsegs[0]):
+        if cs.allsegs and any(len(seg) for seg in cs.allsegs[0]):
             ax.plot([], [], color="black", lw=1.4, label="zero contour")
-    ax.set_xlim(x.min(), x.max())
-    ax.set_ylim(y.min(), y.max())
+            mark(fig, "zero contour")
+
+
+def _point(fig: Figure, ax: Any, xy: Any, element: str, **style: Any) -> None:
+    """A marker at xy, never clipped (it lies inside the margin), recorded as drawn."""
+    ax.scatter([xy[0]], [xy[1]], clip_on=False, **style)
+    mark(fig, element, style.get("label", True))
 
 
 def _legend(ax: Any, **kw: Any) -> None:
+    """The axes' legend below it, outside the map: it never covers a marker or the title."""
     handles, labels = ax.get_legend_handles_labels()
     if handles:
-        ax.legend(**{"loc": "upper right", "framealpha": 0.9, **kw})
+        ax.legend(**{"loc": "upper center", "bbox_to_anchor": (0.5, -0.14), "ncol": 3,
+                     "frameon": False, **kw})
 
 
 # ----------------------------------------------------------------------------- figures
@@ -142,18 +190,21 @@ def fig_mpdi_map(cert: Certificate) -> Figure | None:
     _heatmap(fig, ax, x, y, v, label="max over y of \u03bb_max(D)", diverging=True)
     r = _check(cert, "mpdi")
     if r is not None:
-        pts = np.array([c.xhat[:2] for c in r.counterexamples if len(c.xhat) >= 2])
-        if len(pts):
-            ax.scatter(pts[:, 0], pts[:, 1], marker="x", s=40, c="#111827", linewidths=1.5,
-                       label=f"counterexamples ({len(pts)})", zorder=5)
         if r.worst is not None and len(r.worst.xhat) >= 2:
-            ax.scatter([r.worst.xhat[0]], [r.worst.xhat[1]], marker="*", s=160,
-                       c="#fde047", edgecolors="black", linewidths=0.8, zorder=6, clip_on=False,
-                       label=f"worst point ({fmt(r.worst.value, 4, signed=True)})")
+            _point(fig, ax, r.worst.xhat, "worst point", marker="*", s=150, c="#fde047",
+                   edgecolors="black", linewidths=0.8, zorder=6,
+                   label=f"worst point ({fmt(r.worst.value, 4, signed=True)})")
+        pts = np.array([c.xhat[:2] for c in r.counterexamples if len(c.xhat) >= 2])
+        if len(pts):  # above the star: a counterexample on the worst point stays visible
+            ax.scatter(pts[:, 0], pts[:, 1], marker="x", s=40, c="#111827", linewidths=1.5,
+                       label=f"counterexamples ({len(pts)})", zorder=7, clip_on=False)
+            mark(fig, "counterexamples", len(pts))
     ax.set_xlabel(axes[0])
     ax.set_ylabel(axes[1] if len(axes) > 1 else "")
     n = len(_names(cert))
     extra = " (other states at their box centre)" if n > 2 else ""
+    if n > 2:
+        mark(fig, "slice")
     ax.set_title("MPDI map: max over y of \u03bb_max(D(x\u0302, y))" + extra)
     _legend(ax)
     return fig
@@ -194,6 +245,7 @@ def fig_prover(cert: Certificate) -> Figure | None:
         ax.xaxis.set_major_locator(MaxNLocator(5))
         ax.set_title(f"Prover's leaf boxes ({fmt(len(lo))})")
         counts = {k: int(np.sum(status == k)) for k in BOX_COLOURS}
+        mark(fig, "boxes", {k: c for k, c in counts.items() if c})
         ax.legend(handles=[Patch(color=c, label=f"{k} ({fmt(counts[k])})")
                            for k, c in BOX_COLOURS.items()],
                   loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=3, frameon=False)
@@ -204,6 +256,7 @@ def fig_prover(cert: Certificate) -> Figure | None:
             ax.plot(h[:, 0], 100 * h[:, 1], color="#15803d", lw=1.8,
                     marker="o" if len(h) <= 40 else None, ms=3)
             ax.fill_between(h[:, 0], 100 * h[:, 1], color="#22c55e", alpha=0.15)
+        mark(fig, "volume")
         ax.set_ylim(0, 102)
         ax.set_xlabel("prover time (s)")
         ax.set_ylabel("proved volume (%)")
@@ -228,12 +281,11 @@ def fig_necessary_map(cert: Certificate) -> Figure | None:
     _heatmap(fig, ax, x, y, v, label="q(x\u0302)", diverging=True)
     r = _check(cert, "necessary")
     if r is not None and r.witness is not None and len(r.witness) >= 2:
-        ax.scatter([r.witness[0]], [r.witness[1]], marker="*", s=170, c="#fde047",
-                   edgecolors="black", linewidths=0.8, zorder=6, clip_on=False,
-                   label=f"witness (q = {fmt(r.q_max, 4, signed=True)})")
+        _point(fig, ax, r.witness, "witness", marker="*", s=150, c="#fde047",
+               edgecolors="black", linewidths=0.8, zorder=6,
+               label=f"witness (q = {fmt(r.q_max, 4, signed=True)})")
     if np.isnan(v).any():
-        ax.add_artist(ax.legend(handles=[Patch(color="#d1d5db", label="h(x\u0302) \u2209 Y")],
-                                loc="lower left", framealpha=0.9))
+        ax.scatter([], [], marker="s", s=40, c="#d1d5db", label="h(x\u0302) \u2209 Y")
     ax.set_xlabel(axes[0])
     ax.set_ylabel(axes[1] if len(axes) > 1 else "")
     ax.set_title("Necessary condition: q(x\u0302) on the output manifold (> 0: impossible)")
@@ -255,9 +307,8 @@ def fig_residual_map(cert: Certificate) -> Figure | None:
     _heatmap(fig, ax, x, y, v, label="\u2016k(x, h(x))\u2016", diverging=False,
              cmap="viridis")
     if r is not None and r.worst is not None and len(r.worst) >= 2:
-        ax.scatter([r.worst[0]], [r.worst[1]], marker="*", s=160, c="#f472b6",
-                   edgecolors="black", linewidths=0.8, zorder=6, clip_on=False,
-                   label=f"worst ({fmt(r.sampled)})")
+        _point(fig, ax, r.worst, "worst point", marker="*", s=150, c="#f472b6",
+               edgecolors="black", linewidths=0.8, zorder=6, label=f"worst ({fmt(r.sampled)})")
     ax.set_xlabel(axes[0])
     ax.set_ylabel(axes[1] if len(axes) > 1 else "")
     title = "Boundary residual \u2016k(x, h(x))\u2016 over X"
@@ -289,6 +340,8 @@ def fig_lipschitz(cert: Certificate) -> Figure | None:
                     color="#6b7280")
             continue
         used = key and key == r.which
+        if used:
+            mark(fig, "used", key)
         ax.barh(yy, v, color=colour, alpha=1.0 if used else 0.55,
                 edgecolor="black" if used else "none", linewidth=1.2, height=0.6)
         ax.text(v, yy, f"  {fmt(v)}" + ("  \u2190 used" if used else ""), va="center",
@@ -304,139 +357,40 @@ def fig_lipschitz(cert: Certificate) -> Figure | None:
     return fig
 
 
-def _runs(cert: Certificate) -> list[Any]:
-    r = _check(cert, "simulation")
-    return [] if r is None else [run for run in r.runs if run.t]
-
-
-def _grid_axes(fig: Figure, k: int, ncols: int) -> list[Any]:
-    rows = math.ceil(k / ncols)
-    axs = fig.subplots(rows, ncols, squeeze=False).ravel()
-    for ax in axs[k:]:
-        ax.set_visible(False)
-    return list(axs[:k])
-
-
-def fig_bounds(cert: Certificate) -> Figure | None:
-    """Observed error against the proved bound, one panel per initial condition."""
-    runs = _runs(cert)
-    if not runs:
-        return None
-    runs = runs[:8]
-    ncols = 2 if len(runs) > 1 else 1
-    fig = _new(2.1 * math.ceil(len(runs) / ncols) + 0.7)
-    for ax, run in zip(_grid_axes(fig, len(runs), ncols), runs):
-        t, e = _array(run.t), _array(run.error)
-        ax.semilogy(t, np.maximum(e, 1e-12), color="#1f2937", lw=1.2)
-        if run.bound:
-            b = _array(run.bound)
-            ax.semilogy(t[:len(b)], b, color="#2563eb", lw=1.6, ls="--")
-        if run.exit_time is not None:
-            ax.axvspan(run.exit_time, t.max(), color="#fecaca", alpha=0.5, lw=0)
-            ax.axvline(run.exit_time, color="#b91c1c", lw=1)
-        tag = "" if run.within_conditions else " \u2014 outside conditions"
-        if run.breach:
-            tag += " \u2014 BREACH"
-        ax.set_title(f"{run.label}{tag}", fontsize=8.5)
-        ax.set_xlabel("t (s)")
-        ax.set_ylabel("error")
-        ax.set_xlim(t.min(), t.max())
-        ax.grid(alpha=0.3, which="major")
-        if not run.bound:
-            ax.text(0.98, 0.95, "no proved bound", transform=ax.transAxes, fontsize=7.5,
-                    color="#4b5563", ha="right", va="top",
-                    bbox={"fc": "white", "ec": "none", "alpha": 0.8, "pad": 1.5})
-    handles = [Line2D([], [], color="#1f2937", lw=1.2,
-                      label="observed \u2016x \u2212 x\u0302\u2016"),
-               Line2D([], [], color="#2563eb", lw=1.6, ls="--", label="proved bound"),
-               Patch(color="#fecaca", label="after first exit (no claim)"),
-               Line2D([], [], color="#b91c1c", lw=1, label="first exit")]
-    fig.legend(handles=handles, loc="outside lower center", ncol=4, frameon=False)
-    fig.suptitle("Simulated error against the proved bound", fontsize=10)
-    return fig
-
-
-def fig_simulation(cert: Certificate) -> Figure | None:
-    """True (solid) and estimated (dashed) states over time, one panel per run."""
-    runs = _runs(cert)
-    if not runs or not runs[0].x:
-        return None
-    runs = runs[:8]
-    names = _names(cert)
-    ncols = 2 if len(runs) > 1 else 1
-    fig = _new(2.1 * math.ceil(len(runs) / ncols) + 0.7)
-    X = _array((cert.system or {}).get("X") or [])
-    for ax, run in zip(_grid_axes(fig, len(runs), ncols), runs):
-        t = _array(run.t)
-        x, xh = _array(run.x), _array(run.xhat)
-        if x.ndim != 2:
-            continue
-        for j in range(x.shape[1]):
-            c = STATE_COLOURS[j % len(STATE_COLOURS)]
-            ax.plot(t, x[:, j], color=c, lw=1.3)
-            if xh.ndim == 2 and xh.shape[1] > j:
-                ax.plot(t, xh[:, j], color=c, lw=1.1, ls="--")
-            if X.ndim == 2 and X.shape[0] > j:
-                for edge in X[j]:
-                    ax.axhline(edge, color=c, lw=0.6, ls=":", alpha=0.7)
-        if run.exit_time is not None:
-            ax.axvline(run.exit_time, color="#b91c1c", lw=1)
-            ax.text(run.exit_time, 1.0, " exit", color="#b91c1c", fontsize=7,
-                    transform=ax.get_xaxis_transform(), va="top")
-        noise = "" if run.noise in run.label.lower() else f" ({run.noise} noise)"
-        ax.set_title(f"{run.label}{noise}", fontsize=8.5)
-        ax.set_xlabel("t (s)")
-        ax.set_xlim(t.min(), t.max())
-        ax.grid(alpha=0.3)
-    handles = [Line2D([], [], color=STATE_COLOURS[j % len(STATE_COLOURS)], lw=1.3, label=nm)
-               for j, nm in enumerate(names)]
-    handles += [Line2D([], [], color="#374151", lw=1.3, label="true x"),
-                Line2D([], [], color="#374151", lw=1.1, ls="--", label="estimate x\u0302"),
-                Line2D([], [], color="#374151", lw=0.6, ls=":", label="box X edges"),
-                Line2D([], [], color="#b91c1c", lw=1, label="first exit")]
-    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), frameon=False)
-    fig.suptitle("Simulation: true and estimated states", fontsize=10)
-    return fig
-
-
 # ----------------------------------------------------------------------------- rendering
 
 @dataclass(frozen=True)
 class FigureSpec:
-    """A figure of the report: where it goes and what its caption says."""
+    """A figure of the report: where it goes, how it is drawn, and its caption, written from
+    what `build` recorded as drawn (`drawn(fig)`). `on_request`: drawn only when asked."""
 
     key: str
     section: str
-    caption: str
+    caption: Callable[[dict[str, Any]], str]
     build: Callable[[Certificate], Figure | None]
+    on_request: bool = False
 
 
-FIGURES: tuple[FigureSpec, ...] = (
-    FigureSpec("mpdi_map", "mpdi",
-               "max over y of \u03bb_max(D) on a grid over the first two states (red > 0 "
-               "violates the MPDI); black line: zero contour; \u00d7 counterexamples; "
-               "\u2605 worst point found.", fig_mpdi_map),
-    FigureSpec("prover", "mpdi",
-               "Branch and bound: leaf sub-boxes projected onto the first two states "
-               "(green proved, red violated, amber unknown) and the proved volume over time.",
-               fig_prover),
-    FigureSpec("necessary_map", "necessary",
-               "q(x\u0302) over X (independent of the network); positive values make the "
-               "MPDI and the boundary condition incompatible; \u2605 witness.",
-               fig_necessary_map),
-    FigureSpec("residual_map", "residual",
-               "Boundary-condition residual \u2016k(x, h(x))\u2016 over X.", fig_residual_map),
-    FigureSpec("lipschitz", "lipschitz",
-               "Upper bounds (LipSDP, local interval, naive) against the sampled lower bound; "
-               "the outlined bar is the one used downstream.", fig_lipschitz),
-    FigureSpec("bounds", "bounds",
-               "Observed \u2016x \u2212 x\u0302\u2016 (solid) against the proved bound (dashed) "
-               "for each initial condition; shaded: after the first exit from the validity "
-               "conditions, where no bound is claimed.", fig_bounds),
-    FigureSpec("simulation", "simulation",
-               "True states (solid) and observer estimates (dashed); dotted: edges of X.",
-               fig_simulation),
-)
+def _specs() -> tuple[FigureSpec, ...]:
+    from reports import figures_sim as sim
+    from reports.captions import (
+        caption_lipschitz,
+        caption_mpdi_map,
+        caption_necessary_map,
+        caption_prover,
+        caption_residual_map,
+    )
+
+    return (
+        FigureSpec("mpdi_map", "mpdi", caption_mpdi_map, fig_mpdi_map),
+        FigureSpec("prover", "mpdi", caption_prover, fig_prover),
+        FigureSpec("necessary_map", "necessary", caption_necessary_map, fig_necessary_map),
+        FigureSpec("residual_map", "residual", caption_residual_map, fig_residual_map),
+        FigureSpec("lipschitz", "lipschitz", caption_lipschitz, fig_lipschitz),
+        FigureSpec("bounds", "simulation", sim.caption_bounds, sim.fig_bounds),
+        FigureSpec("simulation", "simulation", sim.caption_simulation, sim.fig_simulation,
+                   on_request=True),
+    )
 
 
 @dataclass(frozen=True)
@@ -461,22 +415,29 @@ def figure_png(fig: Figure, dpi: int) -> bytes:
     return buf.getvalue()
 
 
-def render_figures(cert: Certificate, dpi: int = 150) -> list[RenderedFigure]:
-    """Draw every figure whose data is present, in report order."""
+def render_figures(cert: Certificate, dpi: int = 150, *,
+                   trajectories: bool = False) -> list[RenderedFigure]:
+    """Draw every figure whose data is present, in report order; the ones drawn only on
+    request (the simulated trajectories) when `trajectories`."""
     out = []
     with matplotlib.rc_context(STYLE):
         for spec in FIGURES:
+            if spec.on_request and not trajectories:
+                continue
             fig = spec.build(cert)
             if fig is None:
                 continue
             png = figure_png(fig, dpi)
             w, h = fig.get_size_inches()
             wpx, hpx = _png_size(png)
-            out.append(RenderedFigure(spec.key, spec.section, spec.caption, png, float(w),
-                                      float(h), wpx, hpx))
+            out.append(RenderedFigure(spec.key, spec.section, spec.caption(drawn(fig)), png,
+                                      float(w), float(h), wpx, hpx))
     return out
 
 
 def _png_size(png: bytes) -> tuple[int, int]:
     """Width and height from a PNG's IHDR chunk."""
     return int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
+
+
+FIGURES: tuple[FigureSpec, ...] = _specs()

@@ -51,7 +51,8 @@ def context(cert: Certificate, figures: list[RenderedFigure]) -> dict[str, Any]:
                      "statements": sec.statements, "facts": sec.facts,
                      "tables": [_table_ctx(t) for t in sec.tables],
                      "bullets": sec.bullets, "bullets_title": sec.bullets_title,
-                     "empty": sec.empty, "figures": by_section.get(sec.anchor, [])})
+                     "empty": sec.empty, "notes": sec.notes,
+                     "figures": by_section.get(sec.anchor, [])})
     settings = C.kv_pairs(cert.settings)
     half = (len(settings) + 1) // 2
     ck = cert.checkpoint or {}

@@ -374,6 +374,8 @@ def _section(doc: _Doc, sec: S.Section, figures: list[RenderedFigure]) -> None:
             doc.heading(t.title, 2)
         doc.table(t.header, t.rows, t.widths or [1.0] * len(t.header),
                   size=7.2 if len(t.header) > 6 else 8.0)
+    for note in sec.notes:
+        doc.para(note, 7.4, MUTED)
     if sec.bullets:
         doc.heading(sec.bullets_title, 2)
         for b in sec.bullets:

@@ -18,15 +18,18 @@ PathLike = str | Path
 
 
 def render_reports(certificate: Certificate, *, html: bool = False, pdf: bool = False,
-                   junit: bool = False, json: bool = False,
-                   unknown: str = "failure") -> dict[str, bytes]:
-    """The requested reports as bytes, keyed 'html' / 'pdf' / 'junit' / 'json'."""
+                   junit: bool = False, json: bool = False, unknown: str = "failure",
+                   trajectories: bool = False) -> dict[str, bytes]:
+    """The requested reports as bytes, keyed 'html' / 'pdf' / 'junit' / 'json'.
+
+    `trajectories`: also draw each simulated run's true and estimated states.
+    """
     out: dict[str, bytes] = {}
     figures = []
     if html or pdf:  # matplotlib is imported only when a figure is drawn
         from reports.figures import render_figures
 
-        figures = render_figures(certificate)
+        figures = render_figures(certificate, trajectories=trajectories)
     if json:
         out["json"] = (certificate.to_json() + "\n").encode("utf-8")
     if junit:
@@ -44,16 +47,18 @@ def render_reports(certificate: Certificate, *, html: bool = False, pdf: bool = 
 
 def write_reports(certificate: Certificate, *, html: PathLike | None = None,
                   pdf: PathLike | None = None, junit: PathLike | None = None,
-                  json: PathLike | None = None, unknown: str = "failure") -> list[Path]:
+                  json: PathLike | None = None, unknown: str = "failure",
+                  trajectories: bool = False) -> list[Path]:
     """Render, then atomically write each report whose path is given; returns the paths.
 
-    `unknown` is the JUnit policy for UNKNOWN checks ("failure" or "error").
+    `unknown` is the JUnit policy for UNKNOWN checks ("failure" or "error"); `trajectories`
+    adds the figure of each simulated run's states to the HTML and PDF.
     """
     targets = {k: Path(v) for k, v in (("html", html), ("pdf", pdf), ("junit", junit),
                                        ("json", json)) if v is not None}
     if not targets:
         return []
-    data = render_reports(certificate, unknown=unknown,
+    data = render_reports(certificate, unknown=unknown, trajectories=trajectories,
                           **{k: True for k in targets})  # type: ignore[arg-type]
     written = []
     for key, path in targets.items():

@@ -216,3 +216,39 @@ def test_lam_and_metric_flags_override_the_spec(tmp_path, capsys):
     problem = checkpoint.load(out).problem
     assert code == 0 and problem.lam == 0.5 and problem.P[0, 1] == 0.1
 
+
+
+class Normalised(nn.Module):
+    """A gain trained on normalised inputs: seq((z - mean) / std), per input or joined."""
+
+    def __init__(self, seq: nn.Sequential, two_inputs: bool) -> None:
+        super().__init__()
+        self.seq, self.two_inputs = seq, two_inputs
+        mean, std = [0.3, -0.2, 0.1, 0.5, -0.4], [2.0, 0.7, 1.3, 0.9, 3.0]
+        for name, value in (("mean", mean), ("std", std), ("mean_x", mean[:3]),
+                            ("std_x", std[:3]), ("mean_y", mean[3:]), ("std_y", std[3:])):
+            self.register_buffer(name, torch.tensor(value, dtype=torch.float64))
+
+    def forward(self, xhat: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        if self.two_inputs:
+            xs = (xhat - self.mean_x) / self.std_x
+            ys = 2.0 * (y - self.mean_y) / self.std_y
+            return self.seq(torch.cat([xs, ys], dim=1))
+        return self.seq((torch.cat([xhat, y], dim=1) - self.mean) / self.std)
+
+
+@pytest.mark.parametrize("how", ("onnx17", "script"))
+@pytest.mark.parametrize("two_inputs", (False, True))
+def test_input_normalisation_is_folded_into_the_first_layer(tmp_path, how, two_inputs):
+    model = Normalised(mlp("tanh"), two_inputs).eval()
+    inputs = (torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 2, dtype=torch.float64))
+    imported = read_model(export(model, tmp_path / "m.bin", how, inputs), 3, 2)
+    assert imported.hidden == [6, 5] and any("normalisation folded" in n for n in imported.notes)
+    xhat, y = torch.randn(32, 3, dtype=torch.float64), torch.randn(32, 2, dtype=torch.float64)
+    value, jac = imported.network().forward_with_jacobian(torch.cat([xhat, y], dim=1))
+    with torch.no_grad():
+        expected = model(xhat, y)
+    torch.testing.assert_close(value, expected, rtol=0, atol=1e-12)
+    reference = torch.func.vmap(torch.func.jacrev(
+        lambda v: model(v[None, :3], v[None, 3:])[0]))(torch.cat([xhat, y], dim=1))
+    torch.testing.assert_close(jac, reference, rtol=0, atol=1e-12)

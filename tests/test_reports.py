@@ -175,8 +175,9 @@ def test_html_is_self_contained(name: str) -> None:
     imgs = [v for t, k, v in p.attrs if t == "img" and k == "src"]
     assert all(v.startswith("data:image/png;base64,") for v in imgs)
     # violated: no prover picture (a counterexample was found, no proof attempted)
-    # certified: no residual map either (zero by construction)
-    assert len(imgs) == {"certified": 6, "violated": 6, "inconclusive": 7}[name]
+    # certified: no residual map either (zero by construction); the trajectories are drawn
+    # only on request (--trajectories)
+    assert len(imgs) == {"certified": 5, "violated": 5, "inconclusive": 6}[name]
 
 
 def test_html_sections_present() -> None:
@@ -186,8 +187,9 @@ def test_html_sections_present() -> None:
     for anchor in ("verdict", "checks", "system", "mpdi", "rate", "necessary", "metric",
                    "residual", "lipschitz", "bounds", "simulation", "settings",
                    "fig-mpdi_map", "fig-prover", "fig-necessary_map",
-                   "fig-lipschitz", "fig-bounds", "fig-simulation"):
+                   "fig-lipschitz", "fig-bounds"):
         assert anchor in ids, anchor
+    assert "fig-simulation" not in ids  # trajectories: on request
     text = _norm(" ".join(p.text))
     assert "Validity conditions" in text and "(c) the measurement noise" in text
     assert "Boxes per second" in text and "184,733" in text
@@ -277,7 +279,7 @@ def test_pdf_embeds_every_figure(name: str, tmp_path: Path) -> None:
     listing = subprocess.run([_tool("pdfimages"), "-list", str(f)], capture_output=True,
                              check=True, text=True).stdout.splitlines()
     images = [ln for ln in listing[2:] if ln.split()[2:3] == ["image"]]
-    want = {"certified": 6, "violated": 6}[name]
+    want = {"certified": 5, "violated": 5}[name]
     assert len(images) == want
     info = subprocess.run([_tool("pdfinfo"), str(f)], capture_output=True, check=True,
                           text=True).stdout

@@ -13,6 +13,8 @@ from fractions import Fraction
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from certify.intervals import Interval
 from certify.kernels import mpdi_lam_max
@@ -143,3 +145,101 @@ def test_overflowing_network_is_never_proved(workdir, capsys):
     assert checks["lipschitz"]["value"] is None or checks["lipschitz"]["value"] < math.inf
     assert checks["lipschitz"]["sampled"] != checks["lipschitz"]["sampled"] \
         or checks["lipschitz"]["sampled"] >= 0
+
+
+# ----- the witness bounds are lower bounds (hypothesis, 40-digit reference) ---------------
+
+@settings(max_examples=15, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 4), cond=st.floats(0.0, 6.0))
+def test_witness_bounds_are_below_the_40_digit_values(seed, n, cond):
+    from certify.checks.lipschitz import dk_dy_norms
+    from certify.checks.residual import residual_norm
+    from certify.problem import Problem
+    from certify.system import System
+    from certify.witness import dk_dy_norm_lower, manifold_lower, residual_lower
+
+    from .mp_reference import lam_max_D, manifold_q, network_layers, random_network, random_spec
+
+    rng = np.random.default_rng(seed)
+    spec = random_spec(rng, n, 1, cond)
+    system = System.from_text(spec.text)
+    net = random_network(rng, n, 1, str(rng.choice(["small", "large", "saturated", "zero"])))
+    problem = Problem(system, net, spec.lam, system.P)
+    box = np.vstack([spec.X, system.Y])
+    z = torch.as_tensor(box[:, 0] + (box[:, 1] - box[:, 0]) * rng.random((4, n + 1)))
+    low = mpdi_lower(problem, z)
+    q_low = manifold_lower(system, system.P, spec.lam, z[:, :n])
+    with torch.no_grad():
+        res_f = residual_norm(problem, z[:, :n])
+        lip_f = dk_dy_norms(problem, z)
+    res_low = residual_lower(problem, z[:, :n])
+    lip_low = dk_dy_norm_lower(problem, z)
+    layers = network_layers(net)
+    for i in range(len(z)):
+        ref = lam_max_D(spec, layers, z[i, :n].tolist(), z[i, n:].tolist())
+        assert not float(low[i]) > ref, (float(low[i]), ref)
+        assert float(low[i]) >= float(ref) - 1e-6 * (1 + abs(float(ref)))  # and tight
+        assert not float(q_low[i]) > manifold_q(spec, z[i, :n].tolist())
+    # k and dk/dy: float values agree with the sound lower bounds to rounding
+    assert bool((res_low <= res_f * (1 + 1e-12) + 1e-300).all())
+    assert bool((lip_low <= lip_f * (1 + 1e-12) + 1e-300).all())
+    assert bool((lip_low >= lip_f * (1 - 1e-6) - 1e-12).all())  # tight, up to saturation
+
+
+def test_manifold_lower_with_a_nonlinear_output_is_below_the_exact_q():
+    """h = x1 + x2^2/4: ker dh(x) = span(-x2/2, 1); q = v^T S v / v^T v exactly (mpmath)."""
+    import mpmath
+
+    from certify.system import System
+    from certify.witness import manifold_lower
+
+    text = ('name = "t"\nstates = ["x1", "x2"]\noutputs = ["y"]\n'
+            'f = ["-x1 + 0.5*x2", "0.25*x1*x2 - 0.125*x2"]\nh = ["x1 + 0.25*x2**2"]\n'
+            "[box]\nX = [[-1.0, 1.0], [-1.0, 1.0]]\nY = [[-2.0, 2.0]]\n[design]\nlam = 0.25\n"
+            "P = [[2.0, 0.5], [0.5, 1.0]]\n")
+    system = System.from_text(text)
+    P = mpmath.matrix([[2, 0.5], [0.5, 1]])
+    pts = torch.tensor([[0.5, -0.75], [-0.25, 0.5], [0.0, 0.0]], dtype=torch.float64)
+    low = manifold_lower(system, system.P, 0.25, pts)
+    for (x1, x2), lo in zip(pts.tolist(), low.tolist()):
+        with mpmath.workdps(40):
+            J = mpmath.matrix([[-1, 0.5], [0.25 * mpmath.mpf(x2), 0.25 * mpmath.mpf(x1) - 0.125]])
+            S = (P * J + (P * J).T) / 2 + mpmath.mpf(0.5) * P
+            v = mpmath.matrix([-mpmath.mpf(x2) / 2, 1])
+            q = (v.T * S * v)[0] / (v.T * v)[0]
+        assert lo <= q and lo >= q - 1e-9, (lo, q)
+
+
+# ----- the float32 screen can only ask for a float64 look, never decide ---------------------
+
+class _LyingScreen:
+    """A float32 'screen' that hides everything (-1000 at every point)."""
+
+    def __init__(self, problem, lam=None, dtype=None, **kw):
+        from certify.gridkernel import GridKernel
+
+        self.real = GridKernel(problem, lam, **kw) if dtype is None else None
+        self.lam = self.real.lam if self.real is not None else lam
+
+    def __call__(self, z: torch.Tensor) -> torch.Tensor:
+        if self.real is not None:
+            return self.real(z)
+        return torch.full((z.shape[0],), -1000.0, dtype=torch.float32, device=z.device)
+
+
+@pytest.mark.parametrize("which", ["tie", "corner"])
+def test_a_lying_float32_screen_never_decides(monkeypatch, which):
+    import certify.checks.mpdi as mpdi_module
+    from certify.settings import VerifySettings
+
+    from .planted import planted_problem
+
+    monkeypatch.setattr(mpdi_module, "GridKernel", _LyingScreen)
+    problem = _tie_problem() if which == "tie" else planted_problem("corner")
+    settings = VerifySettings(grid_points=5000, adversarial_starts=4, adversarial_steps=10,
+                              proof_seconds=20, float32_screen=True)
+    r = mpdi_module.check_mpdi(problem, settings)
+    if which == "tie":
+        assert r.status.value in ("PROVED", "UNKNOWN")
+    else:  # a real violation in 1e-6 of the volume: the prover still finds it, soundly
+        assert r.status.value == "VIOLATED" and r.counterexamples[0].sound_bound > 0

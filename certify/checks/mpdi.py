@@ -1,8 +1,10 @@
 """MPDI check: is D(xhat, y) <= 0 on all of X x Y? (METHOD §3.1)
 
-Lower side: dense grid + adversarial search for the largest lam_max(D) (any positive value is a
-counterexample). Upper side: the branch-and-bound prover of `certify.prover`, run only when no
-counterexample was found. PROVED comes only from the prover.
+Lower side: dense grid + adversarial search for the largest lam_max(D) in float64. A point
+is a counterexample only when a SOUND lower bound of lam_max(D) there is > 0
+(`certify.witness`); a float64 value > 0 without one is a near-tie (within rounding of 0).
+Upper side: the branch-and-bound prover of `certify.prover`, run when no counterexample was
+found. PROVED comes only from the prover; a near-tie it cannot settle is UNKNOWN, saying so.
 """
 
 from __future__ import annotations

@@ -30,14 +30,13 @@ from certify.checks.metric import (
     sub_boxes,
 )
 from certify.falsify import projected_ascent
-from certify.intervals import h_enclosure
 from certify.kernels import lam_max
 from certify.progress import NullProgress, Progress
 from certify.prover import kernel_basis_with_error
 from certify.results import NecessaryResult, Status
 from certify.settings import VerifySettings
 from certify.system import System, validate_metric
-from certify.witness import is_witness, manifold_lower
+from certify.witness import is_witness, manifold_witness_lower
 
 _F64 = torch.float64
 _NULL_PROGRESS = NullProgress()
@@ -248,18 +247,6 @@ def vertex_upper_bound(system: System, P: np.ndarray, lam: float, subdivisions: 
     return float(vals.max() + 64 * n * np.finfo(float).eps * (Snorm + 1.0) + 3 * z_err * Snorm)
 
 
-def sound_witness_value(system: System, P: np.ndarray, lam: float, x: torch.Tensor
-                        ) -> float:
-    """Sound lower bound of q at x (`certify.witness.manifold_lower`), or NaN when h(x) is
-    not soundly inside Y (then x is no witness on the manifold)."""
-    x = torch.as_tensor(x, dtype=_F64).reshape(1, -1)
-    hl, hh = h_enclosure(system, x, x)
-    Y = torch.as_tensor(system.Y, dtype=_F64)
-    if not bool(((hl >= Y[:, 0]) & (hh <= Y[:, 1])).all()):
-        return float("nan")
-    return float(manifold_lower(system, P, lam, x)[0])
-
-
 # ----------------------------------------------------------------------------------------
 # the check
 # ----------------------------------------------------------------------------------------
@@ -339,7 +326,7 @@ def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
             price, chord = residual_price(system, Pt, lam, torch.stack(dirs), x[sel])
     progress.update(task)
     upper: float | None = None
-    q_sound = sound_witness_value(system, Pn, lam, xw) if q_max > 0 else None
+    q_sound = manifold_witness_lower(system, Pn, lam, xw) if q_max > 0 else None
     if is_witness(q_sound):
         status = Status.VIOLATED
         msg = (f"q = {q_max:.6g} > 0 at xhat = {_fmt(xw)}, y = {_fmt(y_w)} (sound lower bound "

@@ -1,7 +1,9 @@
 """Certified contraction rate lam_cert (METHOD §3.2).
 
 lam_cert = -max over X x Y of lam_max(He{P J_cl}, P) / 2. Sampling gives an upper bound on
-lam_cert (a point where the rate is low); the prover gives a proved lower bound.
+lam_cert (a point where the rate is low); the prover gives a proved lower bound. "No
+contraction" (VIOLATED) needs a point where a sound lower bound of lam_max(He{P J_cl}) is
+>= 0 (`certify.witness`); a float64 rate <= 0 without one is a near-tie (UNKNOWN).
 """
 
 from __future__ import annotations

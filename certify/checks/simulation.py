@@ -240,7 +240,7 @@ def check_simulation(problem: Problem, bounds: BoundsResult | None,
             exit_reason=reasons[r] if exit_time is not None else "stayed within the conditions",
             max_ratio=max_ratio, breach=breach, mse=mse, final_error=float(e_r[-1]),
             t=t[keep].tolist(), error=e_r[keep].tolist(),
-            bound=curve[r, keep].tolist() if curve is not None else [],
+            bound=curve[r, keep].tolist() if curve is not None and within else [],
             x=fine.x[keep, r].tolist(), xhat=fine.xhat[keep, r].tolist(), tolerance=tol,
             start=notes[r], window=float(t[-1]) if exit_time is None else exit_time))
     status, msg = _verdict(runs, bounds, curve is not None, breaches, certified, tau,
@@ -352,10 +352,12 @@ class SimulationCheck(Check):
         return Presentation(
             sampled=Quantity("max error / bound (valid times)", worst, "no bound to compare"),
             proved=Quantity("breaches; longest valid window",
+                            None if not ratios else
                             f"{breaches} breach{plural}; "
                             + (f"window {longest:.3g} s" if longest is not None else "no window")
                             + (f" (\u03c4 = {r.time_constant:.3g} s)"
-                               if r.time_constant is not None else "")),
+                               if r.time_constant is not None else ""),
+                            "no bound to compare with"),
             setting=(Quantity("runs", len(r.runs)),
                      Quantity("T =", s.get("sim_time"), suffix=" s"),
                      Quantity("dt =", s.get("sim_dt")), Quantity("v\u0304 =", s.get("noise"))),

@@ -12,23 +12,22 @@ tanh(u), sigmoid(u), softplus(u), elu(u) (alpha = 1), gelu(u) (exact), u * sigmo
 and 0.5 * u * (1 + erf(u / sqrt 2)) in any order of its factors (the erf form of GELU that
 `torch.onnx.export` writes below opset 20). Constants in that pattern may be float32 roundings
 of 0.5, 1 and 1/sqrt 2 (exporters store them so); the network certified is the exact GELU.
+An input normalisation (z - mean) / std, or any add/sub/mul/div of the input by constants
+(scalars or one per input value), is folded into the first layer: W (s z + t) + b =
+(W diag s) z + (b + W t), exact in reals and one float64 rounding per weight (a note says so).
 Nothing is executed: weights are read, shapes and finiteness checked, the graph's meaning
 recognised or refused with one line naming the node.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any, NoReturn
 
 import numpy as np
 
+from certify.importers.patterns import U, match_activation
 from certify.importers.result import NOT_C1, Layer, ModelImportError, check_activation
-
-U: tuple = ("u",)
-#: relative tolerance on the constants of the erf form of GELU: a few float32 roundings
-GELU_CONSTANT_RTOL = 4 * 2.0 ** -24
 
 
 @dataclass(frozen=True)
@@ -52,18 +51,24 @@ class Const:
 
 @dataclass(frozen=True, eq=False)
 class Part:
-    """One of two model inputs (xhat or y) before they are concatenated."""
+    """One of two model inputs (xhat or y) before they are concatenated, as scale * input +
+    shift when the model normalises it (scale, shift None: as given)."""
 
     index: int
     width: int | None
+    scale: np.ndarray | None = None
+    shift: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
 class Post:
-    """The input z (k = 0) or the activation output after k linear layers."""
+    """The input z (k = 0; normalised as scale * z + shift where the model does so) or the
+    activation output after k linear layers."""
 
     k: int
     width: int | None
+    scale: np.ndarray | None = None
+    shift: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,7 +165,48 @@ class ChainBuilder:
                                                (None, self.p)):
             self.fail(node, f"joins inputs of widths {first.width} and {second.width}; the "
                             f"spec needs xhat ({self.n} values) first, then y ({self.p})")
-        return Post(0, self.n + self.p)
+        if first.scale is None and second.scale is None:
+            return Post(0, self.n + self.p)
+        scale, shift = zip(*(self.affine_vectors(part, width, node)
+                             for part, width in ((first, self.n), (second, self.p))))
+        return Post(0, self.n + self.p, np.concatenate(scale), np.concatenate(shift))
+
+    # ----- input normalisation, folded into the first layer -------------------------------
+    def affine_vectors(self, value: Post | Part, width: int, node: Node
+                       ) -> tuple[np.ndarray, np.ndarray]:
+        """(scale, shift) of a normalised input as vectors of `width` values."""
+        scale = np.ones(1) if value.scale is None else value.scale
+        shift = np.zeros(1) if value.shift is None else value.shift
+        if scale.size not in (1, width) or shift.size not in (1, width):
+            self.fail(node, f"normalises an input of {width} values with constants of "
+                            f"{max(scale.size, shift.size)}")
+        return np.broadcast_to(scale, (width,)).copy(), np.broadcast_to(shift, (width,)).copy()
+
+    def normalise(self, node: Node, op: str, value: Post | Part, c: Const, c_first: bool
+                  ) -> Post | Part:
+        """value (op) c, or c (op) value, as a new scale * input + shift (exact in reals;
+        folding it into W and b later rounds each weight once in float64)."""
+        arr = self.finite(c, node)
+        if arr.ndim > 2 or (arr.ndim == 2 and arr.shape[0] != 1) or (
+                arr.size != 1 and value.width is not None and arr.size != value.width):
+            self.fail(node, f"constant '{c.name}' of shape {list(arr.shape)} does not match "
+                            f"the input's {value.width} values")
+        cv = arr.reshape(-1)
+        scale = np.ones(1) if value.scale is None else value.scale
+        shift = np.zeros(1) if value.shift is None else value.shift
+        if op == "add":
+            shift = shift + cv
+        elif op == "sub":
+            scale, shift = (-scale, cv - shift) if c_first else (scale, shift - cv)
+        elif op == "mul":
+            scale, shift = scale * cv, shift * cv
+        elif c_first or not np.all(cv != 0):
+            self.fail(node, "divides by the input or by zero: not an input normalisation")
+        else:
+            scale, shift = scale / cv, shift / cv
+        if isinstance(value, Part):
+            return Part(value.index, value.width, scale, shift)
+        return Post(0, value.width, scale, shift)
 
     # ----- linear layers ------------------------------------------------------------------
     def linear(self, node: Node, x: Any, W: Const, b: Const | None) -> Pre:
@@ -174,6 +220,11 @@ class ChainBuilder:
                             f"{h.width}")
         out = Wa.shape[0]
         ba = np.zeros(out) if b is None else self.bias(b, out, node)
+        if h.scale is not None:  # W (s z + t) + b = (W diag s) z + (b + W t)
+            scale, shift = self.affine_vectors(h, Wa.shape[1], node)
+            Wa, ba = Wa * scale[None, :], ba + Wa @ shift
+            self.notes.append(f"input normalisation folded into the first layer ({node}): "
+                              "exact up to one float64 rounding per weight")
         return Pre(np.ascontiguousarray(Wa), ba, node, h.k)
 
     def bias(self, b: Const, out: int, node: Node) -> np.ndarray:
@@ -228,7 +279,11 @@ class ChainBuilder:
                 return Pre(pre.W, pre.b + self.bias(c, pre.width, node), pre.node, pre.reads)
         return self.binary(node, "add", a, b)
 
-    def binary(self, node: Node, op: str, a: Any, b: Any) -> Elem:
+    def binary(self, node: Node, op: str, a: Any, b: Any) -> Any:
+        for value, c, c_first in ((a, b, False), (b, a, True)):
+            if isinstance(value, (Part, Post)) and isinstance(c, Const) and (
+                    isinstance(value, Part) or value.k == 0):
+                return self.normalise(node, op, value, c, c_first)
         exprs, pres = [], []
         for v in (a, b):
             if isinstance(v, Const):
@@ -296,51 +351,3 @@ class ChainBuilder:
             self.fail(where, "the output is not a linear layer's result")
         self.seal(value)
         return self.layers
-
-
-# ----- activation patterns ----------------------------------------------------------------
-def _factors(expr: tuple) -> tuple[float, list[tuple]]:
-    """A product flattened: (constant factor, other factors); a / c counts as a * (1/c)."""
-    if expr[0] == "mul":
-        c1, f1 = _factors(expr[1])
-        c2, f2 = _factors(expr[2])
-        return c1 * c2, f1 + f2
-    if expr[0] == "div" and expr[2][0] == "c" and expr[2][1] != 0.0:
-        c, f = _factors(expr[1])
-        return c / expr[2][1], f
-    if expr[0] == "c":
-        return expr[1], []
-    return 1.0, [expr]
-
-
-def _close(value: float, exact: float) -> bool:
-    return abs(value - exact) <= GELU_CONSTANT_RTOL * abs(exact)
-
-
-def _is_erf_gelu(expr: tuple) -> bool:
-    """0.5 * u * (1 + erf(u / sqrt 2)), any order, constants up to float32 rounding."""
-    scale, factors = _factors(expr)
-    if not _close(scale, 0.5) or len(factors) != 2 or U not in factors:
-        return False
-    other = factors[1] if factors[0] == U else factors[0]
-    if other[0] != "add":
-        return False
-    terms = [other[1], other[2]]
-    one = [t for t in terms if t[0] == "c" and _close(t[1], 1.0)]
-    erf = [t for t in terms if t[0] == "erf"]
-    if len(one) != 1 or len(erf) != 1:
-        return False
-    inner_scale, inner = _factors(erf[0][1])
-    return inner == [U] and _close(inner_scale, 1.0 / math.sqrt(2.0))
-
-
-def match_activation(expr: tuple) -> str | None:
-    """The activation name an expression tree of u is, or None."""
-    if len(expr) == 2 and expr[1] == U and expr[0] in ("tanh", "sigmoid", "softplus", "elu",
-                                                       "gelu", "silu"):
-        return expr[0]
-    if expr[0] == "mul" and {expr[1], expr[2]} == {U, ("sigmoid", U)}:
-        return "silu"
-    if _is_erf_gelu(expr):
-        return "gelu"
-    return None

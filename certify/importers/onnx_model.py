@@ -1,12 +1,12 @@
 """Read an ONNX gain network with the `onnx` package: graph and initializers, nothing executed.
 
-Accepted: Gemm, MatMul (+ Add as bias), the elementwise activations Tanh, Sigmoid, Softplus,
-Elu (alpha = 1), Gelu (approximate = "none"), SiLU as Mul(u, Sigmoid(u)) and GELU's erf form
-(Div/Mul, Erf, Add, Mul; see `certify.importers.chain`), with Identity, Flatten (axis 1),
-Reshape to [-1, width], Dropout in inference mode and Constant nodes as no-ops. The input is one
-vector (xhat, y) or two inputs joined by a Concat. Everything else is refused with one line
-naming the node (its name, or #index when it has none, and its operator). `onnx` is imported
-only here, when a model is read.
+Accepted: Gemm, MatMul (+ Add as bias; its weight may come through a Transpose), the
+elementwise activations Tanh, Sigmoid, Softplus, Elu (alpha = 1), Gelu (approximate = "none"),
+SiLU as Mul(u, Sigmoid(u)) and GELU's erf form (Div/Mul, Erf, Add, Mul; see
+`certify.importers.chain`), with Identity, Flatten (axis 1), Reshape to [-1, width], Dropout in
+inference mode and Constant nodes as no-ops. The input is one vector (xhat, y) or two inputs
+joined by a Concat. Everything else is refused with one line naming the node (its name, or
+#index when it has none, and its operator). `onnx` is imported only here, when a model is read.
 """
 
 from __future__ import annotations
@@ -27,8 +27,9 @@ NON_C1_OPS = {"Relu": "ReLU", "LeakyRelu": "leaky ReLU", "PRelu": "PReLU", "Clip
               "Shrink": "Shrink"}
 _UNARY = {"Tanh": "tanh", "Sigmoid": "sigmoid", "Softplus": "softplus", "Erf": "erf"}
 _BINARY = {"Mul": "mul", "Div": "div", "Sub": "sub"}
-ACCEPTED = ("Gemm", "MatMul", "Add", "Sub", "Mul", "Div", "Tanh", "Sigmoid", "Softplus", "Elu",
-            "Gelu", "Erf", "Concat", "Identity", "Flatten", "Reshape", "Dropout", "Constant")
+ACCEPTED = ("Gemm", "MatMul", "Transpose", "Add", "Sub", "Mul", "Div", "Tanh", "Sigmoid",
+            "Softplus", "Elu", "Gelu", "Erf", "Concat", "Identity", "Flatten", "Reshape",
+            "Dropout", "Constant")
 
 
 def _attrs(node: Any) -> dict[str, Any]:
@@ -147,6 +148,12 @@ def _apply(b: ChainBuilder, node: Any, where: Node) -> Any:
             c = b.constant(args[2], where, "third operand (the bias)")
             C = Const(beta * np.asarray(c.value, dtype=np.float64), c.name)
         return b.linear(where, args[0], Const(W, B.name), C)
+    if op == "Transpose":  # of a weight matrix (an initializer), as some exporters write
+        W = b.constant(args[0], where, "operand (a weight matrix)")
+        value = np.asarray(W.value)
+        if value.ndim != 2 or list(attrs.get("perm", [1, 0])) != [1, 0]:
+            b.fail(where, f"only the transpose of a matrix; got shape {list(value.shape)}")
+        return Const(value.T, W.name)
     if op == "MatMul":
         B = b.constant(args[1], where, "second operand (the weight)")
         W = np.asarray(B.value, dtype=np.float64)

@@ -1,12 +1,14 @@
 """Read a PyTorch gain network: a TorchScript file, or a state_dict of Linear layers.
 
 TorchScript: `torch.jit.load`, then the module's *inlined* forward graph is walked node by node
-(the same `ChainBuilder` as ONNX): `aten::linear` with the module's own parameters, the
-activations `aten::tanh`, `sigmoid`, `softplus` (beta = 1), `elu` (alpha = scale = 1), `gelu`
-(approximate = "none"), `silu`, `mul`(u, sigmoid(u)), and `aten::cat` of two inputs. Class names
-are not trusted (a TorchScript file carries its own code); only the graph's operators decide.
-Anything else is refused with one line naming the node (%value and operator). The model is
-never run.
+(the same `ChainBuilder` as ONNX): `aten::linear` with the module's own parameters, or
+`aten::matmul` by a parameter matrix (through `W.t()`, `W.T`, `transpose`, `permute`) plus
+`aten::add` of a bias; the activations `aten::tanh`, `sigmoid`, `softplus` (beta = 1), `elu`
+(alpha = scale = 1), `gelu` (approximate = "none"), `silu`, `mul`(u, sigmoid(u)); `aten::cat`
+of two inputs; reshape/flatten/dropout (eval mode) no-ops; and a `prim::If` on a constant (the
+`inplace` flag of torch.nn.functional) through the branch it takes. Class names are not trusted
+(a TorchScript file carries its own code); only the graph's operators decide. Anything else is
+refused with one line naming the node (%value and operator). The model is never run.
 
 state_dict: `torch.load(weights_only=True)` (data only, never code) of an `nn.Sequential` of
 Linear layers: keys `[prefix.]i.weight` / `[prefix.]i.bias` in index order. It carries no
@@ -69,21 +71,36 @@ def read_torchscript(path: str | Path, n: int, p: int) -> tuple[ChainBuilder, li
             b.input_vector(value.debugName(), None, f"input '{value.debugName()}'")
         else:
             b.input_part(value.debugName(), index, None)
-    last = Node("output", "return")
-    for node in graph.nodes():
-        outs = list(node.outputs())
-        where = Node(f"%{outs[0].debugName()}" if outs else node.kind(), node.kind())
-        last = where
-        try:
-            result = _apply(b, node, where, objects, str(path))
-        except READ_ERRORS as exc:  # an attribute or constant that cannot be read
-            b.fail(where, f"cannot be read ({type(exc).__name__}{first_line(exc)})")
-        for out in outs[:1]:
-            b.set(out.debugName(), result)
+    last = _walk(b, graph.nodes(), objects, str(path)) or Node("output", "return")
     outs = list(graph.outputs())
     if len(outs) != 1:
         raise ModelImportError(f"{path}: forward returns {len(outs)} values; certify reads one")
     return b, b.output(b.get(outs[0].debugName(), last), last)
+
+
+def _walk(b: ChainBuilder, nodes: Any, objects: dict[str, Any], path: str) -> Node | None:
+    """Read `nodes` in order into `b`; returns the last node. A `prim::If` on a constant (the
+    `inplace` flags of torch.nn.functional) is read through the branch it takes."""
+    last = None
+    for node in nodes:
+        outs = list(node.outputs())
+        last = Node(f"%{outs[0].debugName()}" if outs else node.kind(), node.kind())
+        if node.kind() == "prim::If":
+            cond = b.get(next(node.inputs()).debugName(), last)
+            if not isinstance(cond, Const) or not isinstance(cond.value, bool):
+                b.fail(last, "a branch on a value computed at run time is not supported")
+            block = list(node.blocks())[0 if cond.value else 1]
+            _walk(b, block.nodes(), objects, path)
+            for out, value in zip(outs, block.outputs()):
+                b.set(out.debugName(), b.get(value.debugName(), last))
+            continue
+        try:
+            result = _apply(b, node, last, objects, path)
+        except READ_ERRORS as exc:  # an attribute or constant that cannot be read
+            b.fail(last, f"cannot be read ({type(exc).__name__}{first_line(exc)})")
+        for out in outs[:1]:
+            b.set(out.debugName(), result)
+    return last
 
 
 def _constant(b: ChainBuilder, args: list[Any], i: int, where: Node) -> Any:
@@ -120,6 +137,12 @@ def _apply(b: ChainBuilder, node: Any, where: Node, objects: dict[str, Any], pat
         W = b.constant(args[1], where, "weight")
         bias = args[2] if isinstance(args[2], Const) and args[2].value is not None else None
         return b.linear(where, args[0], W, bias)
+    if kind in ("aten::t", "aten::numpy_T", "aten::transpose", "aten::permute"):
+        return _transposed(b, kind, args, where)
+    if kind == "aten::matmul":  # h @ W.T written by hand: the weight is the second operand
+        W = b.constant(args[1], where, "second operand (the weight)")
+        return b.linear(where, args[0], Const(np.asarray(W.value, dtype=np.float64).T, W.name),
+                        None)
     if kind in _UNARY:
         return b.unary(where, _UNARY[kind], args[0])
     if kind in _BINARY:
@@ -169,6 +192,23 @@ def _apply(b: ChainBuilder, node: Any, where: Node, objects: dict[str, Any], pat
         return b.concat(where, parts, int(_constant(b, args, 1, where)))
     b.fail(where, "unsupported operation; certify reads Linear layers and the activations "
                   "tanh, sigmoid, softplus, elu, gelu, silu")
+
+
+def _transposed(b: ChainBuilder, kind: str, args: list[Any], where: Node) -> Const:
+    """W.t(), W.T, W.transpose(0, 1), W.permute(1, 0) of a weight matrix (a constant)."""
+    W = b.constant(args[0], where, "operand (a weight matrix)")
+    value = np.asarray(W.value)
+    if value.ndim != 2:
+        b.fail(where, f"transposes a tensor of shape {list(value.shape)}; only matrices")
+    if kind == "aten::transpose":
+        dims = sorted(int(_constant(b, args, i, where)) % 2 for i in (1, 2))
+        if dims != [0, 1]:
+            b.fail(where, "transpose that is not of the two matrix axes")
+    if kind == "aten::permute":
+        perm = args[1] if isinstance(args[1], list) else []
+        if [int(v.value) % 2 for v in perm if isinstance(v, Const)] != [1, 0]:
+            b.fail(where, "permute that is not a matrix transpose")
+    return Const(value.T, W.name)
 
 
 # ----- state_dict -----------------------------------------------------------------------------

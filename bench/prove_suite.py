@@ -1,0 +1,143 @@
+"""Prover suite (issue 9): the instance families of `bench/instances.py`, one JSON line per run.
+
+Each run builds a seeded instance (tuned lam cached in --cache), proves it with the prover
+(`certify.prover.prove_mpdi`) and, in the same run on the same instance, with the plain
+interval baseline (`prove_mpdi(..., taylor=False)`), then prints
+{instance, prover, status, boxes, seconds, upper, proved_volume, volume_history, baseline: {...}}.
+A final summary line per family gives the medians. The machine is shared: record the load
+(`load` field: 1-minute load average at the start of each run).
+
+Examples:
+    python bench/prove_suite.py --family 2x10 --n 2 --margin 0.02 --seeds 0 1 2 --seconds 60
+    python bench/prove_suite.py --family 5x30 --g 2 --margin 0.01 --seconds 600 --no-baseline
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+
+from bench.instances import InstanceSpec, make_instance  # noqa: E402
+from certify.prover import prove_mpdi  # noqa: E402
+
+FAMILIES = {"2x10": (2, 10), "3x30": (3, 30), "5x30": (5, 30), "5x64": (5, 64)}
+
+
+def _history(hist: list[list[float]], cap: int = 12) -> list[list[float]]:
+    step = max(1, len(hist) // cap)
+    out = hist[::step]
+    if out[-1] != hist[-1]:
+        out.append(hist[-1])
+    return [[round(a, 2), round(b, 5)] for a, b in out]
+
+
+def _run(prob, seconds: float, max_boxes: int, taylor: object, crown: bool = True,
+         batch: int = 1024) -> dict:
+    from certify.bounds.mpdi import STAGE_COUNTS
+
+    before = dict(STAGE_COUNTS)
+    t = time.perf_counter()
+    out = prove_mpdi(prob, seconds=seconds, max_boxes=max_boxes, taylor=taylor, crown=crown,
+                     batch=batch)
+    st = out.stats
+    stages = {k: STAGE_COUNTS[k] - before[k] for k in STAGE_COUNTS}
+    return {"status": out.status.value, "boxes": st.boxes_processed, "stages": stages,
+            "seconds": round(time.perf_counter() - t, 3), "upper": out.upper,
+            "lower": out.lower, "proved_volume": round(st.proved_volume_fraction, 6),
+            "volume_history": _history(st.volume_history)}
+
+
+def _cached_instance(spec: InstanceSpec, cache: Path | None):
+    import numpy as np
+
+    from certify.problem import Problem
+
+    store = {}
+    if cache is not None and cache.exists():
+        store = json.loads(cache.read_text())
+    if spec.name in store:
+        from bench.instances import make_network, make_system
+
+        rec = store[spec.name]
+        system = make_system(spec.system_name, spec.n)
+        P, K = np.array(rec["P"]), np.array(rec["K"])
+        net = make_network(spec, K)
+        return Problem(system, net, rec["lam"], P), rec["info"]
+    prob, info = make_instance(spec)
+    if cache is not None:
+        store = json.loads(cache.read_text()) if cache.exists() else {}
+        store[spec.name] = {"lam": prob.lam, "P": prob.P.tolist(),
+                            "K": prob.network.K.tolist(), "info": info}
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        cache.write_text(json.dumps(store))
+    return prob, info
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--family", nargs="+", default=["2x10"], choices=sorted(FAMILIES))
+    ap.add_argument("--g", nargs="+", type=float, default=[2.0])
+    ap.add_argument("--n", nargs="+", type=int, default=[2])
+    ap.add_argument("--margin", nargs="+", type=float, default=[0.02])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    ap.add_argument("--seconds", type=float, default=60.0, help="prover time limit per run")
+    ap.add_argument("--baseline-seconds", type=float, default=None,
+                    help="plain-interval baseline time limit (default: --seconds)")
+    ap.add_argument("--no-baseline", action="store_true")
+    ap.add_argument("--max-boxes", type=int, default=50_000_000)
+    ap.add_argument("--prover", default="default", choices=["default", "taylor", "plain"],
+                    help="taylor: the pre-issue-9 prover (interval + Taylor models)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--batch", type=int, default=1024, help="boxes per B&B round")
+    ap.add_argument("--cache", default="/tmp/certify-bench/instances.json")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    cache = Path(args.cache) if args.cache else None
+    taylor = {"default": True, "taylor": True, "plain": False}[args.prover]
+    crown = args.prover == "default"
+    rows: dict[str, list[dict]] = {}
+    for fam in args.family:
+        depth, width = FAMILIES[fam]
+        for g in args.g:
+            for n in args.n:
+                for margin in args.margin:
+                    for seed in args.seeds:
+                        spec = InstanceSpec(depth, width, g, n, margin, seed)
+                        t = time.perf_counter()
+                        prob, info = _cached_instance(spec, cache)
+                        setup = time.perf_counter() - t
+                        rec = {"instance": spec.name, "family": f"{fam}-g{g:g}-n{n}-m{margin:g}",
+                               "prover": args.prover, "load": round(os.getloadavg()[0], 2),
+                               "lam": prob.lam, "sampled_max": info["sampled_max"],
+                               "setup_seconds": round(setup, 2)}
+                        rec.update(_run(prob, args.seconds, args.max_boxes, taylor, crown,
+                                        args.batch))
+                        if not args.no_baseline:
+                            bs = args.baseline_seconds or args.seconds
+                            rec["baseline"] = _run(prob, bs, args.max_boxes, False)
+                        print(json.dumps(rec), flush=True)
+                        rows.setdefault(rec["family"], []).append(rec)
+    for fam, rs in rows.items():
+        summ = {"summary": fam, "runs": len(rs),
+                "statuses": [r["status"] for r in rs],
+                "median_seconds": statistics.median(r["seconds"] for r in rs),
+                "median_boxes": statistics.median(r["boxes"] for r in rs)}
+        if all("baseline" in r for r in rs):
+            summ["baseline_statuses"] = [r["baseline"]["status"] for r in rs]
+            summ["baseline_median_seconds"] = statistics.median(
+                r["baseline"]["seconds"] for r in rs)
+            summ["baseline_median_boxes"] = statistics.median(r["baseline"]["boxes"] for r in rs)
+        print(json.dumps(summ), flush=True)
+
+
+if __name__ == "__main__":
+    main()

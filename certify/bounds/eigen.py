@@ -1,0 +1,182 @@
+"""Sound upper bounds of lam_max for point and interval symmetric matrices (batched).
+
+Rounding: n <= 2 closed forms rounded outward; otherwise LAPACK eigvalsh plus a margin of
+8 (n + 1) u ||A||_F (Weyl plus backward stability); spectral radii of non-negative matrices by a
+Collatz-Wielandt quotient max_i (R u)_i / u_i rounded up (valid for any u > 0).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from certify.bounds.interval_ops import nan_min
+from certify.intervals import TINY, Interval, gamma, up, widen_up
+
+U = 2.0**-53
+MAX_VERTEX_DIM = 8  # beyond 2^8 vertices per box, the first-order term joins the remainder
+
+
+def lam_max_upper_point(S: torch.Tensor) -> torch.Tensor:
+    """Sound upper bound of lam_max of point symmetric matrices [..., n, n] -> [...]."""
+    n = S.shape[-1]
+    if n == 1:
+        return S[..., 0, 0]
+    if n == 2:
+        a, b, c = S[..., 0, 0], S[..., 0, 1], S[..., 1, 1]
+        return _lam2_upper(a, b.abs(), c)
+    ev = torch.linalg.eigvalsh(S)[..., -1]
+    norm = torch.linalg.matrix_norm(S)  # Frobenius
+    margin = 8.0 * (n + 1) * U * up(norm * (1.0 + 4.0 * n * U)) + TINY
+    bad = ~torch.isfinite(S).reshape(*S.shape[:-2], -1).all(-1)
+    out = up(ev + margin)
+    return torch.where(bad, torch.full_like(out, float("nan")), out)
+
+
+def _lam2_upper(a: torch.Tensor, babs: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """Upper bound of (a+c)/2 + sqrt(((a-c)/2)^2 + b^2), rounded up (increasing in a, c, |b|)."""
+    m = up(0.5 * up(a + c))
+    dlt = up((a - c).abs()) * 0.5
+    hyp = widen_up(torch.hypot(dlt, babs))
+    return up(m + hyp)
+
+
+def lam_max_upper_interval(A: Interval) -> torch.Tensor:
+    """Sound upper bound of max lam_max over an interval symmetric matrix [..., n, n].
+
+    n <= 2: exact (lam_max is increasing in the diagonal and in |b|). Otherwise the smaller of
+    lam_max(centre) + rho(radius) and Gershgorin.
+    """
+    n = A.lo.shape[-1]
+    if n == 1:
+        return A.hi[..., 0, 0]
+    if n == 2:
+        bmag = torch.maximum(A.lo[..., 0, 1].abs(), A.hi[..., 0, 1].abs())
+        bmag = torch.maximum(bmag, torch.maximum(A.lo[..., 1, 0].abs(), A.hi[..., 1, 0].abs()))
+        return _lam2_upper(A.hi[..., 0, 0], bmag, A.hi[..., 1, 1])
+    c, r = A.midrad()
+    c = 0.5 * (c + c.transpose(-1, -2))  # exact symmetric centre (any point matrix works)
+    r = up(torch.maximum(torch.maximum(A.hi - c, c - A.lo),
+                         torch.maximum(A.hi - c, c - A.lo).transpose(-1, -2)))
+    cr = up(lam_max_upper_point(c) + rho_upper(r))
+    best = nan_min(cr, gershgorin_upper(A))
+    if n <= MAX_HERTZ_DIM:
+        best = nan_min(best, hertz_upper(c, r))
+    return best
+
+
+MAX_HERTZ_DIM = 6  # 2^(n-1) eigenproblems per matrix
+_SIGNS: dict[int, torch.Tensor] = {}
+
+
+def _sign_patterns(n: int) -> torch.Tensor:
+    """z in {+-1}^n with z_1 = 1: [2^(n-1), n]."""
+    if n not in _SIGNS:
+        idx = torch.arange(2 ** (n - 1))
+        bits = (idx[:, None] >> torch.arange(n - 1)[None, :]) & 1
+        z = torch.cat([torch.ones(len(idx), 1), 1.0 - 2.0 * bits], 1)
+        _SIGNS[n] = z.to(torch.float64)
+    return _SIGNS[n]
+
+
+def hertz_upper(C: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """Upper bound of lam_max(S) over all symmetric S with |S - C| <= R (entrywise) [..., n, n].
+
+    For a unit x with sign pattern z: x^T S x <= x^T C x + |x|^T R |x|
+    = x^T (C + D_z R D_z) x <= lam_max(C + D_z R D_z), and z, -z give the same matrix, so the
+    maximum over the 2^(n-1) patterns with z_1 = 1 bounds the whole family (Hertz 1992: it is
+    attained). C symmetric, R symmetric and >= 0. Rounding: n = 2 closed form rounded outward;
+    otherwise the float sums C + z_i z_j R_ij err by at most u |C| + R entrywise, covered by
+    adding 2u ||(|C| + R)||_F (Weyl), then `lam_max_upper_point`'s own margin.
+    """
+    n = C.shape[-1]
+    if n == 1:
+        return up(C[..., 0, 0] + R[..., 0, 0])
+    if n == 2:
+        return _lam2_upper(up(C[..., 0, 0] + R[..., 0, 0]),
+                           up(torch.maximum(C[..., 0, 1].abs(), C[..., 1, 0].abs())
+                              + torch.maximum(R[..., 0, 1], R[..., 1, 0])),
+                           up(C[..., 1, 1] + R[..., 1, 1]))
+    Z = _sign_patterns(n)  # [V, n]
+    zz = Z[:, :, None] * Z[:, None, :]  # [V, n, n]
+    M = C.unsqueeze(-3) + zz * R.unsqueeze(-3)  # [..., V, n, n]
+    lm = lam_max_upper_point(M).amax(-1)
+    margin = up(2.0 * U * torch.linalg.matrix_norm(C.abs() + R) * (1.0 + 4 * U) + TINY)
+    return up(lm + margin)
+
+
+def gershgorin_upper(A: Interval) -> torch.Tensor:
+    n = A.lo.shape[-1]
+    mag = torch.maximum(A.lo.abs(), A.hi.abs())
+    eye = torch.eye(n, dtype=torch.bool)
+    off = torch.where(eye, torch.zeros_like(mag), mag).sum(-1)
+    off = up(off * (1.0 + 2.0 * gamma(n)) + n * TINY)
+    diag = torch.diagonal(A.hi, dim1=-2, dim2=-1)
+    return up(diag + off).max(-1).values
+
+
+def rho_upper(R: torch.Tensor, iters: int = 8) -> torch.Tensor:
+    """Spectral radius bound of non-negative matrices [..., n, n] (Collatz-Wielandt, rounded up).
+
+    rho(R) <= max_i (R u)_i / u_i for any u > 0; u from a few power iterations.
+    """
+    n = R.shape[-1]
+    if n <= 2 and torch.equal(R, R.transpose(-1, -2)):
+        return lam_max_upper_point(R).clamp_min(0.0)
+    u = torch.ones(*R.shape[:-1], 1, dtype=R.dtype)
+    for _ in range(iters):
+        u = R @ u
+        u = u / u.amax(-2, keepdim=True).clamp_min(1e-300)
+    u = u + 1e-6  # strictly positive
+    Ru = (R @ u).squeeze(-1)
+    Ru = up(Ru * (1.0 + 2.0 * gamma(n)) + n * TINY)
+    q = up(Ru / u.squeeze(-1)).amax(-1)
+    return q
+
+
+
+_VERTEX_CACHE: dict[int, torch.Tensor] = {}
+
+
+def _vertices(d: int) -> torch.Tensor:
+    if d not in _VERTEX_CACHE:
+        idx = torch.arange(2**d)
+        bits = (idx[:, None] >> torch.arange(d)[None, :]) & 1
+        _VERTEX_CACHE[d] = (2.0 * bits - 1.0).to(torch.float64)  # [V, d]
+    return _VERTEX_CACHE[d]
+
+
+def taylor_upper(Ac: Interval, dA: Interval, zr: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Second-order bound: max over vertices of lam_max(A(c) + sum d_m G_m) + rho(remainder).
+
+    Ac [B, n, n] encloses A at the box centres; dA [B, d, n, n] encloses dA/dz_m over the
+    boxes; zr [B, d] radii. Returns (bound [B], split score [B, d]).
+    """
+    B, d, n, _ = dA.lo.shape
+    G, R = dA.midrad()
+    G = 0.5 * (G + G.transpose(-1, -2))
+    R = up(torch.maximum(torch.maximum(dA.hi - G, G - dA.lo),
+                         torch.maximum(dA.hi - G, G - dA.lo).transpose(-1, -2)))
+    C0, Cr = Ac.midrad()
+    C0 = 0.5 * (C0 + C0.transpose(-1, -2))
+    Cr = up(torch.maximum(torch.maximum(Ac.hi - C0, C0 - Ac.lo),
+                          torch.maximum(Ac.hi - C0, C0 - Ac.lo).transpose(-1, -2)))
+    zr4 = zr[:, :, None, None]
+    rG = zr4 * G  # [B, d, n, n]
+    g = gamma(d + 5)
+    absum = C0.abs() + rG.abs().sum(1)
+    rem = Cr + (zr4 * R).sum(1)
+    rem = up(rem * (1.0 + g) + g * absum * (1.0 + g) + (d + 2) * TINY)
+    if d <= MAX_VERTEX_DIM:
+        V = _vertices(d)  # [V, d]
+        S = C0[:, None] + torch.einsum("vd,bdij->bvij", V, rG)  # [B, V, n, n]
+        S = 0.5 * (S + S.transpose(-1, -2))
+        lv = lam_max_upper_point(S).amax(-1)
+    else:
+        rem = up(rem + rG.abs().sum(1) * (1.0 + g))
+        lv = lam_max_upper_point(C0)
+    bound = up(lv + rho_upper(rem))
+    # split score: first-order variation plus remainder, per dimension
+    gn = torch.linalg.matrix_norm(rG) + torch.linalg.matrix_norm(zr4 * R)  # [B, d]
+    return bound, gn
+

@@ -1,0 +1,160 @@
+"""Sound upper bounds of max lam_max(M D M^T) over boxes: plain interval and Taylor forms.
+
+See `certify.enclosures` for the overview; each ingredient documents its own rounding.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from certify.bounds.eigen import lam_max_upper_interval, taylor_upper
+from certify.bounds.interval_ops import bcast, const_lam, iadd, nan_min
+from certify.bounds.network_interval import gain_enclosure
+from certify.bounds.preconditioner import Preconditioner, _congruence, make_preconditioner
+from certify.bounds.taylor import jcl_taylor, tm_congruence, tm_lam_upper
+from certify.intervals import Interval, imul, up
+from certify.problem import Problem
+
+CROWN_GAIN = 100.0  # remainder reduction assumed when choosing boxes for the linear bounds
+
+#: boxes per stage since import (diagnostics for bench/prove_suite.py; never read by proofs)
+STAGE_COUNTS = {"boxes": 0, "taylor": 0, "crown": 0, "crown_closed": 0}
+
+
+@dataclass
+class BoxBounds:
+    """Per box: upper bounds of max lam_max(A) (A = M D M^T), plain and Taylor, and the
+    per-dimension width contributions used to choose the split."""
+
+    upper: torch.Tensor  # [B]  min of the two (NaN: unknown)
+    plain: torch.Tensor  # [B]
+    taylor: torch.Tensor  # [B]
+    score: torch.Tensor  # [B, d] split score per dimension
+
+
+def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: float,
+                    pc: Preconditioner | None = None, taylor: bool | str = True,
+                    crown: bool = True, screen: float | None = None,
+                    crown_gain: float | CrownGain = CROWN_GAIN,
+                    root_width: torch.Tensor | None = None) -> BoxBounds:
+    """Sound upper bounds of max over each box of lam_max(M D M^T), D with rate lam.
+
+    taylor: True (first-order Taylor models through the network, the default), "interval"
+    (mean-value form with interval second derivatives) or False (plain interval only).
+    crown (with taylor=True): the network's Taylor models are tightened entry by entry by
+    backward linear bound propagation (`certify.bounds.crown`). screen: boxes whose plain
+    interval bound is already <= screen skip the Taylor / linear-relaxation work; the linear
+    bounds are tried where a remainder `crown_gain` times smaller would pass (see
+    `estimate_crown_gain`)."""
+    system, net = problem.system, problem.network
+    if pc is None:
+        pc = make_preconditioner(problem.P_t)
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    B, d = lo.shape
+    zc = 0.5 * (lo + hi)
+    zr = up(torch.maximum(hi - zc, zc - lo))
+    lamC = imul(pc.C, const_lam(2.0 * lam, pc.C))
+    # centre pass (thin intervals around A(c)) and box pass
+    gc, nec = gain_enclosure(system, net, zc, zc, order=1)
+    order = 2 if taylor == "interval" else 1
+    gb, _ = gain_enclosure(system, net, lo, hi, order=order, center_pre=nec.pre)
+    Ab = iadd(_congruence(pc, iadd(gb.jf, gb.dk_dx)), bcast(lamC, B))
+    plain = lam_max_upper_interval(Ab)
+    wscore = zr * (1.0 / (zr.amax(-1, keepdim=True) + 1e-300))
+    if not taylor:
+        return BoxBounds(plain, plain, torch.full_like(plain, float("inf")), wscore)
+    if taylor == "interval":
+        Ac = iadd(_congruence(pc, iadd(gc.jf, gc.dk_dx)), bcast(lamC, B))
+        dJ = iadd(gb.djf, gb.d2k)  # [B, n, n, d]
+        dA = _congruence(pc, Interval(dJ.lo.permute(0, 3, 1, 2), dJ.hi.permute(0, 3, 1, 2)))
+        tay, score = taylor_upper(Ac, dA, zr)
+        return BoxBounds(nan_min(plain, tay), plain, tay, score)
+    # stage 1: plain intervals (screen); stage 2: forward Taylor models; stage 3 (crown): the
+    # backward linear bounds, only where stage 2 failed while its affine (vertex) part alone
+    # would pass, i.e. where a tighter remainder can decide the box
+    work = torch.ones(B, dtype=torch.bool) if screen is None else ~(plain <= screen)
+    STAGE_COUNTS["boxes"] += B
+    tay = torch.full_like(plain, float("inf"))
+    score = wscore.clone()
+    if bool(work.any()):
+        wl, wh, wr = lo[work], hi[work], zr[work]
+        STAGE_COUNTS["taylor"] += int(work.sum())
+        Jt = jcl_taylor(system, net, wl, wh)
+        t_w, s_w, lv = tm_lam_upper(tm_congruence(pc, Jt, lam, wr), wr, parts=True)
+        if crown:
+            level = 0.0 if screen is None else screen
+            # the linear bounds cut the remainder by 10-1000x on small boxes: try them where
+            # a 100x smaller remainder would decide the box
+            gain = crown_gain
+            if isinstance(crown_gain, CrownGain):
+                # the box's radius relative to the root's width (no root: the smallest scale)
+                rel = ((wr / root_width).amax(-1) if root_width is not None
+                       else torch.zeros(len(wr), dtype=torch.float64))
+                gain = crown_gain.at(rel)
+            again = ~(t_w <= level) & (lv + (t_w - lv) / gain <= level)
+            if screen is None:
+                again = torch.ones_like(again)
+            if bool(again.any()):
+                from certify.bounds.crown import network_crown_tms
+
+                al, ah, ar = wl[again], wh[again], wr[again]
+                net_tms = network_crown_tms(net, al, ah, list(range(problem.n)),
+                                            value=problem.structural)
+                Jc = jcl_taylor(system, net, al, ah, net_tms=net_tms)
+                t_c, s_c = tm_lam_upper(tm_congruence(pc, Jc, lam, ar), ar)
+                STAGE_COUNTS["crown"] += int(again.sum())
+                STAGE_COUNTS["crown_closed"] += int((t_c <= level).sum())
+                better = torch.nan_to_num(t_c, nan=float("inf")) < t_w[again]
+                idx = torch.nonzero(again).squeeze(-1)[better]
+                t_w[idx] = t_c[better]
+                s_w[idx] = s_c[better]
+        tay[work] = t_w
+        score[work] = s_w
+    return BoxBounds(nan_min(plain, tay), plain, tay, score)
+
+
+@dataclass
+class CrownGain:
+    """Remainder reduction of the linear bounds over the Taylor models, as a function of the
+    box size: gains [K] measured at relative radii [K] (increasing), interpolated in log-log
+    and clamped at the ends. Only decides where the linear bounds are tried."""
+
+    rel_radii: torch.Tensor
+    gains: torch.Tensor
+
+    def at(self, rel_radius: torch.Tensor) -> torch.Tensor:
+        x = torch.log(rel_radius.clamp(self.rel_radii[0], self.rel_radii[-1]))
+        xs, ys = torch.log(self.rel_radii), torch.log(self.gains)
+        i = torch.searchsorted(xs, x.contiguous()).clamp(1, len(xs) - 1)
+        t = (x - xs[i - 1]) / (xs[i] - xs[i - 1])
+        return torch.exp(ys[i - 1] + t * (ys[i] - ys[i - 1]))
+
+
+def estimate_crown_gain(net, root_lo: torch.Tensor, root_hi: torch.Tensor,
+                        probes: int = 12, scales: tuple[float, ...] = (1 / 256, 1 / 64, 1 / 16)
+                        ) -> CrownGain:
+    """How much the linear bounds shrink the Jacobian remainder for this network, at a few box
+    sizes: at each relative radius, the median ratio of Taylor-model to linear-bound remainders
+    over `probes` deterministic boxes inside the root box, clamped to [2, 1e6]. Deterministic
+    in the problem, so every worker of a distributed proof chooses alike."""
+    from certify.bounds.crown import forward_bounds, jacobian_crown, to_tm
+
+    d = root_lo.shape[0]
+    g = torch.Generator().manual_seed(1234)
+    w = (root_hi - root_lo).to(torch.float64)
+    u = torch.rand(probes, d, generator=g, dtype=torch.float64)
+    cols = list(range(d))
+    gains = []
+    for s in scales:
+        c = root_lo + w * (s + (1 - 2 * s) * u)
+        lo, hi = c - w * s, c + w * s
+        fb = forward_bounds(net, lo, hi, cols=cols, crown=True)
+        e_cr = to_tm(jacobian_crown(net, lo, hi, cols, fb), fb.r).e
+        ratio = (fb.jac_tm.e / e_cr.clamp_min(1e-300)).flatten()
+        ratio = ratio[torch.isfinite(ratio)]
+        gains.append(float(ratio.median().clamp(2.0, 1e6)) if len(ratio) else CROWN_GAIN)
+    return CrownGain(torch.tensor(scales, dtype=torch.float64),
+                     torch.tensor(gains, dtype=torch.float64))

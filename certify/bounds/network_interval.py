@@ -1,0 +1,207 @@
+"""Plain interval enclosures of the gain network: value, Jacobian and second derivatives.
+
+Boxes live in z = (xhat, y) space: lo, hi [B, d], d = n + p. Forward-mode interval propagation
+layer by layer, pre-activations tightened by a mean-value form around the box centre. Rounding:
+products with point weight matrices in midpoint-radius form with Higham's gamma_k bound added
+(`certify.intervals.matmul_point_right`), everything else outward by one ulp, tanh and its
+derivatives by `certify.intervals`' widened libm rules.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from certify.bounds.interval_ops import iadd, intersect, isum, point
+from certify.intervals import (
+    Interval,
+    d2tanh_enclosure,
+    dtanh_enclosure,
+    h_enclosure,
+    hessian_f_enclosure,
+    hessian_h_enclosure,
+    imul,
+    jacobian_f_enclosure,
+    jacobian_h_enclosure,
+    matmul_point_right,
+    midrad_to_interval,
+    tanh_enclosure,
+    up,
+)
+from certify.network import GainNetwork
+from certify.system import System
+
+
+# ----- MLP enclosure -------------------------------------------------------------------
+@dataclass
+class NetEnclosure:
+    """Enclosures of N [B, out], dN/dz [B, out, d] and d2N/dz_j dz_m [B, out, J, d]."""
+
+    value: Interval
+    d1: Interval
+    d2: Interval | None
+    pre: list[Interval]  # pre-activation value enclosures per hidden layer [B, h]
+
+
+def network_enclosure(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, order: int = 1,
+                      second_cols: int | None = None,
+                      center_pre: list[Interval] | None = None) -> NetEnclosure:
+    """Forward-mode interval propagation of value, Jacobian and (order 2) second derivatives.
+
+    lo, hi [B, d]. Rows travel together as one tensor [B, R, width]: row 0 the value, rows
+    1..d the tangents, then J*d second-derivative rows (j < J = second_cols, m < d). With
+    `center_pre` (from a pass on the degenerate boxes [c, c]), each pre-activation value
+    is intersected with its mean-value form pre(c) + sum_m [dpre/dz_m] (z_m - c_m).
+    """
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    B, d = lo.shape
+    J = d if second_cols is None else int(second_cols)
+    weights = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
+    W0, b0 = weights[0]
+    zc = 0.5 * (lo + hi)
+    zr = up(torch.maximum(hi - zc, zc - lo))
+    zdev = Interval(-zr, zr)  # z - c
+    c, r = matmul_point_right(zc, zr, W0.T)
+    val = midrad_to_interval(c, r) + point(b0.expand_as(c))
+    h0 = W0.shape[0]
+    T = point(W0.T.unsqueeze(0).expand(B, d, h0))  # [B, d, h]
+    S = None
+    if order >= 2:
+        zero = torch.zeros(B, J * d, h0, dtype=torch.float64)
+        S = Interval(zero, zero)
+    pres: list[Interval] = []
+    for li, (W, b) in enumerate(weights[1:]):
+        if center_pre is not None:
+            mv = isum(imul(T, Interval(zdev.lo.unsqueeze(-1), zdev.hi.unsqueeze(-1))), 1)
+            val = intersect(val, center_pre[li] + mv)
+        pres.append(val)
+        t = tanh_enclosure(val)
+        s1 = dtanh_enclosure(val)
+        s1e = Interval(s1.lo.unsqueeze(1), s1.hi.unsqueeze(1))
+        Tn = imul(s1e, T)
+        rows_lo = [t.lo.unsqueeze(1), Tn.lo]
+        rows_hi = [t.hi.unsqueeze(1), Tn.hi]
+        if S is not None:
+            s2 = d2tanh_enclosure(val)
+            hw = T.lo.shape[-1]
+            Tj = Interval(T.lo[:, :J].unsqueeze(2), T.hi[:, :J].unsqueeze(2))  # [B, J, 1, h]
+            Tm = Interval(T.lo.unsqueeze(1), T.hi.unsqueeze(1))  # [B, 1, d, h]
+            TT = imul(Tj, Tm)  # [B, J, d, h]
+            s2e = Interval(s2.lo[:, None, None, :], s2.hi[:, None, None, :])
+            s1f = Interval(s1.lo[:, None, None, :], s1.hi[:, None, None, :])
+            Sn = iadd(imul(s2e, TT), imul(s1f, Interval(S.lo.reshape(B, J, d, hw),
+                                                        S.hi.reshape(B, J, d, hw))))
+            rows_lo.append(Sn.lo.reshape(B, J * d, hw))
+            rows_hi.append(Sn.hi.reshape(B, J * d, hw))
+        rows = Interval(torch.cat(rows_lo, 1), torch.cat(rows_hi, 1))
+        rc, rr = rows.midrad()
+        oc, orr = matmul_point_right(rc, rr, W.T)
+        out = midrad_to_interval(oc, orr)
+        val = out[:, 0] + point(b.expand_as(oc[:, 0]))
+        T = out[:, 1:1 + d]
+        if S is not None:
+            S = out[:, 1 + d:]
+    out_dim = val.lo.shape[-1]
+    d1 = Interval(T.lo.transpose(1, 2), T.hi.transpose(1, 2))  # [B, out, d]
+    d2 = None
+    if S is not None:
+        d2 = Interval(S.lo.reshape(B, J, d, out_dim).permute(0, 3, 1, 2),
+                      S.hi.reshape(B, J, d, out_dim).permute(0, 3, 1, 2))
+    return NetEnclosure(value=val, d1=d1, d2=d2, pre=pres)
+
+
+# ----- the gain k(xhat, y) and its derivatives ---------------------------------------------
+@dataclass
+class GainEnclosure:
+    """Enclosures over boxes of k [B, n], dk/dxhat [B, n, n], dk/dy [B, n, p] and (order 2)
+    d2k_i / dxhat_j dz_m [B, n, n, d]; plus Jf [B, n, n] and d Jf_ij / dz_m [B, n, n, d]."""
+
+    k: Interval
+    dk_dx: Interval
+    dk_dy: Interval
+    d2k: Interval | None
+    jf: Interval
+    djf: Interval | None
+
+
+def gain_enclosure(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
+                   order: int = 1, center_pre: list[Interval] | None = None
+                   ) -> tuple[GainEnclosure, NetEnclosure]:
+    """What `certify.kernels.gain_terms` computes, enclosed over boxes z in [lo, hi]."""
+    n, p = system.n, system.p
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    B, d = lo.shape
+    ne = network_enclosure(net, lo, hi, order=order, second_cols=n, center_pre=center_pre)
+    xl, xh = lo[:, :n], hi[:, :n]
+    yI = Interval(lo[:, n:], hi[:, n:])
+    K = net.K.to(torch.float64)
+    has_K = bool(torch.any(K != 0))
+    structural = net.structure == "structural"
+    jf = Interval(*jacobian_f_enclosure(system, xl, xh))
+    djf = None
+    if order >= 2:
+        hf = Interval(*hessian_f_enclosure(system, xl, xh))  # [B, n, n, n]
+        zpad = torch.zeros(B, n, n, p, dtype=torch.float64)
+        djf = Interval(torch.cat([hf.lo, zpad], -1), torch.cat([hf.hi, zpad], -1))
+    need_h = structural or has_K
+    if need_h:
+        hI = Interval(*h_enclosure(system, xl, xh))
+        r = yI - hI  # [B, p]
+        Hx = Interval(*jacobian_h_enclosure(system, xl, xh))  # [B, p, n]
+        # dr/dz [B, p, d]: (-Hx | I)
+        eye = torch.eye(p, dtype=torch.float64).expand(B, p, p)
+        dr = Interval(torch.cat([-Hx.hi, eye], -1), torch.cat([-Hx.lo, eye], -1))
+        d2r = None
+        if order >= 2:
+            hh = Interval(*hessian_h_enclosure(system, xl, xh))  # [B, p, n, n]
+            zpad = torch.zeros(B, p, n, p, dtype=torch.float64)
+            d2r = Interval(torch.cat([-hh.hi, zpad], -1), torch.cat([-hh.lo, zpad], -1))
+    if not structural:
+        k = ne.value
+        dk = ne.d1  # [B, n, d]
+        d2k = ne.d2  # [B, n, n, d]
+    else:
+        G = Interval(ne.value.lo.reshape(B, n, p), ne.value.hi.reshape(B, n, p))
+        dG = Interval(ne.d1.lo.reshape(B, n, p, d), ne.d1.hi.reshape(B, n, p, d))
+        rI = Interval(r.lo[:, None, :], r.hi[:, None, :])
+        k = isum(imul(G, rI), 2)
+        # dk_i/dz_j = sum_l dG_ilj r_l + G_il dr_lj
+        t1 = isum(imul(dG, Interval(r.lo[:, None, :, None], r.hi[:, None, :, None])), 2)
+        t2 = isum(imul(Interval(G.lo[..., None], G.hi[..., None]),
+                       Interval(dr.lo[:, None], dr.hi[:, None])), 2)
+        dk = iadd(t1, t2)
+        d2k = None
+        if order >= 2:
+            d2G = Interval(ne.d2.lo.reshape(B, n, p, n, d), ne.d2.hi.reshape(B, n, p, n, d))
+            rr = Interval(r.lo[:, None, :, None, None], r.hi[:, None, :, None, None])
+            a1 = imul(d2G, rr)  # sum_l d2G_iljm r_l
+            drj = Interval(dr.lo[:, None, :, :n, None], dr.hi[:, None, :, :n, None])
+            drm = Interval(dr.lo[:, None, :, None, :], dr.hi[:, None, :, None, :])
+            dGj = Interval(dG.lo[:, :, :, :n, None], dG.hi[:, :, :, :n, None])
+            dGm = Interval(dG.lo[:, :, :, None, :], dG.hi[:, :, :, None, :])
+            a2 = imul(dGj, drm)
+            a3 = imul(dGm, drj)
+            Ge = Interval(G.lo[..., None, None], G.hi[..., None, None])
+            a4 = imul(Ge, Interval(d2r.lo[:, None, :, :n, :], d2r.hi[:, None, :, :n, :]))
+            d2k = isum(iadd(iadd(a1, a2), iadd(a3, a4)), 2)
+    if has_K:
+        Kp = point(K)
+        k = iadd(k, isum(imul(Interval(K.expand(B, n, p), K.expand(B, n, p)),
+                              Interval(r.lo[:, None, :], r.hi[:, None, :])), 2))
+        Kdr = isum(imul(Interval(K[None, :, :, None].expand(B, n, p, d),
+                                 K[None, :, :, None].expand(B, n, p, d)),
+                        Interval(dr.lo[:, None], dr.hi[:, None])), 2)  # [B, n, d]
+        dk = iadd(dk, Kdr)
+        if order >= 2:
+            Kd2 = isum(imul(Interval(K[None, :, :, None, None].expand(B, n, p, n, d),
+                                     K[None, :, :, None, None].expand(B, n, p, n, d)),
+                            Interval(d2r.lo[:, None, :, :n, :], d2r.hi[:, None, :, :n, :])), 2)
+            d2k = iadd(d2k, Kd2)
+        del Kp
+    dk_dx = dk[:, :, :n]
+    dk_dy = dk[:, :, n:]
+    return GainEnclosure(k=k, dk_dx=dk_dx, dk_dy=dk_dy, d2k=d2k, jf=jf, djf=djf), ne
+

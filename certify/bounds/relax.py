@@ -1,0 +1,228 @@
+"""Sound linear relaxations of tanh, tanh' = 1 - tanh^2 and of products s * t, on intervals.
+
+Local adapter with the `certify.activations` contract (`relax(lo, hi)`, `relax_d1(lo, hi)` ->
+`LinearBounds`) built on `certify.intervals`' tanh enclosures, until the activations package
+lands on main.
+
+Method (per element, vectorised): a candidate slope a (the chord slope), then the intercepts
+are the sound minimum and maximum of the residual r(x) = f(x) - a x over [lo, hi]. The residual
+is split into pieces of known curvature (tanh: convex on x <= 0, concave on x >= 0; tanh':
+convex for |x| >= c, concave for |x| <= c, c = atanh(1/sqrt 3), with the boundary moved 1e-9
+outwards on each side and the sliver between evaluated by plain interval arithmetic). On a
+convex piece the maximum is at an endpoint and the minimum is bounded below by the tangent at
+any point x0 of the piece, r(x) >= r(x0) + r'(x0)(x - x0); on a concave piece the reverse. x0
+is an approximate critical point (closed form for tanh, bisection for tanh'), which only
+affects tightness. Rounding: every r(.) and r'(.) value is an outward-rounded interval
+(`certify.intervals` rules: libm widened by 4 ulps, +, -, * one ulp outward), so the returned
+intercepts hold for the real-number lines a x + b; users of the lines account for the float
+evaluation of a x + b themselves.
+
+McCormick (products): for s in [sl, su], t in [tl, tu], planes with the slopes of the averaged
+McCormick estimators, s t >= tc s + sc t + bl and s t <= tc s + sc t + bu (sc, tc the float
+midpoints, shared by both sides). g(s, t) = s t - tc s - sc t is bilinear, so its extremes over
+the box are at the four corners: bl, bu are the min / max of outward-rounded corner values (for
+exact midpoints bl = -(sl tl + su tu) / 2 and bu = -(sl tu + su tl) / 2).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from certify.intervals import (
+    Interval,
+    down,
+    dtanh_enclosure,
+    imul,
+    tanh_enclosure,
+    up,
+)
+
+_C_D1 = math.atanh(1.0 / math.sqrt(3.0))  # inflection points of tanh' (zeros of tanh''')
+_GAP = 1e-9
+
+
+@dataclass
+class LinearBounds:
+    """For all x in [lo, hi]: ls * x + li <= f(x) <= us * x + ui (real arithmetic)."""
+
+    lower_slope: torch.Tensor
+    lower_icpt: torch.Tensor
+    upper_slope: torch.Tensor
+    upper_icpt: torch.Tensor
+
+
+def _f_and_df(kind: str, x: Interval) -> tuple[Interval, Interval]:
+    """Enclosures of f and f' over x (kind 'tanh' or 'dtanh')."""
+    if kind == "tanh":
+        return tanh_enclosure(x), dtanh_enclosure(x)
+    from certify.intervals import d2tanh_enclosure
+
+    return dtanh_enclosure(x), d2tanh_enclosure(x)
+
+
+def _residual(kind: str, x: torch.Tensor, a: torch.Tensor) -> tuple[Interval, Interval]:
+    """r(x) = f(x) - a x and r'(x) = f'(x) - a at points x (outward-rounded intervals)."""
+    f, df = _f_and_df(kind, Interval(x, x))
+    ax = imul(Interval(a, a), Interval(x, x))
+    r = Interval(down(f.lo - ax.hi), up(f.hi - ax.lo))
+    dr = Interval(down(df.lo - a), up(df.hi - a))
+    return r, dr
+
+
+def _piece_extrema(kind: str, a: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+                   p_lo: float, p_hi: float, convex: bool | None, x0: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Sound (min, max) of r over [lo, hi] cap [p_lo, p_hi] and whether that piece is empty.
+
+    convex: True / False for a piece of known curvature, None for plain interval evaluation.
+    x0: approximate critical point (clamped into the piece here)."""
+    pa = torch.clamp(lo, min=p_lo)
+    pb = torch.clamp(hi, max=p_hi)
+    empty = pa > pb
+    pb = torch.where(empty, pa, pb)
+    if convex is None:
+        f, _ = _f_and_df(kind, Interval(pa, pb))
+        ax = imul(Interval(a, a), Interval(pa, pb))
+        return down(f.lo - ax.hi), up(f.hi - ax.lo), empty
+    ra, _ = _residual(kind, pa, a)
+    rb, _ = _residual(kind, pb, a)
+    x0 = torch.minimum(torch.maximum(x0, pa), pb)
+    r0, dr0 = _residual(kind, x0, a)
+    da = Interval(down(pa - x0), up(pa - x0))
+    db = Interval(down(pb - x0), up(pb - x0))
+    ta, tb = imul(dr0, da), imul(dr0, db)
+    if convex:
+        rmax = torch.maximum(ra.hi, rb.hi)
+        rmin = down(r0.lo + torch.minimum(ta.lo, tb.lo))
+    else:
+        rmin = torch.minimum(ra.lo, rb.lo)
+        rmax = up(r0.hi + torch.maximum(ta.hi, tb.hi))
+    return rmin, rmax, empty
+
+
+def _combine(parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+    inf = float("inf")
+    rmin = rmax = None
+    for pmin, pmax, empty in parts:
+        pmin = torch.where(empty, torch.full_like(pmin, inf), pmin)
+        pmax = torch.where(empty, torch.full_like(pmax, -inf), pmax)
+        rmin = pmin if rmin is None else torch.minimum(rmin, pmin)
+        rmax = pmax if rmax is None else torch.maximum(rmax, pmax)
+    return rmin, rmax
+
+
+def _chord_slope(f_lo: torch.Tensor, f_hi: torch.Tensor, df_mid: torch.Tensor,
+                 lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    w = hi - lo
+    thin = w <= 1e-7 * (1.0 + lo.abs())
+    chord = (f_hi - f_lo) / torch.where(thin, torch.ones_like(w), w)
+    return torch.where(thin, df_mid, chord)
+
+
+def relax_tanh(lo: torch.Tensor, hi: torch.Tensor) -> LinearBounds:
+    """Parallel lines a x + b_lo <= tanh(x) <= a x + b_hi on [lo, hi], a the chord slope."""
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    mid = 0.5 * (lo + hi)
+    a = _chord_slope(torch.tanh(lo), torch.tanh(hi), 1.0 - torch.tanh(mid) ** 2, lo, hi)
+    a = torch.nan_to_num(a, nan=0.0).clamp(0.0, 1.0)
+    # critical points of r: tanh'(x) = a  <=>  |x| = atanh(sqrt(1 - a))
+    xc = torch.atanh(torch.sqrt((1.0 - a).clamp(0.0, 1.0)).clamp(max=1.0 - 1e-16))
+    parts = [_piece_extrema("tanh", a, lo, hi, -inf_(), 0.0, True, -xc),
+             _piece_extrema("tanh", a, lo, hi, 0.0, inf_(), False, xc)]
+    rmin, rmax = _combine(parts)
+    return LinearBounds(a, rmin, a, rmax)
+
+
+def inf_() -> float:
+    return float("inf")
+
+
+def _dtanh_slope(x: torch.Tensor) -> torch.Tensor:
+    t = torch.tanh(x)
+    return -2.0 * t * (1.0 - t * t)
+
+
+def _bisect_crit(a: torch.Tensor, pa: torch.Tensor, pb: torch.Tensor, increasing: bool,
+                 iters: int = 14) -> torch.Tensor:
+    """x in [pa, pb] with tanh''(x) ~ a, tanh'' monotone there (clamped to an endpoint)."""
+    lo, hi = pa.clone(), pb.clone()
+    for _ in range(iters):
+        m = 0.5 * (lo + hi)
+        v = _dtanh_slope(m)
+        go_right = (v < a) if increasing else (v > a)
+        lo = torch.where(go_right, m, lo)
+        hi = torch.where(go_right, hi, m)
+    return 0.5 * (lo + hi)
+
+
+def relax_dtanh(lo: torch.Tensor, hi: torch.Tensor) -> LinearBounds:
+    """Parallel lines a x + b_lo <= tanh'(x) <= a x + b_hi on [lo, hi], a the chord slope."""
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    mid = 0.5 * (lo + hi)
+
+    def s(x: torch.Tensor) -> torch.Tensor:
+        t = torch.tanh(x)
+        return 1.0 - t * t
+
+    a = _chord_slope(s(lo), s(hi), _dtanh_slope(mid), lo, hi)
+    a = torch.nan_to_num(a, nan=0.0)
+    c_in, c_out = _C_D1 - _GAP, _C_D1 + _GAP
+    parts = []
+    # convex (-inf, -c_out]: tanh'' increasing there
+    pa, pb = torch.clamp(lo, max=-c_out), torch.clamp(hi, max=-c_out)
+    pa = torch.clamp(pa, min=-30.0)
+    pb = torch.clamp(pb, min=-30.0)
+    x0 = _bisect_crit(a, torch.minimum(pa, pb), pb, True)
+    parts.append(_piece_extrema("dtanh", a, lo, hi, -inf_(), -c_out, True, x0))
+    # concave [-c_in, c_in]: tanh'' decreasing
+    pa, pb = torch.clamp(lo, -c_in, c_in), torch.clamp(hi, -c_in, c_in)
+    x0 = _bisect_crit(a, pa, pb, False)
+    parts.append(_piece_extrema("dtanh", a, lo, hi, -c_in, c_in, False, x0))
+    # convex [c_out, inf): tanh'' increasing
+    pa, pb = torch.clamp(lo, min=c_out, max=30.0), torch.clamp(hi, min=c_out, max=30.0)
+    x0 = _bisect_crit(a, pa, torch.maximum(pa, pb), True)
+    parts.append(_piece_extrema("dtanh", a, lo, hi, c_out, inf_(), True, x0))
+    # the two slivers around +-c: plain interval evaluation
+    parts.append(_piece_extrema("dtanh", a, lo, hi, -c_out, -c_in, None, lo))
+    parts.append(_piece_extrema("dtanh", a, lo, hi, c_in, c_out, None, lo))
+    rmin, rmax = _combine(parts)
+    return LinearBounds(a, rmin, a, rmax)
+
+
+@dataclass
+class BilinearBounds:
+    """s t >= as s + at t + bl and s t <= as s + at t + bu on [sl, su] x [tl, tu]."""
+
+    slope_s: torch.Tensor
+    slope_t: torch.Tensor
+    lower_icpt: torch.Tensor
+    upper_icpt: torch.Tensor
+
+
+def mccormick(s: Interval, t: Interval) -> BilinearBounds:
+    """Averaged McCormick planes for the product s * t (see the module docstring)."""
+    sc = 0.5 * (s.lo + s.hi)
+    tc = 0.5 * (t.lo + t.hi)
+    # s t - tc s - sc t >= -(sl tl + su tu)/2 holds for the exact midpoints; for the float
+    # sc, tc use the exact identity with the four corner values (bilinear => extremes at corners)
+    corners = [(s.lo, t.lo), (s.lo, t.hi), (s.hi, t.lo), (s.hi, t.hi)]
+    vals_lo, vals_hi = [], []
+    for sv, tv in corners:
+        # g(s, t) = s t - tc s - sc t is bilinear: its min / max over the box is at a corner
+        p = imul(Interval(sv, sv), Interval(tv, tv))
+        q1 = imul(Interval(tc, tc), Interval(sv, sv))
+        q2 = imul(Interval(sc, sc), Interval(tv, tv))
+        vals_lo.append(down(down(p.lo - q1.hi) - q2.hi))
+        vals_hi.append(up(up(p.hi - q1.lo) - q2.lo))
+    bl = torch.minimum(torch.minimum(vals_lo[0], vals_lo[1]), torch.minimum(vals_lo[2], vals_lo[3]))
+    bu = torch.maximum(torch.maximum(vals_hi[0], vals_hi[1]), torch.maximum(vals_hi[2], vals_hi[3]))
+    return BilinearBounds(tc, sc, bl, bu)
+
+
+__all__ = ["LinearBounds", "BilinearBounds", "relax_tanh", "relax_dtanh", "mccormick"]

@@ -1,0 +1,317 @@
+"""First-order Taylor models over boxes: q(z) in c + g . (z - zc) + [-e, e].
+
+Linear maps act exactly on (c, g) and only the remainder wraps, so dependencies on the box
+coordinates survive the layers. Rounding: the float errors of c and g are absorbed into e with
+Higham's gamma_k |.| bounds, rounded up; tanh's Lagrange remainders use the interval rule of
+the second derivative and the bound 2 on the third.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from certify.bounds.eigen import (
+    MAX_VERTEX_DIM,
+    _vertices,
+    hertz_upper,
+    lam_max_upper_point,
+    rho_upper,
+)
+from certify.bounds.interval_ops import const_lam
+from certify.bounds.preconditioner import Preconditioner
+from certify.intervals import (
+    TINY,
+    Interval,
+    d2tanh_enclosure,
+    down,
+    gamma,
+    h_enclosure,
+    hessian_f_enclosure,
+    hessian_h_enclosure,
+    imul,
+    jacobian_f_enclosure,
+    jacobian_h_enclosure,
+    up,
+)
+from certify.network import GainNetwork
+from certify.system import System
+
+U = 2.0**-53
+
+
+@dataclass
+class TM:
+    """First-order Taylor model over boxes: value c [...], coefficients g [..., d] (point),
+    remainder e [...] >= 0, valid for every z in the box with |z - zc| <= r.
+
+    Linear maps act exactly on (c, g) and only the remainder wraps, so dependencies on the
+    box coordinates survive the layers; float errors of c and g are absorbed into e."""
+
+    c: torch.Tensor
+    g: torch.Tensor
+    e: torch.Tensor
+
+
+def _gr(g: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """Upper bound of sum_m |g_m| r_m, r broadcast over the leading dims of g."""
+    d = g.shape[-1]
+    return up((g.abs() * r).sum(-1) * (1.0 + 2.0 * gamma(d + 1)))
+
+
+def _rshape(r: torch.Tensor, ndim: int) -> torch.Tensor:
+    """Reshape radii [B, d] to broadcast against a coefficient tensor with `ndim` dims."""
+    return r.reshape(r.shape[0], *([1] * (ndim - 2)), r.shape[1])
+
+
+def tm_from_intervals(center: Interval, deriv: Interval, r: torch.Tensor) -> TM:
+    """TM from a thin enclosure at the centre and an enclosure of the gradient over the box
+    (mean-value theorem): center [B, ...], deriv [B, ..., d]."""
+    c, cr = center.midrad()
+    g, gr_ = deriv.midrad()
+    rr = _rshape(r, g.ndim)
+    e = up(cr + up((gr_ * rr).sum(-1) * (1.0 + 2.0 * gamma(g.shape[-1] + 1))))
+    return TM(c, g, e)
+
+
+def tm_absorb(c: torch.Tensor, g: torch.Tensor, e: torch.Tensor, r: torch.Tensor, k: int) -> TM:
+    """Add gamma_k (|c| + sum |g| r) to the remainder (rounding of c and g), rounded up."""
+    gk = gamma(k)
+    rr = _rshape(r, g.ndim)
+    e = up((e + gk * (c.abs() + _gr(g, rr))) * (1.0 + 2.0 * gk) + k * TINY)
+    return TM(c, g, e)
+
+
+def tm_linear(t: TM, W: torch.Tensor, b: torch.Tensor | None, r: torch.Tensor) -> TM:
+    """x -> x @ W (+ b) on the last value dim: t.c [..., k], t.g [..., k, d]; W [k, m]."""
+    k = W.shape[0]
+    gk = gamma(k + 2)
+    c = t.c @ W
+    if b is not None:
+        c = c + b
+    g = (t.g.transpose(-1, -2) @ W).transpose(-1, -2)
+    rr = _rshape(r, t.g.ndim)
+    slack = t.e + gk * (t.c.abs() + _gr(t.g, rr))
+    e = slack @ W.abs()
+    if b is not None:
+        e = e + gk * (b.abs() + c.abs())
+    e = up(e * (1.0 + 2.0 * gk) + k * TINY)
+    return TM(c, g, e)
+
+
+def tm_rho(t: TM, r: torch.Tensor) -> torch.Tensor:
+    """Radius of the range of t over the box: sum |g| r + e (rounded up)."""
+    return up(_gr(t.g, _rshape(r, t.g.ndim)) + t.e)
+
+
+_EPS = 2.0**-52
+
+
+def tm_tanh_and_dtanh(t: TM, r: torch.Tensor) -> tuple[TM, TM]:
+    """TMs of tanh(q) and tanh'(q) for a TM q (second-order Lagrange remainders, with the
+    range of tanh'' from its interval rule and |tanh'''| <= 2)."""
+    rho = tm_rho(t, r)
+    rng = Interval(down(t.c - rho), up(t.c + rho))
+    M2 = d2tanh_enclosure(rng).mag()
+    t0 = torch.tanh(t.c)
+    s0 = 1.0 - t0 * t0
+    s2 = -2.0 * t0 * s0
+    gr = _gr(t.g, _rshape(r, t.g.ndim))
+    ga = t.g * s0.unsqueeze(-1)
+    err_t0 = 4.0 * _EPS * t0.abs() + 4 * TINY
+    e_a = (torch.clamp(s0 + 16 * _EPS, max=1.0) * t.e + 0.5 * M2 * rho * rho
+           + 16 * _EPS * gr + err_t0 + 4 * U * (t0.abs() + _gr(ga, _rshape(r, ga.ndim))))
+    A = TM(t0, ga, up(e_a * (1.0 + 8 * U) + 4 * TINY))
+    gs = t.g * s2.unsqueeze(-1)
+    e_s = ((s2.abs() + 64 * _EPS) * t.e + 1.0 * rho * rho  # 0.5 * max|tanh'''| (<= 2)
+           + 64 * _EPS * gr + 32 * _EPS + 4 * U * (s0.abs() + _gr(gs, _rshape(r, gs.ndim))))
+    S = TM(s0, gs, up(e_s * (1.0 + 8 * U) + 4 * TINY))
+    return A, S
+
+
+def tm_mul(a: TM, b: TM, r: torch.Tensor) -> TM:
+    """Elementwise product (broadcasting)."""
+    c = a.c * b.c
+    g = a.c.unsqueeze(-1) * b.g + b.c.unsqueeze(-1) * a.g
+    ra = tm_rho(a, r) if a.g.ndim else a.e
+    rb = tm_rho(b, r)
+    ga = _gr(a.g, _rshape(r, a.g.ndim))
+    gb = _gr(b.g, _rshape(r, b.g.ndim))
+    e = a.c.abs() * b.e + b.c.abs() * a.e + (ga + a.e) * (gb + b.e)
+    del ra, rb
+    e = up(e * (1.0 + 8 * U))
+    return tm_absorb(c, g, e, r, 4)
+
+
+def tm_sum(t: TM, dim: int, r: torch.Tensor) -> TM:
+    """Sum over value dim `dim` (non-negative index into c's dims)."""
+    k = t.c.shape[dim]
+    c = t.c.sum(dim)
+    g = t.g.sum(dim)
+    e = t.e.sum(dim)
+    extra = gamma(k + 1) * (t.c.abs().sum(dim) + _gr(t.g, _rshape(r, t.g.ndim)).sum(dim))
+    e = up((e + extra) * (1.0 + 2.0 * gamma(k + 1)) + k * TINY)
+    return TM(c, g, e)
+
+
+def tm_add(a: TM, b: TM, r: torch.Tensor) -> TM:
+    c = a.c + b.c
+    g = a.g + b.g
+    e = up(a.e + b.e)
+    return tm_absorb(c, g, e, r, 2)
+
+
+def tm_point(x: torch.Tensor, d: int) -> TM:
+    z = torch.zeros(*x.shape, d, dtype=x.dtype)
+    return TM(x, z, torch.zeros_like(x))
+
+
+def tm_index(t: TM, idx: tuple) -> TM:
+    """Index the value dims (the coefficient dim stays last)."""
+    return TM(t.c[idx], t.g[idx + (slice(None),)], t.e[idx])
+
+
+def network_taylor(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor
+                   ) -> tuple[TM, TM, torch.Tensor]:
+    """First-order TMs over boxes of N(z) [B, out] and dN/dz [B, out, d]; returns radii r."""
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    B, d = lo.shape
+    zc = 0.5 * (lo + hi)
+    r = up(torch.maximum(hi - zc, zc - lo))
+    weights = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
+    W0, b0 = weights[0]
+    eye = torch.eye(d, dtype=torch.float64).expand(B, d, d)
+    ztm = TM(zc, eye, torch.zeros_like(zc))
+    val = tm_linear(ztm, W0.T, b0, r)  # [B, h]
+    h0 = W0.shape[0]
+    T = TM(W0.T.expand(B, d, h0), torch.zeros(B, d, h0, d, dtype=torch.float64),
+           torch.zeros(B, d, h0, dtype=torch.float64))
+    for W, b in weights[1:]:
+        a, s = tm_tanh_and_dtanh(val, r)
+        s_b = TM(s.c.unsqueeze(1), s.g.unsqueeze(1), s.e.unsqueeze(1))
+        Tn = tm_mul(s_b, T, r)  # [B, d, h]
+        val = tm_linear(a, W.T, b, r)
+        T = tm_linear(Tn, W.T, None, r)
+    d1 = TM(T.c.transpose(1, 2), T.g.transpose(1, 2), T.e.transpose(1, 2))  # [B, out, d]
+    return val, d1, r
+
+
+def jcl_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
+               net_tms: tuple[TM, TM, torch.Tensor] | None = None) -> TM:
+    """TM of the closed-loop Jacobian Jf(xhat) + dk/dxhat(xhat, y) over z-boxes -> [B, n, n].
+
+    net_tms: (value [B, out], Jacobian [B, out, d], radii) of the network from elsewhere
+    (e.g. tightened by linear bound propagation); default `network_taylor`."""
+    n, p = system.n, system.p
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    B, d = lo.shape
+    val, d1, r = network_taylor(net, lo, hi) if net_tms is None else net_tms
+    zc = 0.5 * (lo + hi)
+    xc = zc[:, :n]
+    xl, xh = lo[:, :n], hi[:, :n]
+    rx = r[:, :n]
+    zpad = torch.zeros(B, n, n, p, dtype=torch.float64)
+
+    def pad(iv: Interval) -> Interval:  # derivative w.r.t. x only -> pad y columns with 0
+        z = torch.zeros(*iv.lo.shape[:-1], p, dtype=torch.float64)
+        return Interval(torch.cat([iv.lo, z], -1), torch.cat([iv.hi, z], -1))
+
+    jf = tm_from_intervals(Interval(*jacobian_f_enclosure(system, xc, xc)),
+                           pad(Interval(*hessian_f_enclosure(system, xl, xh))), r)
+    del zpad, rx
+    K = net.K.to(torch.float64)
+    has_K = bool(torch.any(K != 0))
+    structural = net.structure == "structural"
+    if structural or has_K:
+        Jh = tm_from_intervals(Interval(*jacobian_h_enclosure(system, xc, xc)),
+                               pad(Interval(*hessian_h_enclosure(system, xl, xh))), r)  # [B,p,n]
+    if not structural:
+        dkdx = tm_index(d1, (slice(None), slice(None), slice(0, n)))
+    else:
+        hc = Interval(*h_enclosure(system, xc, xc))
+        jhb = Interval(*jacobian_h_enclosure(system, xl, xh))
+        eye_p = torch.eye(p, dtype=torch.float64).expand(B, p, p)
+        dr_box = Interval(torch.cat([-jhb.hi, eye_p], -1), torch.cat([-jhb.lo, eye_p], -1))
+        yc = Interval(zc[:, n:], zc[:, n:])
+        rt = tm_from_intervals(yc - hc, dr_box, r)  # r = y - h(x) [B, p]
+        G = TM(val.c.reshape(B, n, p), val.g.reshape(B, n, p, d), val.e.reshape(B, n, p))
+        dG = TM(d1.c.reshape(B, n, p, d)[..., :n], d1.g.reshape(B, n, p, d, d)[..., :n, :],
+                d1.e.reshape(B, n, p, d)[..., :n])  # [B, n, p, n]
+        # dk_i/dx_j = sum_l dG_ilj r_l - G_il Jh_lj
+        r_b = TM(rt.c[:, None, :, None], rt.g[:, None, :, None, :], rt.e[:, None, :, None])
+        t1 = tm_sum(tm_mul(dG, r_b, r), 2, r)
+        G_b = TM(G.c[..., None], G.g[:, :, :, None, :], G.e[..., None])
+        Jh_b = TM(Jh.c[:, None], Jh.g[:, None], Jh.e[:, None])
+        t2 = tm_sum(tm_mul(G_b, Jh_b, r), 2, r)
+        dkdx = tm_add(t1, TM(-t2.c, -t2.g, t2.e), r)
+    if has_K:
+        # - K Jh: point matrix K [n, p] times the TM Jh [B, p, n]
+        KJ = TM(K @ Jh.c, torch.einsum("ip,bpjd->bijd", K, Jh.g), K.abs() @ Jh.e)
+        KJ = tm_absorb(KJ.c, KJ.g, up(KJ.e * (1 + 2 * gamma(p + 1))), r, p + 2)
+        dkdx = tm_add(dkdx, TM(-KJ.c, -KJ.g, KJ.e), r)
+    return tm_add(jf, dkdx, r)
+
+
+def tm_congruence(pc: Preconditioner, J: TM, lam: float, r: torch.Tensor) -> TM:
+    """TM of A = He{Q J M^T} + 2 lam C (exact congruence when P = I)."""
+    n = J.c.shape[-1]
+    if pc.identity:
+        A = J
+    else:
+        Qc, Qr = pc.Q.midrad()
+        M = pc.M
+        # Q J M^T with Q = Qc + [-Qr, Qr]: the Qr part goes into the remainder
+        QJ_c = Qc @ J.c @ M.T
+        QJ_g = torch.einsum("ik,bkld,jl->bijd", Qc, J.g, M)
+        Jmag = up(J.c.abs() + tm_rho(J, r))
+        e = Qc.abs() @ J.e @ M.T.abs() + Qr @ Jmag @ M.T.abs()
+        e = up(e * (1.0 + 2.0 * gamma(2 * n + 2)))
+        A = tm_absorb(QJ_c, QJ_g, e, r, 2 * n + 2)
+    # He{.}
+    c = 0.5 * (A.c + A.c.transpose(1, 2))
+    g = 0.5 * (A.g + A.g.transpose(1, 2))
+    e = 0.5 * up(A.e + A.e.transpose(1, 2))
+    A = tm_absorb(c, g, up(e), r, 2)
+    lamC = imul(pc.C, const_lam(2.0 * lam, pc.C))
+    lc, lr = lamC.midrad()
+    A = tm_absorb(A.c + lc, A.g, up(A.e + lr), r, 2)
+    return A
+
+
+def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False):
+    """max over the box of lam_max(A(z)) <= max_vertices lam_max(c + sum_m s_m r_m g_m)
+    + rho(e + rounding) (convexity of lam_max in the affine part); for n <= 3 the smaller
+    max_vertices hertz_upper(vertex matrix, e + rounding) (the remainder entrywise, not by its
+    spectral radius)."""
+    B, n, _, d = A.g.shape
+    rG = (A.g * r[:, None, None, :]).permute(0, 3, 1, 2)  # [B, d, n, n]
+    gk = gamma(d + 5)
+    absum = A.c.abs() + rG.abs().sum(1)
+    rem = up((A.e + gk * absum) * (1.0 + 2.0 * gk) + (d + 2) * TINY)
+    rem = torch.maximum(rem, rem.transpose(1, 2))
+    if d <= MAX_VERTEX_DIM:
+        V = _vertices(d)
+        S = A.c[:, None] + torch.einsum("vd,bdij->bvij", V, rG)
+        S = 0.5 * (S + S.transpose(-1, -2))
+        lv = lam_max_upper_point(S).amax(-1)
+    else:
+        S = None
+        rem = up(rem + rG.abs().sum(1) * (1.0 + gk))
+        lv = lam_max_upper_point(A.c)
+    rr = rho_upper(rem)
+    bound = up(lv + rr)
+    if S is not None and n <= 3:
+        hz = hertz_upper(S, rem.unsqueeze(1).expand_as(S)).amax(-1)
+        bound = torch.where(torch.isnan(bound) | torch.isnan(hz), bound + hz,
+                            torch.minimum(bound, hz))
+    # split score: first-order variation per dimension plus the remainder shared out in
+    # proportion to the radii (the remainder grows with every radius)
+    share = r / r.sum(-1, keepdim=True).clamp_min(1e-300)
+    score = torch.linalg.matrix_norm(rG) + rr.unsqueeze(-1) * share  # [B, d]
+    if parts:  # also the vertex (affine) part alone: a prediction of what tighter remainders
+        return bound, score, lv  # could reach
+    return bound, score
+

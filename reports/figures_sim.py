@@ -1,0 +1,174 @@
+"""Figures of the simulation check: the error against the proved bound per run (always),
+and the true and estimated states per run (only on request: `--trajectories`).
+
+Panels are small multiples, three to a row; titles are short (the run's name, wrapped) so
+none is cut off, and the long story of each run stays in the report's table of runs. What
+is drawn is recorded (`reports.figures.mark`) and the captions are written from it.
+"""
+
+from __future__ import annotations
+
+import math
+import textwrap
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
+
+from certify.certificate import Certificate
+from reports.figures import STATE_COLOURS, _array, _check, _names, _new, mark
+
+#: at most this many runs are drawn (the table lists all)
+MAX_PANELS = 9
+NCOLS = 3
+PANEL_HEIGHT = 1.75  # inches per row
+
+
+def _runs(cert: Certificate) -> list[Any]:
+    r = _check(cert, "simulation")
+    return [] if r is None else [run for run in r.runs if run.t][:MAX_PANELS]
+
+
+def short_title(run: Any, width: int = 30) -> str:
+    """A run's name for a panel title: before any parenthesis, wrapped to two lines."""
+    name = run.label.split(" (")[0]
+    if not run.within_conditions:
+        name += " (outside the conditions)"
+    if run.breach:
+        name += " \u2014 BREACH"
+    return "\n".join(textwrap.wrap(name, width)[:2])
+
+
+def _grid(fig: Figure, k: int) -> list[Any]:
+    ncols = min(NCOLS, k)
+    rows = math.ceil(k / ncols)
+    axs = fig.subplots(rows, ncols, squeeze=False).ravel()
+    for ax in axs[k:]:
+        ax.set_visible(False)
+    return list(axs[:k])
+
+
+def _height(k: int) -> float:
+    return PANEL_HEIGHT * math.ceil(k / min(NCOLS, max(k, 1))) + 0.75
+
+
+def _half_diagonal(cert: Certificate) -> float | None:
+    b = _check(cert, "bounds")
+    return None if b is None else getattr(b, "box_half_diagonal", None)
+
+
+def fig_bounds(cert: Certificate) -> Figure | None:
+    """Observed error against the proved bound, one small panel per run."""
+    runs = _runs(cert)
+    if not runs:
+        return None
+    fig = _new(_height(len(runs)))
+    half = _half_diagonal(cert)
+    for ax, run in zip(_grid(fig, len(runs)), runs):
+        t, e = _array(run.t), _array(run.error)
+        ax.semilogy(t, np.maximum(e, 1e-12), color="#1f2937", lw=1.0)
+        mark(fig, "error")
+        if run.bound:
+            b = _array(run.bound)
+            ax.semilogy(t[:len(b)], b, color="#2563eb", lw=1.4, ls="--")
+            mark(fig, "bound")
+            if half is not None and float(np.nanmax(b)) > half:
+                ax.axhline(half, color="#6b7280", lw=0.9, ls=":")
+                mark(fig, "half-diagonal", half)
+        else:
+            ax.text(0.97, 0.95, "no proved bound", transform=ax.transAxes, fontsize=7,
+                    color="#4b5563", ha="right", va="top")
+            mark(fig, "no bound")
+        if run.exit_time is not None:
+            ax.axvspan(run.exit_time, t.max(), color="#fecaca", alpha=0.5, lw=0)
+            mark(fig, "after exit")
+        ax.set_title(short_title(run), fontsize=8)
+        ax.set_xlim(t.min(), t.max())
+        ax.tick_params(labelsize=7)
+        ax.set_xlabel("t (s)", fontsize=7.5)
+        ax.grid(alpha=0.3, which="major")
+    handles = [Line2D([], [], color="#1f2937", lw=1.0,
+                      label="observed \u2016x \u2212 x\u0302\u2016")]
+    d = fig.certify_drawn  # type: ignore[attr-defined]
+    if "bound" in d:
+        handles.append(Line2D([], [], color="#2563eb", lw=1.4, ls="--", label="proved bound"))
+    if "half-diagonal" in d:
+        handles.append(Line2D([], [], color="#6b7280", lw=0.9, ls=":",
+                              label="half-diagonal of X"))
+    if "after exit" in d:
+        handles.append(Patch(color="#fecaca", label="after the first exit (no claim)"))
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), frameon=False)
+    fig.suptitle("Simulated error against the proved bound", fontsize=10)
+    return fig
+
+
+def caption_bounds(d: dict[str, Any]) -> str:
+    parts = ["Observed \u2016x \u2212 x\u0302\u2016 (solid) per run"
+             + (" against the proved bound (dashed)" if "bound" in d else "")]
+    if "no bound" in d:
+        parts.append("runs without a proved bound show the error alone")
+    if "half-diagonal" in d:
+        parts.append("dotted: half the diagonal of X (a bound above it is vacuous)")
+    if "after exit" in d:
+        parts.append("shaded: after the first exit from the validity conditions, where no "
+                     "bound is claimed")
+    return "; ".join(parts) + "."
+
+
+def fig_simulation(cert: Certificate) -> Figure | None:
+    """True (solid) and estimated (dashed) states over time, one panel per run."""
+    runs = _runs(cert)
+    if not runs or not runs[0].x:
+        return None
+    names = _names(cert)
+    fig = _new(_height(len(runs)))
+    X = _array((cert.system or {}).get("X") or [])
+    for ax, run in zip(_grid(fig, len(runs)), runs):
+        t = _array(run.t)
+        x, xh = _array(run.x), _array(run.xhat)
+        if x.ndim != 2:
+            continue
+        for j in range(x.shape[1]):
+            c = STATE_COLOURS[j % len(STATE_COLOURS)]
+            ax.plot(t, x[:, j], color=c, lw=1.1)
+            if xh.ndim == 2 and xh.shape[1] > j:
+                ax.plot(t, xh[:, j], color=c, lw=0.9, ls="--")
+                mark(fig, "estimates")
+            if X.ndim == 2 and X.shape[0] > j:
+                for edge in X[j]:
+                    ax.axhline(edge, color=c, lw=0.6, ls=":", alpha=0.7)
+                mark(fig, "edges")
+        if run.exit_time is not None:
+            ax.axvline(run.exit_time, color="#b91c1c", lw=1)
+            mark(fig, "exit")
+        ax.set_title(short_title(run), fontsize=8)
+        ax.set_xlim(t.min(), t.max())
+        ax.tick_params(labelsize=7)
+        ax.set_xlabel("t (s)", fontsize=7.5)
+        ax.grid(alpha=0.3)
+    d = fig.certify_drawn  # type: ignore[attr-defined]
+    handles = [Line2D([], [], color=STATE_COLOURS[j % len(STATE_COLOURS)], lw=1.1, label=nm)
+               for j, nm in enumerate(names)]
+    handles += [Line2D([], [], color="#374151", lw=1.1, label="true x")]
+    if "estimates" in d:
+        handles.append(Line2D([], [], color="#374151", lw=0.9, ls="--",
+                              label="estimate x\u0302"))
+    if "edges" in d:
+        handles.append(Line2D([], [], color="#374151", lw=0.6, ls=":", label="edges of X"))
+    if "exit" in d:
+        handles.append(Line2D([], [], color="#b91c1c", lw=1, label="first exit"))
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), frameon=False)
+    fig.suptitle("Simulation: true and estimated states", fontsize=10)
+    return fig
+
+
+def caption_simulation(d: dict[str, Any]) -> str:
+    parts = ["True states (solid)" + (" and observer estimates (dashed)"
+                                      if "estimates" in d else "")]
+    if "edges" in d:
+        parts.append("dotted: edges of X")
+    if "exit" in d:
+        parts.append("red line: the first exit from the validity conditions")
+    return "; ".join(parts) + "."

@@ -1,0 +1,70 @@
+"""Linear relaxations of tanh, tanh' and products: every line bounds every sampled value."""
+
+from __future__ import annotations
+
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from certify.bounds.relax import mccormick, relax_dtanh, relax_tanh
+from certify.intervals import Interval
+
+F64 = torch.float64
+SETTINGS = settings(max_examples=40, deadline=None)
+
+
+def _slack(v: torch.Tensor) -> torch.Tensor:
+    return 8 * 2.0**-53 * (1 + v.abs())  # the float evaluation of a x + b and of f(x) itself
+
+
+def _check(relax, f, lo: torch.Tensor, hi: torch.Tensor) -> None:
+    lb = relax(lo, hi)
+    t = torch.linspace(0, 1, 401, dtype=F64)
+    x = lo[:, None] + (hi - lo)[:, None] * t[None]
+    x = torch.cat([x, lo[:, None], hi[:, None]], 1)
+    v = f(x)
+    low = lb.lower_slope[:, None] * x + lb.lower_icpt[:, None]
+    upp = lb.upper_slope[:, None] * x + lb.upper_icpt[:, None]
+    assert bool((low <= v + _slack(v)).all()), float((low - v).max())
+    assert bool((v <= upp + _slack(v)).all()), float((v - upp).max())
+    assert bool((lb.lower_icpt <= lb.upper_icpt).all())
+
+
+@SETTINGS
+@given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-12, 1e-4, 0.1, 1.0, 4.0, 20.0]),
+       centre=st.floats(-8, 8))
+def test_tanh_and_dtanh_relaxations_are_sound(seed: int, scale: float, centre: float) -> None:
+    g = torch.Generator().manual_seed(seed)
+    a = centre + scale * torch.randn(64, generator=g, dtype=F64)
+    b = a + scale * torch.rand(64, generator=g, dtype=F64)
+    b[:4] = a[:4]  # degenerate intervals
+    _check(relax_tanh, torch.tanh, a, b)
+    _check(relax_dtanh, lambda x: 1 - torch.tanh(x) ** 2, a, b)
+
+
+def test_relaxations_are_tight_on_small_intervals() -> None:
+    lo = torch.linspace(-3, 3, 61, dtype=F64)
+    hi = lo + 1e-3
+    for relax in (relax_tanh, relax_dtanh):
+        lb = relax(lo, hi)
+        assert float((lb.upper_icpt - lb.lower_icpt).max()) < 1e-6  # O(w^2) gap
+
+
+@SETTINGS
+@given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-9, 0.1, 1.0, 30.0]))
+def test_mccormick_is_sound(seed: int, scale: float) -> None:
+    g = torch.Generator().manual_seed(seed)
+    sl = scale * torch.randn(32, generator=g, dtype=F64)
+    su = sl + scale * torch.rand(32, generator=g, dtype=F64)
+    tl = scale * torch.randn(32, generator=g, dtype=F64)
+    tu = tl + scale * torch.rand(32, generator=g, dtype=F64)
+    bb = mccormick(Interval(sl, su), Interval(tl, tu))
+    u = torch.rand(32, 500, 2, generator=g, dtype=F64)
+    u[:, :4] = torch.tensor([[0, 0], [0, 1], [1, 0], [1, 1]], dtype=F64)
+    s = sl[:, None] + (su - sl)[:, None] * u[..., 0]
+    t = tl[:, None] + (tu - tl)[:, None] * u[..., 1]
+    lin = bb.slope_s[:, None] * s + bb.slope_t[:, None] * t
+    v = s * t
+    tol = 8 * 2.0**-53 * (v.abs() + lin.abs() + 1e-300)
+    assert bool((lin + bb.lower_icpt[:, None] <= v + tol).all())
+    assert bool((v <= lin + bb.upper_icpt[:, None] + tol).all())
