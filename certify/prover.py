@@ -123,8 +123,9 @@ def mpdi_box_chunk(payload: dict, lo: torch.Tensor, hi: torch.Tensor) -> BoxEval
 
 def _mpdi_remote(problem: Problem, lam: float, taylor: bool | str, crown: bool,
                  executor: object) -> tuple | None:
-    """(chunk_fn, payload) for a multi-worker executor, else None (evaluate in process)."""
-    if getattr(executor, "workers", 1) <= 1:
+    """(chunk_fn, payload) for an executor whose work runs in other processes (a Dask cluster,
+    even of one worker), else None (evaluate in process)."""
+    if not (getattr(executor, "remote", False) or getattr(executor, "workers", 1) > 1):
         return None
     from certify.executor import payload_key
     from certify.remote import problem_payload
