@@ -116,7 +116,9 @@ class _Emitter:
     `TORCH`, except that constant subtrees are folded to Python floats): sums and products
     folded left to right, x**2 as x*x, x**k (k < 0) as 1/x**-k, functions from `FUNCTIONS`.
     A sub-expression that occurs twice is computed once (the same operations on the same
-    inputs give the same floats, so this changes no value).
+    inputs give the same floats, so this changes no value). The source holds only generated
+    names (columns c0.., temporaries t0.., constants k.. and functions F.. bound in its
+    namespace): no text of the spec reaches `exec`.
     """
 
     def __init__(self, symbols: Sequence[sympy.Symbol]) -> None:
