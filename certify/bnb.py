@@ -110,7 +110,8 @@ CHUNKS_PER_WORKER = 2
 def _evaluate_round(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval],
                     lo: torch.Tensor, hi: torch.Tensor, executor: Any, remote: Any) -> BoxEval:
     """One round's evaluation: in process, or chunked over the executor's workers."""
-    if executor is None or getattr(executor, "workers", 1) <= 1 or remote is None \
+    if executor is None or remote is None \
+            or not (getattr(executor, "remote", False) or getattr(executor, "workers", 1) > 1) \
             or len(lo) < 2:
         return evaluate(lo, hi)
     from certify.executor import chunk_ranges

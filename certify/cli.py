@@ -153,7 +153,8 @@ def build_parser(with_train: bool = True) -> argparse.ArgumentParser:
                    help="run them on a running Dask cluster, e.g. tcp://host:8786 "
                         "(dask-jobqueue on SLURM/PBS, Kubernetes)")
     p.add_argument("--device", metavar="DEVICE",
-                   help="torch device of the grid, falsifier and prover: cpu (default) or cuda")
+                   help="torch device of the MPDI grid and falsifier: cpu (default) or cuda "
+                        "(the prover's bounds run on the CPU)")
     p.add_argument("--config", metavar="PATH", help="read [tool.certify] from this file")
     p.add_argument("--no-config", action="store_true", help="ignore pyproject.toml")
     p.add_argument("--quiet", "-q", action="store_true", help="only the verdict line")

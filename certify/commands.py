@@ -218,7 +218,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(f"certify run {args.checkpoint}: system {ckpt.problem.system.name}, lam="
                   f"{ckpt.problem.lam:g}, sha256 {ckpt.sha256[:12]}"
                   + (f", policy from {config_path}" if config_path else "")
-                  + (f", on {executor.description}" if executor.workers > 1 else ""),
+                  + (f", on {executor.description}" if executor.remote else ""),
                   file=sys.stderr)
         display = ProgressDisplay(quiet=args.quiet, budgets=budgets_from(settings))
         args.display = display  # the error handler names the step that was running

@@ -1,10 +1,11 @@
 """The torch device the numeric kernels run on (`--device`, `[tool.certify] device`).
 
-`cpu` is the default. `cuda` runs the grid sweep, the falsifier and the branch-and-bound
-bounds in float64 on the GPU; the outward rounding is the same there (`torch.nextafter` is
-elementwise and exact on CUDA as on CPU, and every bound is rounded with it), so a bound
-computed on the GPU is as sound as on the CPU. Asking for `cuda` where torch sees no CUDA
-device is bad input: one line, exit 2, before any work.
+`cpu` is the default. `cuda` runs the MPDI grid sweep and the adversarial falsifier in float64
+on the GPU (`Problem.on` moves the network and P; points are made on the device). The
+branch-and-bound bounds still run on the CPU: the enclosure code makes CPU tensors. Their
+outward rounding would carry over unchanged (`torch.nextafter` is elementwise and exact on
+CUDA as on the CPU), so moving them is plumbing. Not benchmarked on a GPU. Asking for `cuda`
+where torch sees no CUDA device is bad input: one line, exit 2, before any work.
 """
 
 from __future__ import annotations

@@ -140,7 +140,9 @@ def _remote_sweep(remote: tuple[Any, Callable[..., Any], dict[str, Any]], grid: 
 
     executor, chunk_fn, payload = remote
     ranges = chunk_ranges(total, 4 * executor.workers, align=grid["chunk"])
-    parts = executor.map_chunks(chunk_fn, {**payload, "grid": grid},
+    grid_payload = {**payload, "grid": grid}
+    grid_payload["key"] = f"{payload.get('key')}:{hash(repr(grid))}"  # one scatter per sweep
+    parts = executor.map_chunks(chunk_fn, grid_payload,
                                 [(a, b, tol, use_screen) for a, b in ranges])
     progress.update(task, advance=total)
     return [r for part in parts for r in part]
@@ -163,7 +165,7 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
     of `threshold` (and every top candidate) is re-evaluated with `fn` in float64, so the
     returned values and the count above `threshold` are float64 results, as without it.
 
-    `remote = (executor, chunk_fn, payload)`, with an executor of more than one worker, sweeps
+    `remote = (executor, chunk_fn, payload)`, with an executor whose work runs elsewhere, sweeps
     the grid there instead of on local threads: `chunk_fn(payload, start, stop, tol,
     use_screen)` (payload with the grid added under "grid") must return `sweep_range`'s
     results for [start, stop) in `chunk`-sized pieces (e.g. `certify.remote.mpdi_grid_chunk`);
@@ -199,7 +201,8 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
             return out
 
         with contextlib.ExitStack() as stack:
-            if remote is not None and getattr(remote[0], "workers", 1) > 1:
+            if remote is not None and (getattr(remote[0], "remote", False)
+                                       or getattr(remote[0], "workers", 1) > 1):
                 grid = {"lo": lo_t.cpu().numpy(), "hi": hi_t.cpu().numpy(), "shape": shape,
                         "threshold": threshold, "keep": keep, "chunk": chunk}
                 results: Any = _remote_sweep(remote, grid, total, tol, screen is not None,

@@ -7,7 +7,8 @@ by the payload's digest (`certify.executor.worker_cache`), so a worker parses th
 builds the network once per proof, not once per chunk.
 
 `mpdi_grid_chunk` is the MPDI grid sweep's chunk task (module level: picklable): the same
-`certify.falsify.sweep_range` the in-process sweep runs, on a range of grid indices.
+`certify.falsify.sweep_range` the in-process sweep runs, on a range of grid indices. The
+prover's box task (`certify.prover.mpdi_box_chunk`) rebuilds its problem here too.
 """
 
 from __future__ import annotations

@@ -41,7 +41,7 @@ class VerifySettings:
     required: tuple[str, ...] = ("mpdi",)  # checks whose failure means exit 1
     allow_unknown: bool = False  # treat an UNKNOWN required check as a pass (exit 0)
     skip: tuple[str, ...] = ()  # checks not run at all
-    device: str = "cpu"  # torch device of the grid, falsifier and prover ("cpu", "cuda")
+    device: str = "cpu"  # torch device of the MPDI grid and falsifier ("cpu", "cuda")
     workers: int = 1  # Dask worker processes of a local cluster (1: serial, no cluster)
     scheduler: str = ""  # address of a running Dask scheduler (wins over workers)
 

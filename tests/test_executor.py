@@ -33,6 +33,12 @@ def slow_square(x: int) -> int:
     return x * x
 
 
+def _cached_keys() -> list[str]:
+    from certify import executor
+
+    return list(executor._cache)
+
+
 def offset(payload: dict, a: int, b: int) -> list[int]:
     return [payload["base"] + i for i in range(a, b)]
 
@@ -52,7 +58,7 @@ def test_chunk_ranges_cover_in_order():
 
 
 def test_serial_is_the_default():
-    assert isinstance(current_executor(), SerialExecutor)
+    assert isinstance(current_executor(), SerialExecutor) and not current_executor().remote
     assert isinstance(executor_from_settings(VerifySettings()), SerialExecutor)
     ex = SerialExecutor()
     assert ex.map(abs, [-3, 1, -2]) == [3, 1, 2]
@@ -182,3 +188,69 @@ def test_device_cpu_explicitly_is_the_same_path(system3):
     b = falsify_mpdi(problem, VerifySettings(**base, device="cpu"))
     assert a.best_value == b.best_value and np.array_equal(a.top_points, b.top_points)
     assert problem.P_t.device.type == "cpu"
+
+
+def _vdp_certified():
+    from pathlib import Path
+
+    from certify import checkpoint
+
+    return checkpoint.load(str(Path(__file__).parents[1] / "examples" / "vdp_certified.ckpt"))
+
+
+#: a box budget that ends the vdp_certified proof before it closes (it needs about 3300)
+BUDGET = 1200
+
+
+@pytest.fixture(scope="module")
+def serial_proof():
+    from certify.prover import prove_mpdi
+
+    problem = _vdp_certified().problem
+    return problem, prove_mpdi(problem, seconds=1e9, max_boxes=BUDGET)
+
+
+def _same(a, b) -> None:
+    assert a.status == b.status
+    assert a.upper == b.upper and a.lower == b.lower
+    assert a.stats.boxes_processed == b.stats.boxes_processed
+    assert a.boxes == b.boxes
+
+
+def test_mpdi_proof_on_dask_equals_serial(dask2, serial_proof):
+    """Same box budget, serial vs 2 Dask workers: the same verdict, the same proved upper
+    bound and best point value, the same boxes (a budget-ended proof, so the bound is an
+    intermediate one and every round must have matched)."""
+    from certify.prover import prove_mpdi
+
+    problem, serial = serial_proof
+    with using(dask2):
+        remote = prove_mpdi(problem, seconds=1e9, max_boxes=BUDGET)
+    assert serial.stats.budget_exhausted and remote.stats.budget_exhausted
+    built = dask2.client.run(_cached_keys)  # the boxes really went to the workers
+    assert any(k.startswith("mpdi-boxes:") for keys in built.values() for k in keys)
+    _same(serial, remote)
+
+
+def test_killed_worker_mid_proof_changes_nothing(dask2, serial_proof):
+    """SIGKILL a worker while the MPDI proof runs on 2 workers: the same outcome."""
+    from certify.prover import prove_mpdi
+
+    problem, serial = serial_proof
+    victim = list(dask2.worker_pids().values())[1]
+    killed = threading.Event()
+
+    def kill() -> None:
+        os.kill(victim, signal.SIGKILL)
+        killed.set()
+
+    killer = threading.Timer(0.8, kill)
+    killer.start()
+    try:
+        with using(dask2):
+            remote = prove_mpdi(problem, seconds=1e9, max_boxes=BUDGET)
+    finally:
+        killer.cancel()
+    assert killed.is_set()  # the proof outlasted the timer: the kill was mid-proof
+    _same(serial, remote)
+    dask2.client.wait_for_workers(2, timeout=60)

@@ -162,14 +162,16 @@ def test_relu_checkpoint_and_config_are_refused_with_the_reason(tmp_path):
         make_config(system, "tiny", activation="mish")
 
 
-def test_prover_refuses_activations_its_enclosures_do_not_cover():
-    """Until enclosures.py reads the activation, a non-tanh proof is refused, never wrong."""
-    from certify.prover import prove_mpdi
+@pytest.mark.parametrize("entry", ["prove_mpdi", "prove_rate", "bound_residual",
+                                   "bound_dk_dy"])
+def test_prover_refuses_activations_its_enclosures_do_not_cover(entry):
+    """Until the prover reads the activation, a non-tanh proof is refused, never wrong."""
+    from certify import prover
 
     system = load_system("vdp")
     problem = Problem(system, _net(system, "silu"), 1.0, np.eye(2))
     with pytest.raises(NotImplementedError, match="does not support activation 'silu'"):
-        prove_mpdi(problem, seconds=1.0, max_boxes=100)
+        getattr(prover, entry)(problem, seconds=1.0, max_boxes=100)
     assert len(_net(system, "tanh").weights()) == 3
 
 

@@ -77,16 +77,13 @@ def test_train_tiny_then_run(name, tmp_path, capsys, monkeypatch):
         assert value > 0 and value == pytest.approx(cex["value"], rel=1e-9, abs=1e-12)
 
 
-def test_lorenz_linear_gain_is_certified(tmp_path, capsys):
-    """The joint-LMI observer on the Lorenz attractor box (a linear gain in a learned
-    checkpoint's format) is CERTIFIED by `certify run`: the n = 3 prover path closes."""
-    from certify import checkpoint
-    from training.baseline import make_lmi_baseline
+def test_shipped_lorenz_example_is_certified(capsys):
+    """examples/lorenz_lmi.ckpt, the joint-LMI observer on the Lorenz attractor box (a linear
+    gain in a learned checkpoint's format), is CERTIFIED by `certify run`: the n = 3 prover
+    path closes."""
+    from pathlib import Path
 
-    system = load_system("lorenz")
-    net, P, _ = make_lmi_baseline(system, system.lam, margin=0.5, gain_max=1e4)
-    path = tmp_path / "lorenz_lmi.ckpt"
-    checkpoint.save(path, system=system, network=net, lam=system.lam, P=P)
+    path = Path(__file__).parents[1] / "examples" / "lorenz_lmi.ckpt"
     code, out, err = run_cli(capsys, "run", str(path), *SMALL_RUN, "--proof-seconds", "30",
                              "--skip", "simulation,lipschitz,bounds", "--quiet")
     assert code == 0, out + err

@@ -259,7 +259,8 @@ class Activation:
 
 def _pieces(lo: torch.Tensor, hi: torch.Tensor, k: int) -> torch.Tensor:
     """Sorted breakpoints [k + 1, *shape] with e_0 = lo, e_k = hi, all inside [lo, hi]."""
-    t = torch.linspace(0.0, 1.0, k + 1, dtype=torch.float64).reshape(-1, *([1] * lo.ndim))
+    t = torch.linspace(0.0, 1.0, k + 1, dtype=torch.float64, device=lo.device)
+    t = t.reshape(-1, *([1] * lo.ndim))
     e = lo + (hi - lo) * t
     e = torch.minimum(torch.maximum(e, lo), hi)
     e[0], e[-1] = lo, hi

@@ -86,7 +86,7 @@ def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | Non
     exact = GridKernel(problem, lam)
     screen = GridKernel(problem, lam, dtype=torch.float32) if settings.float32_screen else None
     executor, remote = current_executor(), None
-    if executor.workers > 1:  # the sweep on the run's Dask workers (certify.remote)
+    if executor.remote or executor.workers > 1:  # the sweep on the run's Dask workers
         from certify.remote import mpdi_grid_chunk, mpdi_payload
 
         remote = (executor, mpdi_grid_chunk, mpdi_payload(
