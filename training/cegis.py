@@ -87,7 +87,7 @@ class CegisSettings:
     seed: int = 0
     curv_weight: float = 0.0  # weight of the Jacobian-variation term C (0: off)
     curv_radius: float = 0.02  # its pair distance, as a fraction of each box side
-    curv_pairs: int = 512  # its pairs per round
+    curv_pairs: int = 256  # its pairs per round
 
     def __post_init__(self) -> None:
         for name in ("margin", "mpdi_weight", "rate_slack", "lip_weight", "lr", "jitter_scale",

@@ -40,7 +40,7 @@ class CurvatureSettings:
 
     weight: float = 0.0
     radius: float = 0.02
-    pairs: int = 512
+    pairs: int = 256
     tol: float = 0.0
 
     def __post_init__(self) -> None:
@@ -91,7 +91,7 @@ class CurvaturePenalty:
     def value(self, spec: GainSpec) -> torch.Tensor:
         """C as a 0-d tensor, differentiable in the spec's weights."""
         s = self.settings
-        net = propagate(spec, ROWS, self.z, spec.n + spec.p if spec.structural else spec.n)
+        net = propagate(spec, ROWS, self.z, spec.n)  # dk/dxhat needs the xhat columns only
         r = self.r if spec.needs_h else None
         Hx = self.Hx if spec.needs_h else None
         J = compose(spec, ROWS, net, r, Hx, with_dy=False, with_k=False).dk_dx
