@@ -3,7 +3,9 @@
 `paper` reproduces the source method (METHOD.md section 2): 4000 uniform collocation points,
 5 x 30 tanh, Sylvester-minor MPDI loss with the sign fix, the BC loss, the loss weights of the
 system spec's `[training.paper]` table, Adam lr 1e-3 x 500 full-batch, then L-BFGS lr 1 with a
-strong Wolfe line search x 500. `tiny` is the same recipe, small enough for tests.
+strong Wolfe line search x 500. `tiny` is the same recipe, small enough for tests. Both leave
+the verification-aware term (`curvature_weight`, `training.curvature`) off; `certified` turns
+it on (`CERTIFIED_CURVATURE_WEIGHT`).
 
 Errors are one line naming the field (and its flag): ``training: points (--points) must be an
 int >= 1; got 0``.
