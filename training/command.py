@@ -61,7 +61,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         dest="curvature_weight",
                         help="weight of the verification-aware term: the variation of dk/dxhat "
                              "over point pairs at a small distance (paper: 0; certified: "
-                             "1e-3)")
+                             "1e-2)")
     parser.add_argument("--curvature-radius", type=float, default=None,
                         dest="curvature_radius",
                         help="that term's pair distance, a fraction of each box side "
