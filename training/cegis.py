@@ -3,10 +3,13 @@
 The objective (`CertObjective`) is the eigenvalue loss in the metric P with a margin,
 
     L = mean_j relu(lam_max(D_j) + margin)  +  lip_weight * (mean_j ||dk/dy_j||_F^(2q))^(1/(2q))
+        + curv_weight * C
 
 with D = He{P (Jf + dk/dxhat)} + 2 (lam + rate_slack) P. The second term is a mild, sup-leaning
 (q > 1) penalty on the gain's sensitivity to y, the constant L that multiplies the noise in
-the error bound sqrt(kappa(P)) (eps_bar + L vbar) / (2 lam). It reuses the fast float32
+the error bound sqrt(kappa(P)) (eps_bar + L vbar) / (2 lam). C (`training.curvature`) is the
+verification-aware term: the variation of dk/dxhat over pairs of points at a small distance,
+which keeps the network cheap to prove (fresh seeded pairs each round). It reuses the fast float32
 forward-mode trunk of `training.train.Objective` with the y-columns added to the forward
 tangents, and autograd for the small loss head only.
 
@@ -46,6 +49,7 @@ from certify.settings import VerifySettings
 from certify.system import System
 from training import losses
 from training.collocation import collocation_points
+from training.curvature import CurvaturePenalty, CurvatureSettings
 from training.optim import Adam
 from training.train import LossValues, Objective
 
@@ -81,9 +85,13 @@ class CegisSettings:
     jitter: int = 4  # jittered copies per counterexample
     jitter_scale: float = 0.02  # jitter std, as a fraction of each box width
     seed: int = 0
+    curv_weight: float = 0.0  # weight of the Jacobian-variation term C (0: off)
+    curv_radius: float = 0.02  # its pair distance, as a fraction of each box side
+    curv_pairs: int = 256  # its pairs per round
 
     def __post_init__(self) -> None:
         for name in ("margin", "mpdi_weight", "rate_slack", "lip_weight", "lr", "jitter_scale",
+                     "curv_weight",
                      "proof_seconds", "budget_seconds", "improve_proof_seconds"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
@@ -91,7 +99,7 @@ class CegisSettings:
         if not self.lip_power >= 1:
             raise ValueError(f"cegis: lip_power must be >= 1; got {self.lip_power!r}")
         for name in ("rounds", "iters_per_round", "grid_points", "proof_boxes",
-                     "add_per_round", "seed", "jitter", "adversarial_starts",
+                     "add_per_round", "seed", "jitter", "adversarial_starts", "curv_pairs",
                      "adversarial_steps"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
@@ -116,6 +124,7 @@ class RoundRecord:
     falsify_seconds: float
     proof_seconds: float
     proof_upper: float | None = None
+    curv: float = 0.0  # the Jacobian-variation term C at the end of the round's training
 
     def line(self) -> str:
         vol = "-" if self.proved_volume is None else f"{self.proved_volume:.4f}"
@@ -123,7 +132,8 @@ class RoundRecord:
                 f"max {self.lip_max:.4g}  max lam_max(D) found {self.max_lam_found:+.4g}  proof "
                 f"{self.status}  proved volume {vol}  points {self.points} (+{self.added})  "
                 f"train {self.train_seconds:.1f} s  falsify {self.falsify_seconds:.1f} s  "
-                f"prove {self.proof_seconds:.1f} s")
+                f"prove {self.proof_seconds:.1f} s"
+                + (f"  curv {self.curv:.4g}" if self.curv else ""))
 
 
 @dataclass
@@ -163,10 +173,10 @@ class CertObjective(Objective):
     def __init__(self, system: System, net: GainNetwork, xhat: torch.Tensor, y: torch.Tensor,
                  *, lam: float, P: torch.Tensor, margin: float, lip_weight: float = 0.0,
                  lip_power: float = 1.0, mpdi_weight: float = 1.0, mu_bc: float = 1.0,
-                 workers: int = 2) -> None:
+                 workers: int = 2, curvature: CurvaturePenalty | None = None) -> None:
         weights = losses.LossWeights(mu1=1.0, mu2=float(mu_bc), rho=(1.0,) * system.n)
         super().__init__(system, net, xhat, y, lam=lam, P=P, weights=weights, loss="eigen",
-                         margin=margin, workers=workers)
+                         margin=margin, workers=workers, curvature=curvature)
         self.lip_weight, self.lip_power = float(lip_weight), float(lip_power)
         self.mpdi_weight = float(mpdi_weight)
         n, p = system.n, system.p
@@ -222,9 +232,10 @@ class CertObjective(Objective):
 
     def evaluate(self, grad: bool = True) -> LossValues:
         v = super().evaluate(grad)
+        w_curv = 0.0 if self.curvature is None else self.curvature.settings.weight
         total = self.mpdi_weight * v.mpdi + self.weights.mu2 * v.bc \
-            + self.lip_weight * self.last_lip
-        return LossValues(total=total, mpdi=v.mpdi, bc=v.bc)
+            + self.lip_weight * self.last_lip + w_curv * v.curv
+        return LossValues(total=total, mpdi=v.mpdi, bc=v.bc, curv=v.curv)
 
 
 # ----- networks -----------------------------------------------------------------------------
@@ -385,9 +396,13 @@ def _cegis(system: System, network: GainNetwork, P: np.ndarray, lam: float,
     for rnd in range(1, cs.rounds + 1):
         # --- train ---
         t0 = time.perf_counter()
+        curvature = None if cs.curv_weight <= 0 else CurvaturePenalty(
+            system, CurvatureSettings(weight=cs.curv_weight, radius=cs.curv_radius,
+                                      pairs=cs.curv_pairs), cs.seed + 7919 * rnd)
         obj = CertObjective(system, net32, xhat, y, lam=lam + cs.rate_slack, P=P_t,
                             margin=cs.margin, lip_weight=cs.lip_weight,
-                            lip_power=cs.lip_power, mpdi_weight=cs.mpdi_weight)
+                            lip_power=cs.lip_power, mpdi_weight=cs.mpdi_weight,
+                            curvature=curvature)
         try:
             for _ in range(cs.iters_per_round):
                 obj.evaluate(grad=True)
@@ -445,7 +460,8 @@ def _cegis(system: System, network: GainNetwork, P: np.ndarray, lam: float,
                           lip_max=lip_max, max_lam_found=float(search.best_value),
                           status=rstatus, proved_volume=vol, points=int(obj.N),
                           added=int(added.shape[0]), train_seconds=t_train,
-                          falsify_seconds=t_fals, proof_seconds=t_proof, proof_upper=upper)
+                          falsify_seconds=t_fals, proof_seconds=t_proof, proof_upper=upper,
+                          curv=values.curv)
         rounds.append(rec)
         say(rec.line())
         last_net, last_proof, last_status = net64, proof, status

@@ -9,7 +9,9 @@
    LMI gain.
 3. `training.cegis.cegis` trains it (eigenvalue loss with margin in P, plus a penalty that
    lowers ||dk/dy||, the Lipschitz constant in y that multiplies the noise in the error
-   bound), falsifies and proves each round, and returns the last PROVED network.
+   bound, and the verification-aware term `training.curvature` that keeps dk/dxhat nearly
+   constant over small sub-boxes, TrainConfig.curvature_weight), falsifies and proves each
+   round, and returns the last PROVED network.
 
 With `--metric` the given P is used instead and there is no warm start (K = 0).
 """
@@ -103,7 +105,8 @@ def cegis_settings(config: TrainConfig, base: CegisSettings = DEFAULT_CEGIS,
     """The loop's settings from the preset's config (margin, seed, Adam steps and lr)."""
     values = dataclasses.asdict(base)
     values.update(margin=config.margin, seed=config.seed, iters_per_round=config.adam_iters,
-                  lr=config.adam_lr)
+                  lr=config.adam_lr, curv_weight=config.curvature_weight,
+                  curv_radius=config.curvature_radius)
     values.update({k: v for k, v in overrides.items() if v is not None})
     return CegisSettings(**values)
 

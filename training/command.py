@@ -57,6 +57,15 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--activation", default=None,
                         help="hidden-layer activation: tanh (default), sigmoid, softplus, silu, "
                              "elu, gelu (C^1 only: relu is refused)")
+    parser.add_argument("--curvature-weight", type=float, default=None,
+                        dest="curvature_weight",
+                        help="weight of the verification-aware term: the variation of dk/dxhat "
+                             "over point pairs at a small distance (paper: 0; certified: "
+                             "1e-2)")
+    parser.add_argument("--curvature-radius", type=float, default=None,
+                        dest="curvature_radius",
+                        help="that term's pair distance, a fraction of each box side "
+                             "(default 0.02)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -135,7 +144,9 @@ def _config_from_args(args: argparse.Namespace, system: Any) -> Any:
                        seed=getattr(args, "seed", None), points=getattr(args, "points", None),
                        hidden=hidden, adam_iters=getattr(args, "adam_iters", None),
                        lbfgs_iters=getattr(args, "lbfgs_iters", None),
-                       activation=getattr(args, "activation", None))
+                       activation=getattr(args, "activation", None),
+                       curvature_weight=getattr(args, "curvature_weight", None),
+                       curvature_radius=getattr(args, "curvature_radius", None))
 
 
 def run_train(args: argparse.Namespace, stdout: TextIO | None = None) -> int:

@@ -41,6 +41,7 @@ from certify.progress import NullProgress, Progress
 from certify.system import System
 from training import losses
 from training.collocation import collocation_points
+from training.curvature import CurvaturePenalty, CurvatureSettings
 from training.optim import PhaseStats, run_adam, run_lbfgs
 from training.presets import TrainConfig, check_for_system, make_config
 
@@ -50,19 +51,21 @@ CHUNK_POINTS = 2048
 # worker threads for the chunks (each runs single-threaded torch ops: no OpenMP barriers, so
 # a busy second core costs nothing, while a free one nearly halves the time)
 WORKERS = 2
-TERMS = ("total", "mpdi", "bc")
+TERMS = ("total", "mpdi", "bc", "curv")
 
 
 @dataclass
 class LossValues:
-    """The loss terms at one evaluation (python floats)."""
+    """The loss terms at one evaluation (python floats); `curv` is the Jacobian-variation
+    penalty C of `training.curvature` (0 when the term is off), before its weight."""
 
     total: float
     mpdi: float
     bc: float
+    curv: float = 0.0
 
     def as_dict(self) -> dict[str, float]:
-        return {"total": self.total, "mpdi": self.mpdi, "bc": self.bc}
+        return {"total": self.total, "mpdi": self.mpdi, "bc": self.bc, "curv": self.curv}
 
 
 class Objective:
@@ -76,7 +79,8 @@ class Objective:
     def __init__(self, system: System, net: GainNetwork, xhat: torch.Tensor, y: torch.Tensor,
                  *, lam: float, P: torch.Tensor, weights: losses.LossWeights,
                  loss: str = "minors", margin: float = 0.0,
-                 chunk_points: int = CHUNK_POINTS, workers: int = WORKERS) -> None:
+                 chunk_points: int = CHUNK_POINTS, workers: int = WORKERS,
+                 curvature: CurvaturePenalty | None = None) -> None:
         if len(net.layers) < 2:
             raise ValueError("training needs a network with at least one hidden layer")
         dt = net.layers[0].weight.dtype
@@ -113,6 +117,8 @@ class Objective:
                 z = torch.cat([z, torch.cat([x64[lo:hi], hx[lo:hi]], dim=1)], dim=0)
             self.chunks.append(ChunkBuffers(z.to(dt).contiguous(), hi - lo, widths, self.m,
                                       not self.structural))
+        self.curvature = curvature if (curvature is not None
+                                       and curvature.settings.weight > 0) else None
         self.evaluations = 0
         self.workers = max(1, min(int(workers), len(self.chunks)))
         self._pool: ThreadPoolExecutor | None = None
@@ -262,9 +268,29 @@ class Objective:
                     prm.grad.copy_(self.chunks[0].grads[k])
                     for ch in self.chunks[1:]:
                         prm.grad.add_(ch.grads[k])
+        curv = self._curvature(grad)
         self.evaluations += 1
         mpdi_mean, bc_mean = mpdi / self.N, bc / self.N
-        return LossValues(total=mu1 * mpdi_mean + mu2 * bc_mean, mpdi=mpdi_mean, bc=bc_mean)
+        w_curv = 0.0 if self.curvature is None else self.curvature.settings.weight
+        return LossValues(total=mu1 * mpdi_mean + mu2 * bc_mean + w_curv * curv,
+                          mpdi=mpdi_mean, bc=bc_mean, curv=curv)
+
+    def _curvature(self, grad: bool) -> float:
+        """The Jacobian-variation penalty C (0 when off); with `grad`, adds weight * dC/dW
+        to each parameter's `.grad` (autograd through the point propagation: small)."""
+        if self.curvature is None:
+            return 0.0
+        with torch.enable_grad():
+            c = self.curvature.value(self.spec)
+            if grad:
+                gs = torch.autograd.grad(c * self.curvature.settings.weight, self.params,
+                                         allow_unused=True)
+        if grad:
+            with torch.no_grad():
+                for prm, g in zip(self.params, gs):
+                    if g is not None:
+                        prm.grad.add_(g)
+        return float(c.detach())
 
 
 # ----- the training run ----------------------------------------------------------------
@@ -344,8 +370,13 @@ def _train(system: System, config: TrainConfig | None, *, progress: Progress | N
     for prm in net.parameters():
         prm.requires_grad_(True)
     xhat, y = collocation_points(system, config.points, config.seed)
+    curvature = None
+    if config.curvature_weight > 0:
+        curvature = CurvaturePenalty(system, CurvatureSettings(
+            weight=config.curvature_weight, radius=config.curvature_radius), config.seed,
+            dtype)
     objective = Objective(system, net, xhat, y, lam=lam, P=P, weights=weights,
-                          loss=config.loss, margin=config.margin)
+                          loss=config.loss, margin=config.margin, curvature=curvature)
     history: dict[str, dict[str, list[float]]] = {}
     timings: dict[str, float] = {"setup": time.perf_counter() - t_start}
 
@@ -367,8 +398,11 @@ def _train(system: System, config: TrainConfig | None, *, progress: Progress | N
     final_net = GainNetwork.from_architecture(net.architecture())
     final_net.load_state_dict({k: v.detach() for k, v in net.state_dict().items()})
     final_net = final_net.double().eval().requires_grad_(False)
+    final_curv = None if curvature is None else CurvaturePenalty(
+        system, curvature.settings, config.seed, torch.float64)
     final_obj = Objective(system, final_net, xhat, y, lam=lam, P=P, weights=weights,
-                          loss=config.loss, margin=config.margin, workers=1)
+                          loss=config.loss, margin=config.margin, workers=1,
+                          curvature=final_curv)
     final = final_obj.evaluate(grad=False).as_dict()
     timings["final_eval"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
