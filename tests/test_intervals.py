@@ -10,6 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from certify import activations
 from certify import enclosures as E
 from certify.errors import SpecError
 from certify.expr import DERIVED_FUNCTIONS, FUNCTIONS
@@ -35,6 +36,8 @@ from certify.problem import Problem
 from certify.system import System, load_system
 
 SETTINGS = settings(max_examples=20, deadline=None)
+ACT_SETTINGS = settings(max_examples=4, deadline=None)  # per activation
+ACTIVATIONS = activations.names()
 F64 = torch.float64
 
 SPEC3 = """
@@ -191,11 +194,11 @@ def test_interval_algebra_constants_are_widened() -> None:
 # ----- network, gain terms, D, eigenvalue bounds ------------------------------------------
 def random_problem(seed: int, structure: str, system: System | None = None,
                    hidden: tuple[int, ...] = (5, 4, 3), with_K: bool = True,
-                   metric: bool = False) -> Problem:
+                   metric: bool = False, activation: str = "tanh") -> Problem:
     torch.manual_seed(seed)
     s = system or load_system("vdp")
     K = torch.randn(s.n, s.p) if with_K else None
-    net = GainNetwork(s.n, s.p, hidden, structure=structure, K=K)
+    net = GainNetwork(s.n, s.p, hidden, structure=structure, K=K, activation=activation)
     with torch.no_grad():
         for layer in net.layers:
             layer.weight.mul_(1.5)
@@ -211,13 +214,15 @@ def _root(prob: Problem) -> tuple[np.ndarray, np.ndarray]:
     return box[:, 0], box[:, 1]
 
 
-@SETTINGS
+@pytest.mark.parametrize("act", ACTIVATIONS)
+@ACT_SETTINGS
 @given(seed=st.integers(0, 10_000), structure=st.sampled_from(["direct", "structural"]),
        with_K=st.booleans(), scale=st.sampled_from([1e-5, 1e-2, 0.1, 0.5]),
        three=st.booleans())
-def test_gain_enclosure_contains_points(seed: int, structure: str, with_K: bool,
+def test_gain_enclosure_contains_points(act: str, seed: int, structure: str, with_K: bool,
                                         scale: float, three: bool) -> None:
-    prob = random_problem(seed, structure, three_state() if three else None, with_K=with_K)
+    prob = random_problem(seed, structure, three_state() if three else None, with_K=with_K,
+                          activation=act)
     s, net = prob.system, prob.network
     n = s.n
     lo, hi, z = _boxes(seed, 32, *_root(prob), scale)
@@ -238,12 +243,13 @@ def test_gain_enclosure_contains_points(seed: int, structure: str, with_K: bool,
     assert bool(((ge.d2k.lo - tol <= d2) & (d2 <= ge.d2k.hi + tol)).all())
 
 
-@SETTINGS
+@pytest.mark.parametrize("act", ACTIVATIONS)
+@ACT_SETTINGS
 @given(seed=st.integers(0, 10_000), structure=st.sampled_from(["direct", "structural"]),
        scale=st.sampled_from([1e-6, 1e-3, 0.05, 0.3]), three=st.booleans())
-def test_taylor_model_contains_closed_loop_jacobian(seed: int, structure: str, scale: float,
-                                                    three: bool) -> None:
-    prob = random_problem(seed, structure, three_state() if three else None)
+def test_taylor_model_contains_closed_loop_jacobian(act: str, seed: int, structure: str,
+                                                    scale: float, three: bool) -> None:
+    prob = random_problem(seed, structure, three_state() if three else None, activation=act)
     s, net = prob.system, prob.network
     n = s.n
     lo, hi, z = _boxes(seed, 32, *_root(prob), scale)
@@ -255,13 +261,15 @@ def test_taylor_model_contains_closed_loop_jacobian(seed: int, structure: str, s
     assert bool(((J - lin).abs() <= tm.e + slack).all())
 
 
-@SETTINGS
+@pytest.mark.parametrize("act", ACTIVATIONS)
+@ACT_SETTINGS
 @given(seed=st.integers(0, 10_000), structure=st.sampled_from(["direct", "structural"]),
        scale=st.sampled_from([1e-6, 1e-3, 0.05, 0.3]), three=st.booleans(),
        metric=st.booleans(), taylor=st.sampled_from([True, "interval", False]))
-def test_mpdi_box_bound_is_sound(seed: int, structure: str, scale: float, three: bool,
-                                 metric: bool, taylor: object) -> None:
-    prob = random_problem(seed, structure, three_state() if three else None, metric=metric)
+def test_mpdi_box_bound_is_sound(act: str, seed: int, structure: str, scale: float,
+                                 three: bool, metric: bool, taylor: object) -> None:
+    prob = random_problem(seed, structure, three_state() if three else None, metric=metric,
+                          activation=act)
     s, net = prob.system, prob.network
     n = s.n
     lo, hi, _ = _boxes(seed, 16, *_root(prob), scale)
