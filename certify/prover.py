@@ -209,6 +209,7 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     P = problem.P_t
 
     level = _Level(rel_tol, tol)
+    gain = estimate_crown_gain(problem.network, lo, hi)
 
     def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
         c = 0.5 * (blo + bhi)
@@ -218,7 +219,8 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
         lv = level.value()  # phi-level -> mu-level (mu / c_min or mu / c_max <= lv)
         screen = None if not math.isfinite(lv) else (lv * pc.c_min if lv >= 0
                                                       else lv * pc.c_max)
-        bb = mpdi_box_bounds(problem, blo, bhi, 0.0, pc=pc, screen=screen)
+        bb = mpdi_box_bounds(problem, blo, bhi, 0.0, pc=pc, screen=screen, crown_gain=gain,
+                             root_width=hi - lo)
         mu = bb.upper
         ub = torch.where(mu >= 0, up(mu / pc.c_min), up(mu / pc.c_max))
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
@@ -308,8 +310,9 @@ def bound_dk_dy(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_0
 
     def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
         ub, cen = dk_dy_box_upper(problem.system, problem.network, blo, bhi)
-        ub = level.tighten(ub, cen, lambda m: dk_dy_box_upper_crown(
-            problem.system, problem.network, blo[m], bhi[m])[0])
+        if not problem.structural:  # the linear bounds cover direct networks only
+            ub = level.tighten(ub, cen, lambda m: dk_dy_box_upper_crown(
+                problem.system, problem.network, blo[m], bhi[m])[0])
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         return BoxEval(upper=ub, centre_value=cen, score=None)
 
