@@ -262,6 +262,41 @@ def test_taylor_model_contains_closed_loop_jacobian(act: str, seed: int, structu
 
 
 @pytest.mark.parametrize("act", ACTIVATIONS)
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 10_000), centre=st.floats(-6, 6),
+       rad=st.sampled_from([1e-8, 1e-3, 0.1, 0.7, 2.0]), with_e=st.booleans())
+def test_activation_taylor_models_contain_f_and_df(act: str, seed: int, centre: float,
+                                                   rad: float, with_e: bool) -> None:
+    """f(q) and f'(q) of a Taylor model q lie in the models `tm_activation` builds (second-
+    order remainders with d3_bound; for ELU the first-order remainder of f')."""
+    from certify.bounds.taylor import TM, tm_activation
+
+    a = activations.get(act)
+    g = torch.Generator().manual_seed(seed)
+    B, h, d = 8, 5, 3
+    r = rad * torch.rand(B, d, generator=g, dtype=F64)
+    c = centre + torch.randn(B, h, generator=g, dtype=F64)
+    c[:, 0] = 0.0  # ELU's kink, the critical points of the others nearby
+    gco = torch.randn(B, h, d, generator=g, dtype=F64)
+    e = (rad * torch.rand(B, h, generator=g, dtype=F64)) if with_e else torch.zeros(B, h,
+                                                                                    dtype=F64)
+    A, S = tm_activation(a, TM(c, gco, e), r)
+    u = 2 * torch.rand(B, 200, d, generator=g, dtype=F64) - 1
+    u[:, :2] = torch.stack([-torch.ones(B, d, dtype=F64), torch.ones(B, d, dtype=F64)], 1)
+    dz = u * r[:, None]
+    sgn = 2 * torch.rand(B, 200, h, generator=g, dtype=F64) - 1
+    sgn[:, :2] = torch.sign(sgn[:, :2])
+    q = c[:, None] + torch.einsum("bhd,bsd->bsh", gco, dz) + sgn * e[:, None]
+    for tm, fn in ((A, a.f), (S, a.d1)):
+        v = fn(q)
+        lin = tm.c[:, None] + torch.einsum("bhd,bsd->bsh", tm.g, dz)
+        assert bool(((v - lin).abs() <= tm.e[:, None] + 1e-14 * (1 + v.abs())).all())
+    # the remainders are second order (first order for f' of ELU) in the radius
+    if rad <= 1e-3 and not with_e:
+        assert float(A.e.max()) < 1e-9 + 100 * rad ** 2 * float((gco.abs().sum(-1)).max()) ** 2
+
+
+@pytest.mark.parametrize("act", ACTIVATIONS)
 @ACT_SETTINGS
 @given(seed=st.integers(0, 10_000), structure=st.sampled_from(["direct", "structural"]),
        scale=st.sampled_from([1e-6, 1e-3, 0.05, 0.3]), three=st.booleans(),
