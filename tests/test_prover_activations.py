@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from certify import activations
 from certify.network import GainNetwork
 from certify.problem import Problem
 
@@ -94,3 +95,16 @@ def test_violation_from_silus_negative_slope_is_found_with_a_sound_witness(workd
     # the same weights with tanh only add contraction: certified
     code, cert, text = _run(workdir, capsys, _slab("tanh", LAM_CERT - 0.05), "simulation,rate")
     assert code == 0 and cert["checks"]["mpdi"]["status"] == "PROVED", text
+
+
+@pytest.mark.parametrize("act", activations.names())
+def test_nan_weight_is_unknown_for_every_activation(act):
+    """NaN never decides: a NaN weight leaves every box unproved, and no point VIOLATED."""
+    from certify.prover import prove_mpdi
+    from certify.results import Status
+
+    problem = _random_mlp(act, LAM_CERT - 0.1)
+    with torch.no_grad():
+        problem.network.layers[1].weight[0, 0] = float("nan")
+    out = prove_mpdi(problem, seconds=1.0, max_boxes=64)
+    assert out.status is Status.UNKNOWN and out.stats.proved_volume_fraction == 0.0
