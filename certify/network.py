@@ -65,17 +65,9 @@ class GainNetwork(nn.Module):
                    activation=arch.get("activation", activations.DEFAULT))
 
     def weights(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """[(W, b)] per layer, W of shape [out, in], for `certify.enclosures` (the prover).
-
-        The prover still applies tanh's interval rules to every neuron, so for any other
-        activation this refuses (the proof check ends in ERROR, never in a wrong PROVED)
-        until enclosures.py reads the activation from `spec()` (see `certify.gain`).
-        """
-        if self.activation != "tanh":
-            raise NotImplementedError(
-                f"the interval prover does not support activation {self.activation!r} yet "
-                f"(its enclosures assume tanh); no proof is attempted")
-        return [(layer.weight, layer.bias) for layer in self.layers]
+        """[(W, b)] per layer, W of shape [out, in], for `certify.enclosures` (the prover),
+        which reads the activation's enclosures and relaxations from `act`."""
+        return self.layer_weights()
 
     def layer_weights(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """[(W, b)] per layer, W of shape [out, in] (any activation)."""

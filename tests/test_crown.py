@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from certify import activations
 from certify.bounds.crown import (
     forward_bounds,
     jacobian_crown,
@@ -23,12 +25,15 @@ from certify.system import load_system
 
 F64 = torch.float64
 SETTINGS = settings(max_examples=8, deadline=None)
+ACT_SETTINGS = settings(max_examples=2, deadline=None)  # per activation
+ACTIVATIONS = activations.names()
 
 
-def _net(seed: int, d_in: int, depth: int, width: int, g: float) -> GainNetwork:
-    """A direct tanh MLP with d_in inputs and d_in - 1 outputs, weights N(0, g^2 / fan_in)."""
+def _net(seed: int, d_in: int, depth: int, width: int, g: float, act: str = "tanh"
+         ) -> GainNetwork:
+    """A direct MLP with d_in inputs and d_in - 1 outputs, weights N(0, g^2 / fan_in)."""
     gen = torch.Generator().manual_seed(seed)
-    net = GainNetwork(d_in - 1, 1, (width,) * depth)
+    net = GainNetwork(d_in - 1, 1, (width,) * depth, activation=act)
     with torch.no_grad():
         for layer in net.layers:
             fan = layer.weight.shape[1]
@@ -52,12 +57,13 @@ def _points(lo: torch.Tensor, hi: torch.Tensor, S: int, seed: int) -> torch.Tens
     return lo[:, None] + (hi - lo)[:, None] * u
 
 
-@SETTINGS
+@pytest.mark.parametrize("act", ACTIVATIONS)
+@ACT_SETTINGS
 @given(seed=st.integers(0, 10_000), depth=st.integers(1, 4), g=st.sampled_from([0.5, 2.0, 4.0]),
        scale=st.sampled_from([1e-7, 1e-3, 0.03, 0.3, 1.0]), d=st.integers(2, 5))
-def test_jacobian_and_value_enclosures_contain_points(seed: int, depth: int, g: float,
+def test_jacobian_and_value_enclosures_contain_points(act: str, seed: int, depth: int, g: float,
                                                       scale: float, d: int) -> None:
-    net = _net(seed, d, depth, 7, g)
+    net = _net(seed, d, depth, 7, g, act)
     lo, hi = _boxes(seed, 12, d, scale)
     cols = list(range(d))
     fb = forward_bounds(net, lo, hi, cols=cols)
@@ -91,7 +97,7 @@ def test_jacobian_and_value_enclosures_contain_points(seed: int, depth: int, g: 
     for li, (W, b) in enumerate(Ws[1:]):
         p = pre.reshape(B, S, -1)
         assert bool(((fb.pre[li].lo[:, None] <= p) & (p <= fb.pre[li].hi[:, None])).all())
-        pre = torch.tanh(pre) @ W.T + b
+        pre = net.act.f(pre) @ W.T + b
 
 
 def test_crown_is_much_tighter_than_taylor_models_on_a_deep_network() -> None:
@@ -103,14 +109,15 @@ def test_crown_is_much_tighter_than_taylor_models_on_a_deep_network() -> None:
     assert float(tm.e.median()) * 10 < float(fb.jac_tm.e[..., :2].median())
 
 
-@SETTINGS
+@pytest.mark.parametrize("act", ACTIVATIONS)
+@ACT_SETTINGS
 @given(seed=st.integers(0, 10_000), structure=st.sampled_from(["direct", "structural"]),
        scale=st.sampled_from([1e-6, 1e-3, 0.05, 0.3]), metric=st.booleans())
-def test_mpdi_bound_with_crown_is_sound(seed: int, structure: str, scale: float,
+def test_mpdi_bound_with_crown_is_sound(act: str, seed: int, structure: str, scale: float,
                                        metric: bool) -> None:
     torch.manual_seed(seed)
     s = load_system("vdp")
-    net = GainNetwork(2, 1, (6, 5), structure=structure, K=torch.randn(2, 1))
+    net = GainNetwork(2, 1, (6, 5), structure=structure, K=torch.randn(2, 1), activation=act)
     with torch.no_grad():
         for layer in net.layers:
             layer.weight.mul_(2.0)
@@ -154,16 +161,18 @@ def test_hertz_bound_is_sound_and_never_above_centre_plus_radius(seed: int, n: i
     assert bool((ub <= weyl + 1e-9 * (1 + weyl.abs())).all())
 
 
-@SETTINGS
+@pytest.mark.parametrize("act", ACTIVATIONS)
+@settings(max_examples=2, deadline=None)
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-6, 1e-2, 0.1, 0.5]),
        g=st.sampled_from([1.0, 3.0]))
-def test_side_bounds_with_crown_contain_points(seed: int, scale: float, g: float) -> None:
+def test_side_bounds_with_crown_contain_points(act: str, seed: int, scale: float,
+                                               g: float) -> None:
     from certify.bounds.side import dk_dy_box_upper_crown, residual_box_upper_crown
     from certify.kernels import gain_terms
 
     torch.manual_seed(seed)
     s = load_system("vdp")
-    net = GainNetwork(2, 1, (7, 7, 7), K=torch.randn(2, 1))
+    net = GainNetwork(2, 1, (7, 7, 7), K=torch.randn(2, 1), activation=act)
     with torch.no_grad():
         for layer in net.layers:
             layer.weight.mul_(g)

@@ -4,6 +4,7 @@ for every activation; the activation through architecture, checkpoint, LipSDP an
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from certify.errors import CheckpointError, SettingsError
 from certify.gain import COLUMNS, ROWS, propagate
 from certify.gridkernel import GridKernel
 from certify.integrate import GainFunction
-from certify.kernels import gain_terms, mpdi_lam_max
+from certify.kernels import gain_terms, mpdi_lam_max, pointwise_rate
 from certify.network import GainNetwork
 from certify.problem import Problem
 from certify.system import load_system
@@ -162,17 +163,29 @@ def test_relu_checkpoint_and_config_are_refused_with_the_reason(tmp_path):
         make_config(system, "tiny", activation="mish")
 
 
-@pytest.mark.parametrize("entry", ["prove_mpdi", "prove_rate", "bound_residual",
-                                   "bound_dk_dy"])
-def test_prover_refuses_activations_its_enclosures_do_not_cover(entry):
-    """Until the prover reads the activation, a non-tanh proof is refused, never wrong."""
+@pytest.mark.parametrize("act", ["silu", "elu"])
+def test_prover_entry_points_bound_every_sampled_value_for_any_activation(act):
+    """The prover reads the activation: every entry point runs on a non-tanh network and its
+    sound upper bounds lie above the sampled values (mpdi, ||dk/dy||, ||k(x, h(x))||)."""
     from certify import prover
+    from certify.checks.lipschitz import dk_dy_norms
 
     system = load_system("vdp")
-    problem = Problem(system, _net(system, "silu"), 1.0, np.eye(2))
-    with pytest.raises(NotImplementedError, match="does not support activation 'silu'"):
-        getattr(prover, entry)(problem, seconds=1.0, max_boxes=100)
-    assert len(_net(system, "tanh").weights()) == 3
+    net = _net(system, act)
+    problem = Problem(system, net, 1.0, np.eye(2))
+    x, y = _points(system, 20, 3)
+    out = prover.prove_mpdi(problem, seconds=2.0, max_boxes=200)
+    sampled = mpdi_lam_max(system, net, problem.P_t, 1.0, x, y)
+    assert out.status.value in ("PROVED", "VIOLATED", "UNKNOWN")
+    assert math.isfinite(out.upper) and out.upper >= float(sampled.max())
+    dky = prover.bound_dk_dy(problem, seconds=2.0, max_boxes=200)
+    assert dky is not None and dky >= float(dk_dy_norms(problem, torch.cat([x, y], 1)).max())
+    res, _, _ = prover.bound_residual(problem, seconds=2.0, max_boxes=200)
+    k_on = gain_terms(system, net, x, system.h(x), with_dy=False).k
+    assert res >= float(torch.linalg.vector_norm(k_on, dim=-1).max())
+    rate = prover.prove_rate(problem, seconds=2.0, max_boxes=200)
+    pointwise = pointwise_rate(system, net, problem.P_t, x, y)
+    assert rate.lower is not None and rate.lower <= float(pointwise.min())
 
 
 @pytest.mark.parametrize("act", ["silu", "sigmoid", "tanh"])
@@ -213,10 +226,13 @@ def test_train_silu_then_run_end_to_end(tmp_path, capsys, monkeypatch):
     expected = {"CERTIFIED": 0, "NOT CERTIFIED": 1, "INCONCLUSIVE": 3}[cert["verdict"]]
     assert code == expected, (code, cert["verdict"], err)
     mpdi = cert["checks"]["mpdi"]
-    assert mpdi["status"] in ("VIOLATED", "PROVED", "UNKNOWN", "ERROR")
+    assert mpdi["status"] in ("VIOLATED", "PROVED", "UNKNOWN")  # the prover encloses silu
+    lip = cert["checks"]["lipschitz"]  # its local bound comes from the prover, on silu
+    assert lip["local_upper"] is not None and lip["sampled"] <= lip["local_upper"]
     if mpdi["status"] == "VIOLATED":
         assert code == 1
         w = mpdi["worst"]
+        assert 0 < w["sound_bound"] <= w["value"]
         net, system = ck.problem.network, ck.problem.system
         x = torch.tensor([w["xhat"]], dtype=F64)
         y = torch.tensor([w["y"]], dtype=F64)
@@ -225,5 +241,5 @@ def test_train_silu_then_run_end_to_end(tmp_path, capsys, monkeypatch):
         D = ck.problem.P_t @ (system.jac_f(x)[0] + J)
         D = 0.5 * (D + D.T) + 2.0 * ck.problem.lam * ck.problem.P_t
         assert float(torch.linalg.eigvalsh(D)[-1]) == pytest.approx(w["value"], rel=1e-9)
-    if mpdi["status"] == "PROVED":  # once the prover encloses silu: no sampled violation
+    if mpdi["status"] == "PROVED":  # no sampled violation
         assert code in (0, 3) and (mpdi["lower"] is None or mpdi["lower"] <= 0)

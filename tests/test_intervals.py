@@ -10,6 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from certify import activations
 from certify import enclosures as E
 from certify.errors import SpecError
 from certify.expr import DERIVED_FUNCTIONS, FUNCTIONS
@@ -35,6 +36,8 @@ from certify.problem import Problem
 from certify.system import System, load_system
 
 SETTINGS = settings(max_examples=20, deadline=None)
+ACT_SETTINGS = settings(max_examples=4, deadline=None)  # per activation
+ACTIVATIONS = activations.names()
 F64 = torch.float64
 
 SPEC3 = """
@@ -191,11 +194,11 @@ def test_interval_algebra_constants_are_widened() -> None:
 # ----- network, gain terms, D, eigenvalue bounds ------------------------------------------
 def random_problem(seed: int, structure: str, system: System | None = None,
                    hidden: tuple[int, ...] = (5, 4, 3), with_K: bool = True,
-                   metric: bool = False) -> Problem:
+                   metric: bool = False, activation: str = "tanh") -> Problem:
     torch.manual_seed(seed)
     s = system or load_system("vdp")
     K = torch.randn(s.n, s.p) if with_K else None
-    net = GainNetwork(s.n, s.p, hidden, structure=structure, K=K)
+    net = GainNetwork(s.n, s.p, hidden, structure=structure, K=K, activation=activation)
     with torch.no_grad():
         for layer in net.layers:
             layer.weight.mul_(1.5)
@@ -211,13 +214,15 @@ def _root(prob: Problem) -> tuple[np.ndarray, np.ndarray]:
     return box[:, 0], box[:, 1]
 
 
-@SETTINGS
+@pytest.mark.parametrize("act", ACTIVATIONS)
+@ACT_SETTINGS
 @given(seed=st.integers(0, 10_000), structure=st.sampled_from(["direct", "structural"]),
        with_K=st.booleans(), scale=st.sampled_from([1e-5, 1e-2, 0.1, 0.5]),
        three=st.booleans())
-def test_gain_enclosure_contains_points(seed: int, structure: str, with_K: bool,
+def test_gain_enclosure_contains_points(act: str, seed: int, structure: str, with_K: bool,
                                         scale: float, three: bool) -> None:
-    prob = random_problem(seed, structure, three_state() if three else None, with_K=with_K)
+    prob = random_problem(seed, structure, three_state() if three else None, with_K=with_K,
+                          activation=act)
     s, net = prob.system, prob.network
     n = s.n
     lo, hi, z = _boxes(seed, 32, *_root(prob), scale)
@@ -238,12 +243,13 @@ def test_gain_enclosure_contains_points(seed: int, structure: str, with_K: bool,
     assert bool(((ge.d2k.lo - tol <= d2) & (d2 <= ge.d2k.hi + tol)).all())
 
 
-@SETTINGS
+@pytest.mark.parametrize("act", ACTIVATIONS)
+@ACT_SETTINGS
 @given(seed=st.integers(0, 10_000), structure=st.sampled_from(["direct", "structural"]),
        scale=st.sampled_from([1e-6, 1e-3, 0.05, 0.3]), three=st.booleans())
-def test_taylor_model_contains_closed_loop_jacobian(seed: int, structure: str, scale: float,
-                                                    three: bool) -> None:
-    prob = random_problem(seed, structure, three_state() if three else None)
+def test_taylor_model_contains_closed_loop_jacobian(act: str, seed: int, structure: str,
+                                                    scale: float, three: bool) -> None:
+    prob = random_problem(seed, structure, three_state() if three else None, activation=act)
     s, net = prob.system, prob.network
     n = s.n
     lo, hi, z = _boxes(seed, 32, *_root(prob), scale)
@@ -255,13 +261,50 @@ def test_taylor_model_contains_closed_loop_jacobian(seed: int, structure: str, s
     assert bool(((J - lin).abs() <= tm.e + slack).all())
 
 
-@SETTINGS
+@pytest.mark.parametrize("act", ACTIVATIONS)
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 10_000), centre=st.floats(-6, 6),
+       rad=st.sampled_from([1e-8, 1e-3, 0.1, 0.7, 2.0]), with_e=st.booleans())
+def test_activation_taylor_models_contain_f_and_df(act: str, seed: int, centre: float,
+                                                   rad: float, with_e: bool) -> None:
+    """f(q) and f'(q) of a Taylor model q lie in the models `tm_activation` builds (second-
+    order remainders with d3_bound; for ELU the first-order remainder of f')."""
+    from certify.bounds.taylor import TM, tm_activation
+
+    a = activations.get(act)
+    g = torch.Generator().manual_seed(seed)
+    B, h, d = 8, 5, 3
+    r = rad * torch.rand(B, d, generator=g, dtype=F64)
+    c = centre + torch.randn(B, h, generator=g, dtype=F64)
+    c[:, 0] = 0.0  # ELU's kink, the critical points of the others nearby
+    gco = torch.randn(B, h, d, generator=g, dtype=F64)
+    e = (rad * torch.rand(B, h, generator=g, dtype=F64)) if with_e else torch.zeros(B, h,
+                                                                                    dtype=F64)
+    A, S = tm_activation(a, TM(c, gco, e), r)
+    u = 2 * torch.rand(B, 200, d, generator=g, dtype=F64) - 1
+    u[:, :2] = torch.stack([-torch.ones(B, d, dtype=F64), torch.ones(B, d, dtype=F64)], 1)
+    dz = u * r[:, None]
+    sgn = 2 * torch.rand(B, 200, h, generator=g, dtype=F64) - 1
+    sgn[:, :2] = torch.sign(sgn[:, :2])
+    q = c[:, None] + torch.einsum("bhd,bsd->bsh", gco, dz) + sgn * e[:, None]
+    for tm, fn in ((A, a.f), (S, a.d1)):
+        v = fn(q)
+        lin = tm.c[:, None] + torch.einsum("bhd,bsd->bsh", tm.g, dz)
+        assert bool(((v - lin).abs() <= tm.e[:, None] + 1e-14 * (1 + v.abs())).all())
+    # the remainders are second order (first order for f' of ELU) in the radius
+    if rad <= 1e-3 and not with_e:
+        assert float(A.e.max()) < 1e-9 + 100 * rad ** 2 * float((gco.abs().sum(-1)).max()) ** 2
+
+
+@pytest.mark.parametrize("act", ACTIVATIONS)
+@ACT_SETTINGS
 @given(seed=st.integers(0, 10_000), structure=st.sampled_from(["direct", "structural"]),
        scale=st.sampled_from([1e-6, 1e-3, 0.05, 0.3]), three=st.booleans(),
        metric=st.booleans(), taylor=st.sampled_from([True, "interval", False]))
-def test_mpdi_box_bound_is_sound(seed: int, structure: str, scale: float, three: bool,
-                                 metric: bool, taylor: object) -> None:
-    prob = random_problem(seed, structure, three_state() if three else None, metric=metric)
+def test_mpdi_box_bound_is_sound(act: str, seed: int, structure: str, scale: float,
+                                 three: bool, metric: bool, taylor: object) -> None:
+    prob = random_problem(seed, structure, three_state() if three else None, metric=metric,
+                          activation=act)
     s, net = prob.system, prob.network
     n = s.n
     lo, hi, _ = _boxes(seed, 16, *_root(prob), scale)

@@ -1,12 +1,15 @@
-"""Linear relaxations of tanh, tanh' and products: every line bounds every sampled value."""
+"""Linear relaxations of the activations, their derivatives and products: every line bounds
+every sampled value."""
 
 from __future__ import annotations
 
+import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.bounds.relax import mccormick, relax_dtanh, relax_tanh
+from certify import activations
+from certify.bounds.relax import mccormick, relax_dtanh, relax_slope, relax_tanh, relax_value
 from certify.intervals import Interval
 
 F64 = torch.float64
@@ -40,6 +43,25 @@ def test_tanh_and_dtanh_relaxations_are_sound(seed: int, scale: float, centre: f
     b[:4] = a[:4]  # degenerate intervals
     _check(relax_tanh, torch.tanh, a, b)
     _check(relax_dtanh, lambda x: 1 - torch.tanh(x) ** 2, a, b)
+
+
+@pytest.mark.parametrize("name", activations.names())
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-12, 1e-4, 0.1, 1.0, 4.0, 20.0]),
+       centre=st.floats(-8, 8))
+def test_prover_relaxations_of_every_activation_are_sound(name: str, seed: int, scale: float,
+                                                          centre: float) -> None:
+    """What the linear bound propagation uses for f and f' (tanh's own, else the
+    activation's generic lines): parallel, and bounding every sampled value."""
+    act = activations.get(name)
+    g = torch.Generator().manual_seed(seed)
+    a = centre + scale * torch.randn(64, generator=g, dtype=F64)
+    b = a + scale * torch.rand(64, generator=g, dtype=F64)
+    b[:4] = a[:4]  # degenerate intervals
+    for relax, f in ((relax_value, act.f), (relax_slope, act.d1)):
+        lb = relax(act, a, b)
+        assert torch.equal(lb.lower_slope, lb.upper_slope)
+        _check(lambda lo, hi, r=relax: r(act, lo, hi), f, a, b)
 
 
 def test_relaxations_are_tight_on_small_intervals() -> None:

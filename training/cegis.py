@@ -432,14 +432,8 @@ def _cegis(system: System, network: GainNetwork, P: np.ndarray, lam: float,
         else:
             t0 = time.perf_counter()
             remaining = cs.budget_seconds - (time.perf_counter() - t_start)
-            try:
-                proof = prove_mpdi(problem, seconds=max(1.0, min(cs.proof_seconds, remaining)),
-                                   max_boxes=cs.proof_boxes, seeds=top)
-            except NotImplementedError as exc:  # the prover cannot enclose this activation
-                proof, status, rstatus = None, Status.UNKNOWN, "UNKNOWN"
-                if str(exc) not in notes:
-                    notes.append(str(exc))
-                    say(notes[-1])
+            proof = prove_mpdi(problem, seconds=max(1.0, min(cs.proof_seconds, remaining)),
+                               max_boxes=cs.proof_boxes, seeds=top)
             t_proof = time.perf_counter() - t0
             if proof is not None:
                 status, vol = proof.status, proof.stats.proved_volume_fraction

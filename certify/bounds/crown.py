@@ -1,12 +1,13 @@
 """Backward linear bound propagation (CROWN-style) through the network's Jacobian graph.
 
-For a `direct` tanh MLP N(z) (pre_0 = W_0 z + b_0, a_l = tanh(pre_l), pre_{l+1} = W_{l+1} a_l +
-b_{l+1}) the Jacobian columns follow t_0^j = W_0[:, j], Q_l^j = s_l * t_l^j with
-s_l = tanh'(pre_l), t_{l+1}^j = W_{l+1} Q_l^j and dN/dz_j = W_H Q_{H-1}^j. For every entry
+For a `direct` MLP N(z) with activation f (pre_0 = W_0 z + b_0, a_l = f(pre_l), pre_{l+1} =
+W_{l+1} a_l + b_{l+1}) the Jacobian columns follow t_0^j = W_0[:, j], Q_l^j = s_l * t_l^j with
+s_l = f'(pre_l), t_{l+1}^j = W_{l+1} Q_l^j and dN/dz_j = W_H Q_{H-1}^j. For every entry
 (i, j) and both signs, one backward pass from the output to z composes
 
 - McCormick planes for the products Q = s * t (`relax.mccormick`),
-- linear relaxations of tanh' (derivative path) and tanh (value path) (`relax`),
+- linear relaxations of f' (derivative path) and f (value path) (`relax.relax_slope`,
+  `relax.relax_value`: tanh's own, else the activation's generic parallel lines),
 - the exact linear maps W_l,
 
 picking each relaxation's lower or upper plane by the sign of its backward coefficient, and
@@ -29,18 +30,17 @@ from dataclasses import dataclass, field
 
 import torch
 
-from certify.bounds.relax import mccormick, relax_dtanh, relax_tanh
-from certify.bounds.taylor import TM, tm_linear, tm_mul, tm_rho, tm_tanh_and_dtanh
+from certify.activations import Activation
+from certify.bounds.relax import mccormick, relax_slope, relax_value
+from certify.bounds.taylor import TM, tm_activation, tm_linear, tm_mul, tm_rho
 from certify.intervals import (
     TINY,
     Interval,
     down,
-    dtanh_enclosure,
     gamma,
     imul,
     matmul_point_right,
     midrad_to_interval,
-    tanh_enclosure,
     up,
 )
 from certify.network import GainNetwork
@@ -105,7 +105,7 @@ def _midrad_icpt(lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torc
 
 class _Layer:
     """Hidden layer l: pre_l = W x + b (x = a_{l-1}, or z for l = 0), with parallel-line
-    relaxations of tanh (value path) and tanh' (derivative path) on the range of pre_l, and
+    relaxations of f (value path) and f' (derivative path) on the range of pre_l, and
     the constants the backward passes need, shaped [B, 1, J, h] for broadcasting against
     coefficients [B, R, J, h] (R query rows, J Jacobian columns).
 
@@ -116,19 +116,20 @@ class _Layer:
     folded into the intercept radius (w + gamma K), so the pass needs no separate sum."""
 
     def __init__(self, pre: Interval, tan: Interval, W: torch.Tensor, b: torch.Tensor,
-                 prev: _Layer | None, zmag: torch.Tensor) -> None:
+                 prev: _Layer | None, zmag: torch.Tensor, act: Activation) -> None:
         self.pre, self.tan, self.W, self.b, self.prev = pre, tan, W, b, prev
-        self.s = dtanh_enclosure(pre)
-        ra = relax_tanh(pre.lo, pre.hi)
+        self.act = act
+        self.s = act.enclose_d1(pre)
+        ra = relax_value(act, pre.lo, pre.hi)
         if not torch.equal(ra.lower_slope, ra.upper_slope):
             raise ValueError("backward propagation needs parallel-line relaxations")
         e = lambda x: x[:, None, None, :]  # noqa: E731  [B, h] -> [B, 1, 1, h]
-        self.a_s = self.m_s = self.w_s = None  # tanh' relaxation: on first use (col_consts)
+        self.a_s = self.m_s = self.w_s = None  # f' relaxation: on first use (col_consts)
         self.a_a = e(ra.lower_slope)
         ma, wa = _midrad_icpt(ra.lower_icpt, ra.upper_icpt)
         self.m_a, self.w_a = e(ma), e(wa)
         self.pmag = e(_mag(pre))
-        self.amag = tanh_enclosure(pre).mag()  # [B, h]
+        self.amag = act.enclose_f(pre).mag()  # [B, h]
         xmag = zmag if prev is None else prev.amag  # |x| feeding this layer
         self.Wx = e(xmag @ W.abs().T)  # |W| |x|: rounding of L @ W
         babs = b.abs()[None, None, None]
@@ -141,6 +142,13 @@ class _Layer:
         self._cols: dict[tuple[int, ...], tuple] = {}
         self.bslack: torch.Tensor | None = None  # |pre - (W x + b)| (composed first layers)
 
+    def _smag(self) -> torch.Tensor | float:
+        """1 for tanh (|tanh'| <= 1 and the slope |a_s| <= 1 of its relaxation); else the
+        largest of 1, |f'| over the range of pre and |a_s| (what the 1 stands for, and 1)."""
+        if self.act.name == "tanh":
+            return 1
+        return torch.maximum(self.s.mag()[:, None, None, :], self.a_s.abs()).clamp_min(1.0)
+
     def qmag(self, cols: torch.Tensor) -> torch.Tensor:
         """|Q_l^j| <= |s_l| |t_l^j|, [B, h, J]."""
         return self.s.mag().unsqueeze(-1) * _mag(self.tan)[..., cols]
@@ -151,7 +159,7 @@ class _Layer:
         rounding slack gamma K_Q folded in."""
         key = tuple(int(c) for c in cols)
         if self.a_s is None:
-            rs = relax_dtanh(self.pre.lo, self.pre.hi)
+            rs = relax_slope(self.act, self.pre.lo, self.pre.hi)
             if not torch.equal(rs.lower_slope, rs.upper_slope):
                 raise ValueError("backward propagation needs parallel-line relaxations")
             self.a_s = rs.lower_slope[:, None, None, :]
@@ -172,7 +180,7 @@ class _Layer:
                 Wq = self.W[:, cols].T.abs()[None, None]  # [1, 1, J, h]
             else:  # |W| |Q_{l-1}^j|: rounding of Lt @ W
                 Wq = f(torch.einsum("kh,bhj->bkj", self.W.abs(), self.prev.qmag(cols)))
-            KQ = ss.abs() * (1 + self.m_s.abs() + self.w_s) + st.abs() * (tmag + Wq) \
+            KQ = ss.abs() * (self._smag() + self.m_s.abs() + self.w_s) + st.abs() * (tmag + Wq) \
                 + mq.abs() + wq + SA.abs() * (2 * self.pmag + self.b.abs()[None, None, None]
                                               + self.Wx) + MQ.abs() + WQ
             WKQ = up(WQ + self.gk * up(KQ * (1 + 8 * U)))
@@ -256,6 +264,7 @@ def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: 
     r = up(torch.maximum(hi - zc, zc - lo))
     zmag = torch.maximum(lo.abs(), hi.abs())
     weights = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
+    act = net.act
     W0, b0 = weights[0]
     eye = torch.eye(d, dtype=torch.float64).expand(B, d, d)
     val = tm_linear(TM(zc, eye, torch.zeros_like(zc)), W0.T, b0, r)  # [B, h]
@@ -272,10 +281,11 @@ def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: 
         pres.append(pre_iv)
         tans.append(tan_iv)
         Win, bin_ = weights[L - 1]
-        layers.append(_Layer(pre_iv, tan_iv, Win, bin_, layers[-1] if layers else None, zmag))
+        layers.append(_Layer(pre_iv, tan_iv, Win, bin_, layers[-1] if layers else None, zmag,
+                             act))
         if L == 1 and b0_slack is not None:
             layers[0].bslack = b0_slack[:, None, None, :]
-        a, s = tm_tanh_and_dtanh(val, r)
+        a, s = tm_activation(act, val, r)
         s_b = TM(s.c.unsqueeze(1), s.g.unsqueeze(1), s.e.unsqueeze(1))
         Tn = tm_mul(s_b, T, r)  # [B, d, h]
         val = tm_linear(a, W.T, b, r)
@@ -284,7 +294,7 @@ def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: 
             break
         # interval step from the intersected ranges, then intersect with the TM ranges
         lay = layers[-1]
-        a_iv = tanh_enclosure(pre_iv)
+        a_iv = act.enclose_f(pre_iv)
         q_iv = imul(Interval(lay.s.lo.unsqueeze(-1), lay.s.hi.unsqueeze(-1)), tan_iv)
         nxt = _imatvec_point(a_iv, W)
         pre_iv = _intersect(Interval(down(nxt.lo + b), up(nxt.hi + b)), _tm_range(val, r))
@@ -380,6 +390,7 @@ class AffineInputNetwork:
 
     def __init__(self, net: GainNetwork, A: torch.Tensor, a: torch.Tensor) -> None:
         ws = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
+        self.act = net.act
         W0, b0 = ws[0]
         self.W0_exact, self.A, self.a = W0, A.to(torch.float64), a.to(torch.float64)
         self._weights = [(W0 @ self.A, b0 + W0 @ self.a)] + ws[1:]

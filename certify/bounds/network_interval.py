@@ -3,8 +3,10 @@
 Boxes live in z = (xhat, y) space: lo, hi [B, d], d = n + p. Forward-mode interval propagation
 layer by layer, pre-activations tightened by a mean-value form around the box centre. Rounding:
 products with point weight matrices in midpoint-radius form with Higham's gamma_k bound added
-(`certify.intervals.matmul_point_right`), everything else outward by one ulp, tanh and its
-derivatives by `certify.intervals`' widened libm rules.
+(`certify.intervals.matmul_point_right`), everything else outward by one ulp, the activation
+and its derivatives by its own sound enclosures (`certify.activations`: `enclose_f`,
+`enclose_d1`, `enclose_d2`, widened libm rules; for ELU, whose f'' jumps at 0, `enclose_d2`
+holds both one-sided values, which is what the mean-value forms built on it need).
 """
 
 from __future__ import annotations
@@ -16,8 +18,6 @@ import torch
 from certify.bounds.interval_ops import iadd, intersect, isum, point
 from certify.intervals import (
     Interval,
-    d2tanh_enclosure,
-    dtanh_enclosure,
     h_enclosure,
     hessian_f_enclosure,
     hessian_h_enclosure,
@@ -26,7 +26,6 @@ from certify.intervals import (
     jacobian_h_enclosure,
     matmul_point_right,
     midrad_to_interval,
-    tanh_enclosure,
     up,
 )
 from certify.network import GainNetwork
@@ -59,6 +58,7 @@ def network_enclosure(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, orde
     B, d = lo.shape
     J = d if second_cols is None else int(second_cols)
     weights = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
+    act = net.act
     W0, b0 = weights[0]
     zc = 0.5 * (lo + hi)
     zr = up(torch.maximum(hi - zc, zc - lo))
@@ -77,14 +77,14 @@ def network_enclosure(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, orde
             mv = isum(imul(T, Interval(zdev.lo.unsqueeze(-1), zdev.hi.unsqueeze(-1))), 1)
             val = intersect(val, center_pre[li] + mv)
         pres.append(val)
-        t = tanh_enclosure(val)
-        s1 = dtanh_enclosure(val)
+        t = act.enclose_f(val)
+        s1 = act.enclose_d1(val)
         s1e = Interval(s1.lo.unsqueeze(1), s1.hi.unsqueeze(1))
         Tn = imul(s1e, T)
         rows_lo = [t.lo.unsqueeze(1), Tn.lo]
         rows_hi = [t.hi.unsqueeze(1), Tn.hi]
         if S is not None:
-            s2 = d2tanh_enclosure(val)
+            s2 = act.enclose_d2(val)
             hw = T.lo.shape[-1]
             Tj = Interval(T.lo[:, :J].unsqueeze(2), T.hi[:, :J].unsqueeze(2))  # [B, J, 1, h]
             Tm = Interval(T.lo.unsqueeze(1), T.hi.unsqueeze(1))  # [B, 1, d, h]

@@ -1,8 +1,11 @@
-"""Sound linear relaxations of tanh, tanh' = 1 - tanh^2 and of products s * t, on intervals.
+"""Sound linear relaxations of the activation f, of f' and of products s * t, on intervals.
 
-Local adapter with the `certify.activations` contract (`relax(lo, hi)`, `relax_d1(lo, hi)` ->
-`LinearBounds`) built on `certify.intervals`' tanh enclosures, until the activations package
-lands on main.
+`relax_value(act, lo, hi)` and `relax_slope(act, lo, hi)` give parallel-line bounds of f and
+f' (`LinearBounds`, the `certify.activations` contract): for tanh the tighter curvature-aware
+bounds below (`relax_tanh`, `relax_dtanh`), for every other activation its own generic bounds
+(`Activation.relax`, `Activation.relax_d1`: chord line plus an outward-rounded enclosure of
+the residual over sub-intervals; sound by the same contract: the intercepts hold for the
+real-number lines).
 
 Method (per element, vectorised): a candidate slope a (the chord slope), then the intercepts
 are the sound minimum and maximum of the residual r(x) = f(x) - a x over [lo, hi]. The residual
@@ -31,6 +34,7 @@ from dataclasses import dataclass
 
 import torch
 
+from certify.activations import Activation
 from certify.intervals import (
     Interval,
     down,
@@ -195,6 +199,16 @@ def relax_dtanh(lo: torch.Tensor, hi: torch.Tensor) -> LinearBounds:
     return LinearBounds(a, rmin, a, rmax)
 
 
+def relax_value(act: Activation, lo: torch.Tensor, hi: torch.Tensor) -> LinearBounds:
+    """Parallel lines a x + b_lo <= f(x) <= a x + b_hi on [lo, hi] for the activation f."""
+    return relax_tanh(lo, hi) if act.name == "tanh" else act.relax(lo, hi)
+
+
+def relax_slope(act: Activation, lo: torch.Tensor, hi: torch.Tensor) -> LinearBounds:
+    """Parallel lines a x + b_lo <= f'(x) <= a x + b_hi on [lo, hi] for the activation f."""
+    return relax_dtanh(lo, hi) if act.name == "tanh" else act.relax_d1(lo, hi)
+
+
 @dataclass
 class BilinearBounds:
     """s t >= as s + at t + bl and s t <= as s + at t + bu on [sl, su] x [tl, tu]."""
@@ -225,4 +239,5 @@ def mccormick(s: Interval, t: Interval) -> BilinearBounds:
     return BilinearBounds(tc, sc, bl, bu)
 
 
-__all__ = ["LinearBounds", "BilinearBounds", "relax_tanh", "relax_dtanh", "mccormick"]
+__all__ = ["LinearBounds", "BilinearBounds", "relax_tanh", "relax_dtanh", "relax_value",
+           "relax_slope", "mccormick"]

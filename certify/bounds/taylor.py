@@ -2,16 +2,23 @@
 
 Linear maps act exactly on (c, g) and only the remainder wraps, so dependencies on the box
 coordinates survive the layers. Rounding: the float errors of c and g are absorbed into e with
-Higham's gamma_k |.| bounds, rounded up; tanh's Lagrange remainders use the interval rule of
-the second derivative and the bound 2 on the third.
+Higham's gamma_k |.| bounds, rounded up; the activation's Lagrange remainders use the
+enclosure of its second derivative over the range and the bound `d3_bound` on the third
+(tanh: 2). An activation without a third derivative (ELU, d3_bound = inf) gets a first-order
+remainder for f' instead: f'(q) - f'(c) lies in f''(range) (q - c) (f' is Lipschitz).
+tanh keeps its hand-written error terms (`tm_tanh_and_dtanh`); every other activation takes
+the float errors of its centre values f(c), f'(c), f''(c) from the radii of its own point
+enclosures (`certify.activations`: widened libm rules, outward-rounded arithmetic).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 
+from certify.activations import Activation
 from certify.bounds.eigen import (
     MAX_VERTEX_DIM,
     _vertices,
@@ -130,6 +137,41 @@ def tm_tanh_and_dtanh(t: TM, r: torch.Tensor) -> tuple[TM, TM]:
     return A, S
 
 
+def tm_activation(act: Activation, t: TM, r: torch.Tensor) -> tuple[TM, TM]:
+    """TMs of f(q) and f'(q) for a TM q and the activation `act` (tanh: `tm_tanh_and_dtanh`).
+
+    f(q) = f(c) + f'(c) (q - c) + f''(xi) (q - c)^2 / 2 and, when f''' exists,
+    f'(q) = f'(c) + f''(c) (q - c) + f'''(xi) (q - c)^2 / 2, |q - c| <= rho; else (ELU)
+    f'(q) = f'(c) + f''(c) (q - c) + (mu - f''(c)) (q - c), mu in f''(range) (f' Lipschitz).
+    The centre values are the midpoints of point enclosures; their radii (the float errors)
+    go into the remainders, as does the error of the products g f'(c), g f''(c).
+    """
+    if act.name == "tanh":
+        return tm_tanh_and_dtanh(t, r)
+    rho = tm_rho(t, r)
+    rng = Interval(down(t.c - rho), up(t.c + rho))
+    d2r = act.enclose_d2(rng)
+    M2 = d2r.mag()
+    cI = Interval(t.c, t.c)
+    t0, et0 = act.enclose_f(cI).midrad()
+    s0, es0 = act.enclose_d1(cI).midrad()
+    s2, es2 = act.enclose_d2(cI).midrad()
+    gr = _gr(t.g, _rshape(r, t.g.ndim))
+    ga = t.g * s0.unsqueeze(-1)
+    e_a = ((s0.abs() + es0) * t.e + es0 * gr + 0.5 * M2 * rho * rho + et0
+           + 4 * U * (t0.abs() + _gr(ga, _rshape(r, ga.ndim))))
+    A = TM(t0, ga, up(e_a * (1.0 + 8 * U) + 4 * TINY))
+    gs = t.g * s2.unsqueeze(-1)
+    if math.isfinite(act.d3_bound):
+        rem2 = 0.5 * act.d3_bound * rho * rho
+    else:  # f'' bounded, not continuous: |mu - f''(c)| <= max(hi - s2, s2 - lo)
+        rem2 = torch.maximum(up(d2r.hi - s2), up(s2 - d2r.lo)) * rho
+    e_s = ((s2.abs() + es2) * t.e + es2 * gr + rem2 + es0
+           + 4 * U * (s0.abs() + _gr(gs, _rshape(r, gs.ndim))))
+    S = TM(s0, gs, up(e_s * (1.0 + 8 * U) + 4 * TINY))
+    return A, S
+
+
 def tm_mul(a: TM, b: TM, r: torch.Tensor) -> TM:
     """Elementwise product (broadcasting)."""
     c = a.c * b.c
@@ -181,6 +223,7 @@ def network_taylor(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor
     zc = 0.5 * (lo + hi)
     r = up(torch.maximum(hi - zc, zc - lo))
     weights = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
+    act = net.act
     W0, b0 = weights[0]
     eye = torch.eye(d, dtype=torch.float64).expand(B, d, d)
     ztm = TM(zc, eye, torch.zeros_like(zc))
@@ -189,7 +232,7 @@ def network_taylor(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor
     T = TM(W0.T.expand(B, d, h0), torch.zeros(B, d, h0, d, dtype=torch.float64),
            torch.zeros(B, d, h0, dtype=torch.float64))
     for W, b in weights[1:]:
-        a, s = tm_tanh_and_dtanh(val, r)
+        a, s = tm_activation(act, val, r)
         s_b = TM(s.c.unsqueeze(1), s.g.unsqueeze(1), s.e.unsqueeze(1))
         Tn = tm_mul(s_b, T, r)  # [B, d, h]
         val = tm_linear(a, W.T, b, r)

@@ -238,11 +238,8 @@ class LipschitzCheck(Check):
         from certify.prover import bound_dk_dy
 
         s = context.settings
-        try:
-            local = bound_dk_dy(context.problem, seconds=s.lipschitz_seconds,
-                                max_boxes=s.max_boxes)
-        except NotImplementedError:  # the prover cannot enclose this activation (yet):
-            local = None  # the global bounds (LipSDP in its sector, naive) still stand
+        local = bound_dk_dy(context.problem, seconds=s.lipschitz_seconds,
+                            max_boxes=s.max_boxes)
         return check_lipschitz(context.problem, s, progress=context.progress,
                                local_upper=local)
 

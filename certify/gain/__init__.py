@@ -39,9 +39,10 @@ relaxation arithmetics implement the `Arithmetic` protocol of arithmetic.py):
    `act.enclose_d2` there); `scale` = `tm_mul`; `affine` = `tm_linear`.
 4. Linear relaxations: `act.relax(lo, hi)` and `act.relax_d1(lo, hi)` give sound lines for
    f and f' on each neuron's pre-activation interval.
-Every tanh-specific name in enclosures.py (tanh_enclosure, dtanh_enclosure,
-d2tanh_enclosure, torch.tanh, the 2 in the TM remainder) is then read from
-`spec.activation`.
+The prover already reads the activation (`net.act`) at each of those call sites (items 3 and
+4 are done: `certify.bounds.taylor.tm_activation`, `certify.bounds.relax.relax_value` /
+`relax_slope`; tanh keeps its own tighter rules); items 1 and 2, running the interval
+arithmetic through `propagate`, are not.
 """
 
 from __future__ import annotations
