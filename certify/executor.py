@@ -35,6 +35,7 @@ CONNECT_TIMEOUT = 5.0
 
 #: evaluators each worker process keeps (keyed by payload digest), least recently used dropped
 CACHE_SIZE = 4
+LOST_WORKER_RETRIES = 3  # re-scatter and re-run a round this many times when workers vanish
 
 
 @runtime_checkable
@@ -131,10 +132,29 @@ class DaskExecutor:
         workers once (scattered), not once per task."""
         if not len(items):
             return []
-        shared = self._shared(payload)
-        futures = self.client.map(_call_with_payload, [fn] * len(items), [shared] * len(items),
-                                  list(items), pure=False)
-        return self.client.gather(futures)
+        for attempt in range(LOST_WORKER_RETRIES + 1):
+            try:
+                shared = self._shared(payload)
+                futures = self.client.map(_call_with_payload, [fn] * len(items),
+                                          [shared] * len(items), list(items), pure=False)
+                return self.client.gather(futures)
+            except _lost_work_errors() as exc:
+                # A worker died while the payload was being scattered (the scheduler's
+                # replicate step then raises KeyError for its address) or every copy of the
+                # scattered payload was lost: scatter again and re-run. Each task's result
+                # depends only on its inputs, so a re-run gives the same answer.
+                self._forget(payload)
+                if attempt == LOST_WORKER_RETRIES:
+                    raise RuntimeError(f"Dask lost workers {attempt + 1} times in one round: "
+                                       f"{type(exc).__name__}: {exc}") from exc
+                self.client.wait_for_workers(1, timeout=60)
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _forget(self, payload: Any) -> None:
+        """Drop the cached scatter of `payload` (its copies may have died with a worker)."""
+        key = payload.get("key") if isinstance(payload, dict) else None
+        if key is not None:
+            self._scattered.pop(key, None)
 
     def _shared(self, payload: Any) -> Any:
         """`payload` on every worker: scattered once per payload "key" (a digest) when it has
@@ -169,6 +189,23 @@ class DaskExecutor:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _lost_work_errors() -> tuple[type[BaseException], ...]:
+    """What Dask raises on the client when workers vanish mid-call (not errors of the task).
+
+    KeyError: the scheduler's broadcast scatter names a worker that has just been removed;
+    cancelled futures: a scattered payload lost with every worker that held it; KilledWorker:
+    Dask gave up re-running a task after repeated worker deaths; closed comms: the same, seen
+    from the connection.
+    """
+    from asyncio import CancelledError
+
+    from distributed import CancelledError as DaskCancelled
+    from distributed.comm.core import CommClosedError
+    from distributed.scheduler import KilledWorker
+
+    return (KeyError, CancelledError, DaskCancelled, CommClosedError, KilledWorker)
 
 
 def _worker_environment() -> Any:

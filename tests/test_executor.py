@@ -232,25 +232,35 @@ def test_mpdi_proof_on_dask_equals_serial(dask2, serial_proof):
     _same(serial, remote)
 
 
+class _KillDuringRound:
+    """The Dask executor, but a worker is SIGKILLed as round `at` starts (after the payload
+    was scattered to it in round 1, before the round's tasks run): deterministic in rounds,
+    unlike a wall-clock timer that a fast proof can outrun."""
+
+    def __init__(self, inner, victim: int, at: int = 2) -> None:
+        self.inner, self.victim, self.at, self.calls = inner, victim, at, 0
+        self.killed_at: int | None = None
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def map_chunks(self, fn, payload, items):
+        self.calls += 1
+        if self.calls == self.at:
+            os.kill(self.victim, signal.SIGKILL)
+            self.killed_at = self.calls
+        return self.inner.map_chunks(fn, payload, items)
+
+
 def test_killed_worker_mid_proof_changes_nothing(dask2, serial_proof):
-    """SIGKILL a worker while the MPDI proof runs on 2 workers: the same outcome."""
+    """SIGKILL a worker while a round of the MPDI proof runs on 2 workers: the same outcome."""
     from certify.prover import prove_mpdi
 
     problem, serial = serial_proof
     victim = list(dask2.worker_pids().values())[1]
-    killed = threading.Event()
-
-    def kill() -> None:
-        os.kill(victim, signal.SIGKILL)
-        killed.set()
-
-    killer = threading.Timer(0.8, kill)
-    killer.start()
-    try:
-        with using(dask2):
-            remote = prove_mpdi(problem, seconds=1e9, max_boxes=BUDGET)
-    finally:
-        killer.cancel()
-    assert killed.is_set()  # the proof outlasted the timer: the kill was mid-proof
+    killer = _KillDuringRound(dask2, victim)
+    with using(killer):
+        remote = prove_mpdi(problem, seconds=1e9, max_boxes=BUDGET)
+    assert killer.killed_at == 2 and killer.calls >= 2  # killed mid-proof, between rounds
     _same(serial, remote)
     dask2.client.wait_for_workers(2, timeout=60)
