@@ -199,38 +199,46 @@ def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
     (gamma_{h+2} |L| |W| |x|); each update of the running sums adds gamma_4 (|S| + T)."""
     B, d = lo.shape
     zc = 0.5 * (lo + hi)
-    S = bias
-    T = torch.zeros_like(bias)
-    err = torch.zeros_like(bias)
+    # internal layout [B, J, R, h]: the intercept sums over h are then batched matrix-vector
+    # products against the per-column constants (no [B, R, J, h] temporaries)
+    sw = lambda x: x.transpose(1, 2)  # noqa: E731  [B, R, J, .] <-> [B, J, R, .]
+    col = lambda x: x.transpose(1, 2).transpose(-1, -2)  # noqa: E731  [B,1,J,h] -> [B,J,h,1]
+    dot = lambda L, c: (L @ c)[..., 0]  # noqa: E731  sum_h L c for c [B, J or 1, h, 1]
+    La = sw(La) if La is not None else None
+    LQ = sw(LQ) if LQ is not None else None
+    S = sw(bias)
+    T = torch.zeros_like(S)
+    err = torch.zeros_like(S)
     Lz = None
     for li in range(top - 1, -1, -1):
         lay = layers[li]
         h = lay.pre.lo.shape[-1]
         if La is not None:
             Lpre = La * lay.a_a
-            s_term = (La * lay.m_a).sum(-1)
-            t_term = (La.abs() * lay.wk_a).sum(-1)
+            s_term = dot(La, col(lay.m_a))
+            t_term = dot(La.abs(), col(lay.wk_a))
         if LQ is not None:
             st, SA, MQ, WKQ = lay.col_consts(cols)
-            q_pre = LQ * SA
+            q_pre = LQ * sw(SA)
             Lpre = q_pre if La is None else Lpre + q_pre
-            qs, qt = (LQ * MQ).sum(-1), (LQ.abs() * WKQ).sum(-1)
+            qs, qt = dot(LQ, col(MQ)), dot(LQ.abs(), col(WKQ))
             s_term = qs if La is None else s_term + qs
             t_term = qt if La is None else t_term + qt
-            Lt = LQ * st
+            Lt = LQ * sw(st)
         S = S + s_term + Lpre @ lay.b
         T = T + t_term
         err = err + gamma(4) * (S.abs() + T)
         if lay.bslack is not None:
-            err = err + up((Lpre.abs() * lay.bslack).sum(-1) * (1 + gamma(h + 2)))
+            err = err + up(dot(Lpre.abs(), col(lay.bslack)) * (1 + gamma(h + 2)))
         if li > 0:
             La = Lpre @ lay.W
             LQ = Lt @ lay.W if LQ is not None else None
         else:
-            Lz = Lpre @ lay.W  # [B, R, J, d]
+            Lz = Lpre @ lay.W  # [B, J, R, d]
             if LQ is not None:
-                S = S + (Lt * lay.W[:, cols].T[None, None]).sum(-1)
+                S = S + dot(Lt, lay.W[:, cols].T[None, :, :, None])
                 err = err + gamma(4) * (S.abs() + T)
+    Lz, S, T, err = sw(Lz), sw(S), sw(T), sw(err)
     zcq = zc[:, None, None, :]
     cz = (Lz * zcq).sum(-1)
     S = cz + S
