@@ -34,6 +34,13 @@ _REQUIRED = ("format", "format_version", "system_spec", "lam", "P", "architectur
              "state_dict")
 
 
+# What zipfile raises for a damaged archive: bad records, undecodable names (ValueError), a
+# version or compression method it does not implement (NotImplementedError, e.g. after flipped
+# bytes in a member header), an "encrypted" flag (RuntimeError), a cut-short stream (EOFError).
+ZIP_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError,
+              NotImplementedError, RuntimeError)
+
+
 def versions() -> dict[str, str]:
     """Versions of certify and the libraries whose numbers it depends on."""
     out = {}
@@ -169,7 +176,7 @@ def unreadable_reason(path: Path) -> str | None:
     if head.startswith(_ZIP_MAGIC):
         try:
             archive = zipfile.ZipFile(path)
-        except (zipfile.BadZipFile, OSError, ValueError):  # ValueError: undecodable names
+        except ZIP_ERRORS:
             return (f"truncated or damaged file: the ZIP archive that torch.save writes has no "
                     f"end record ({size} bytes; was a download or copy cut short?)")
         with archive:
@@ -180,7 +187,7 @@ def unreadable_reason(path: Path) -> str | None:
                         f"record that torch.save writes (it holds {listed or 'nothing'})")
             try:
                 broken = archive.testzip()
-            except (zipfile.BadZipFile, OSError, EOFError, ValueError):
+            except ZIP_ERRORS:
                 broken = "?"
             if broken is not None:
                 return (f"damaged file: the ZIP archive's record {broken!r} fails its "

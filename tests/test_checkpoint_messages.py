@@ -70,3 +70,34 @@ def test_zip_with_a_damaged_record_is_named(tmp_path, capsys):
     code, _, err = run_cli(capsys, "run", str(bad), "--quiet")
     assert code == 2 and err.count("\n") == 1
     assert "damaged file" in err and "fails its checksum" in err, err
+
+
+def _with_member_version(data: bytes, version: int) -> bytes:
+    """The archive with every member's 'version needed to extract' set to `version` (local
+    headers and central directory), which zipfile refuses with NotImplementedError."""
+    out = bytearray(data)
+    for magic, offset in ((b"PK\x03\x04", 4), (b"PK\x01\x02", 6)):
+        at = out.find(magic)
+        while at >= 0:
+            struct.pack_into("<H", out, at + offset, version)
+            at = out.find(magic, at + 4)
+    return bytes(out)
+
+
+def test_zip_member_of_an_unknown_version_is_bad_input(tmp_path, capsys):
+    """Flipped bytes can make zipfile raise NotImplementedError ('zip file version 13.4'):
+    that is a damaged file (exit 2, one line), for checkpoints and for imported TorchScript."""
+    good = save_linear(tmp_path / "good.ckpt")
+    bad = tmp_path / "version.ckpt"
+    bad.write_bytes(_with_member_version(open(good, "rb").read(), 134))
+    with pytest.raises(NotImplementedError):  # the input class this test is about
+        zipfile.ZipFile(bad).testzip()
+    code, out, err = run_cli(capsys, "run", str(bad), "--quiet")
+    assert code == 2 and err.count("\n") == 1, err
+    assert "damaged file" in err and out == "", err
+    model = tmp_path / "model.pt"
+    model.write_bytes(bad.read_bytes())
+    code, out, err = run_cli(capsys, "import", str(model), "--system", "vdp", "-o",
+                             str(tmp_path / "m.ckpt"), "--activation", "tanh")
+    assert code == 2 and err.count("\n") == 1, err
+    assert not (tmp_path / "m.ckpt").exists()

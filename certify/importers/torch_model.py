@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from certify.checkpoint import ZIP_ERRORS
 from certify.importers.chain import ChainBuilder, Const, Node
 from certify.importers.result import READ_ERRORS, Layer, ModelImportError, first_line
 
@@ -45,7 +46,7 @@ def is_torchscript(path: Path) -> bool:
     try:
         with zipfile.ZipFile(path) as archive:
             names = archive.namelist()
-    except (zipfile.BadZipFile, OSError, ValueError):  # ValueError: undecodable names
+    except ZIP_ERRORS:
         return False
     return any(n.endswith("/constants.pkl") for n in names) and any("/code/" in n for n in names)
 
