@@ -19,7 +19,7 @@ from certify.errors import SpecError
 from certify.parse import FUNCTION_NAMES, parse_expression
 
 __all__ = ["FUNCTIONS", "DERIVED_FUNCTIONS", "parse_expression", "evaluate",
-           "compile_torch", "function_name", "TORCH"]
+           "compile_torch", "compile_torch_rows", "function_name", "TORCH"]
 
 #: Whitelisted functions: name -> (sympy function, torch point function).
 FUNCTIONS: dict[str, tuple[Any, Callable[[torch.Tensor], torch.Tensor]]] = {
@@ -106,56 +106,116 @@ def evaluate(expr: sympy.Expr, env: Mapping[sympy.Symbol, Any], algebra: Algebra
 
 
 Compiled = Callable[[Sequence[torch.Tensor]], "torch.Tensor | float"]
+CompiledRows = Callable[[torch.Tensor], torch.Tensor]
 
 
-def compile_torch(expr: sympy.Expr, symbols: Sequence[sympy.Symbol]) -> Compiled:
-    """A closure evaluating `expr` on tensors (one per symbol), built once from the tree.
+class _Emitter:
+    """Straight-line Python source for sympy trees, one temporary per operation.
 
-    Same operations as `evaluate` with `TORCH`, without re-walking the tree on every call
-    (the simulation calls f and h tens of thousands of times on small batches). Constant
-    subtrees are folded to Python floats; the result may be a float for a constant expression.
+    The operations are exactly those of a bottom-up walk (the same as `evaluate` with
+    `TORCH`, except that constant subtrees are folded to Python floats): sums and products
+    folded left to right, x**2 as x*x, x**k (k < 0) as 1/x**-k, functions from `FUNCTIONS`.
+    A sub-expression that occurs twice is computed once (the same operations on the same
+    inputs give the same floats, so this changes no value). The source holds only generated
+    names (columns c0.., temporaries t0.., constants k.. and functions F.. bound in its
+    namespace): no text of the spec reaches `exec`.
     """
-    index = {s: i for i, s in enumerate(symbols)}
 
-    def build(e: sympy.Expr) -> Compiled:
+    def __init__(self, symbols: Sequence[sympy.Symbol]) -> None:
+        self.index = {s: i for i, s in enumerate(symbols)}
+        self.lines: list[str] = []
+        self.names: dict[str, Any] = {"torch": torch}
+        self.memo: dict[sympy.Expr, str] = {}
+
+    def _bind(self, prefix: str, value: Any) -> str:
+        name = f"{prefix}{len(self.names)}"
+        self.names[name] = value
+        return name
+
+    def _temp(self, code: str) -> str:
+        name = f"t{len(self.lines)}"
+        self.lines.append(f"{name} = {code}")
+        return name
+
+    def emit(self, e: sympy.Expr) -> str:
+        """The name holding e's value (a tensor, or a Python float for a constant)."""
+        if e not in self.memo:
+            self.memo[e] = self._emit(e)
+        return self.memo[e]
+
+    def _emit(self, e: sympy.Expr) -> str:
         if e.is_Symbol:
-            i = index[e]
-            return lambda v: v[i]
+            return f"c{self.index[e]}"
         if not e.free_symbols:
-            c = float(e)
-            return lambda v: c
+            return self._bind("k", float(e))
         if e.is_Add or e.is_Mul:
-            parts = [build(a) for a in e.args]
-            add = e.is_Add
-
-            def fold(v: Sequence[torch.Tensor]) -> torch.Tensor | float:
-                out = parts[0](v)
-                for part in parts[1:]:
-                    out = out + part(v) if add else out * part(v)
-                return out
-
-            return fold
+            parts = [self.emit(a) for a in e.args]
+            op = " + " if e.is_Add else " * "
+            out = parts[0]
+            for part in parts[1:]:
+                out = self._temp(out + op + part)
+            return out
         if e.is_Pow:
             base, exponent = e.args
-            b = build(base)
+            b = self.emit(base)
             if exponent.is_Integer:
                 k = int(exponent)
                 if k == 2:
-                    return lambda v: b(v) * b(v)
-                return (lambda v: b(v) ** k) if k >= 0 else (lambda v: 1.0 / b(v) ** (-k))
+                    return self._temp(f"{b} * {b}")
+                return self._temp(f"{b} ** {k}" if k >= 0 else f"1.0 / {b} ** {-k}")
             if exponent.is_Number:
-                r = float(exponent)
-                return lambda v: b(v) ** r
-            ex = build(exponent)
-            return lambda v: torch.exp(ex(v) * torch.log(b(v)))
+                return self._temp(f"{b} ** {self._bind('k', float(exponent))}")
+            ex = self.emit(exponent)
+            return self._temp(f"torch.exp({ex} * torch.log({b}))")
         if isinstance(e, sympy.Function) and len(e.args) == 1:
             name = function_name(e)
             fn = (FUNCTIONS if name in FUNCTIONS else DERIVED_FUNCTIONS)[name][1]
-            a = build(e.args[0])
-            return lambda v: fn(a(v))
+            a = self.emit(e.args[0])
+            return self._temp(f"{self._bind('F', fn)}({a})")
         raise SpecError(f"cannot evaluate expression node {e.func.__name__}: {e}")
 
-    return build(expr)
+    def function(self, header: str, unpack: str, result: str, label: str) -> Callable:
+        body = "\n".join(f"    {line}" for line in [unpack, *self.lines, f"return {result}"])
+        namespace = dict(self.names)
+        exec(compile(f"def _fn({header}):\n{body}\n", f"<certify: {label}>", "exec"),
+             namespace)
+        return namespace["_fn"]
+
+
+def _columns(count: int) -> str:
+    return ", ".join(f"c{i}" for i in range(count)) + ("," if count == 1 else "")
+
+
+def compile_torch(expr: sympy.Expr, symbols: Sequence[sympy.Symbol]) -> Compiled:
+    """A function evaluating `expr` on tensors (one per symbol), generated once from the tree.
+
+    No tree walk per call (the simulation evaluates f and h tens of thousands of times on
+    small batches). Constant subtrees are folded to Python floats; the result may be a float
+    for a constant expression. See `compile_torch_rows` for whole vectors of expressions.
+    """
+    em = _Emitter(symbols)
+    result = em.emit(expr)
+    return em.function("v", f"{_columns(len(symbols))} = v" if symbols else "pass", result,
+                       str(expr)[:60])
+
+
+def compile_torch_rows(exprs: Sequence[sympy.Expr], symbols: Sequence[sympy.Symbol],
+                       label: str = "expressions") -> CompiledRows:
+    """One generated function x [B, len(symbols)] -> [B, len(exprs)]: every expression at
+    every row, columns stacked (a constant expression fills its column).
+
+    The same operations as `compile_torch` on each expression (so the same floats), in one
+    Python function: the columns are unpacked once and shared sub-expressions computed once,
+    which matters for the many small calls of the simulation and the grid sweeps.
+    """
+    em = _Emitter(symbols)
+    results = []
+    for e in exprs:
+        name = em.emit(e)
+        # a constant expression is a float (name "k..."): it fills a column like x's first
+        results.append(f"torch.full_like(c0, {name})" if name.startswith("k") else name)
+    return em.function("x", f"{_columns(len(symbols))} = x.unbind(1)",
+                       f"torch.stack([{', '.join(results)}], dim=-1)", label)
 
 
 class TorchAlgebra:

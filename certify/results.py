@@ -235,7 +235,7 @@ class SimulationResult:
 @dataclass
 class CheckFailure:
     """A check that produced no result of its own: it raised (ERROR, with the exception's
-    type and message) or its inputs were missing (SKIPPED, "not applicable" and why).
+    type and message) or its inputs were missing (NOT APPLICABLE, and why).
 
     `failed` marks the record in JSON, where it stands in place of the check's own result.
     """

@@ -180,5 +180,6 @@ def _spread(ranked: np.ndarray, width: np.ndarray, k: int) -> np.ndarray:
         i = int(np.argmax(free))  # the best remaining (ranked order)
         kept.append(i)
         free &= np.max(np.abs(scaled - scaled[i]), axis=1) > 0.05
-    rest = np.setdiff1d(np.arange(len(ranked)), kept)
-    return np.concatenate([np.array(kept, dtype=np.int64), rest])[:k]
+    rest = np.ones(len(ranked), dtype=bool)
+    rest[kept] = False  # the others, in rank order (np.setdiff1d would import numpy.ma)
+    return np.concatenate([np.array(kept, dtype=np.int64), np.flatnonzero(rest)])[:k]

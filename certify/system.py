@@ -24,7 +24,7 @@ import torch
 
 from certify.domain import check_domain
 from certify.errors import SettingsError, SpecError
-from certify.expr import compile_torch, parse_expression
+from certify.expr import CompiledRows, compile_torch_rows, parse_expression
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -167,7 +167,7 @@ class System:
         x = sympy.Matrix(self.symbols)
         self.jf_expr = sympy.Matrix(self.f_expr).jacobian(x)  # n x n
         self.jh_expr = sympy.Matrix(self.h_expr).jacobian(x)  # p x n
-        self._compiled: dict[str, list] = {}
+        self._compiled: dict[str, CompiledRows] = {}
 
     # ----- sizes ------------------------------------------------------------------------
     @property
@@ -184,35 +184,41 @@ class System:
         return all(sympy.diff(e, s) == 0 for e in self.jh_expr for s in self.symbols)
 
     # ----- batched point evaluation ------------------------------------------------------
-    def _eval_list(self, key: str, exprs: list[sympy.Expr], x: torch.Tensor) -> torch.Tensor:
+    def _rows(self, key: str) -> CompiledRows:
+        """The generated evaluator of expression list `key` (built on first use)."""
+        fn = self._compiled.get(key)
+        if fn is None:
+            exprs = {"f": self.f_expr, "h": self.h_expr, "fh": [*self.f_expr, *self.h_expr],
+                     "jf": list(self.jf_expr), "jh": list(self.jh_expr)}[key]
+            fn = self._compiled[key] = compile_torch_rows(exprs, self.symbols,
+                                                          f"{self.name} {key}")
+        return fn
+
+    def _eval(self, key: str, x: torch.Tensor) -> torch.Tensor:
         if x.ndim != 2 or x.shape[1] != self.n:
             raise ValueError(f"expected states of shape [batch, {self.n}]; got {list(x.shape)}")
-        compiled = self._compiled.get(key)
-        if compiled is None:
-            compiled = self._compiled[key] = [compile_torch(e, self.symbols) for e in exprs]
-        cols = [x[:, i] for i in range(self.n)]
-        like = cols[0]
-        values = []
-        for fn in compiled:
-            v = fn(cols)
-            values.append(v if isinstance(v, torch.Tensor) else torch.full_like(like, v))
-        return torch.stack(values, dim=-1)
+        return self._rows(key)(x)
 
     def f(self, x: torch.Tensor) -> torch.Tensor:
         """f(x) for x of shape [B, n] -> [B, n]."""
-        return self._eval_list("f", self.f_expr, x)
+        return self._eval("f", x)
 
     def h(self, x: torch.Tensor) -> torch.Tensor:
         """h(x) for x of shape [B, n] -> [B, p]."""
-        return self._eval_list("h", self.h_expr, x)
+        return self._eval("h", x)
+
+    def f_and_h(self, x: torch.Tensor) -> torch.Tensor:
+        """[f(x), h(x)] for x [B, n] -> [B, n + p] in one call (the same values as `f` and
+        `h`; shared sub-expressions computed once): the simulation's right-hand side."""
+        return self._eval("fh", x)
 
     def jac_f(self, x: torch.Tensor) -> torch.Tensor:
         """Symbolic Jacobian df/dx at x [B, n] -> [B, n, n]."""
-        return self._eval_list("jf", list(self.jf_expr), x).reshape(-1, self.n, self.n)
+        return self._eval("jf", x).reshape(-1, self.n, self.n)
 
     def jac_h(self, x: torch.Tensor) -> torch.Tensor:
         """Symbolic Jacobian dh/dx at x [B, n] -> [B, p, n]."""
-        return self._eval_list("jh", list(self.jh_expr), x).reshape(-1, self.p, self.n)
+        return self._eval("jh", x).reshape(-1, self.p, self.n)
 
     # ----- presentation ------------------------------------------------------------------
     def summary(self) -> dict[str, Any]:

@@ -91,3 +91,22 @@ def test_compiled_closure_matches_tree_evaluation(text):
     ref = evaluate(expr, {X: xs, Y: ys}, TORCH, xs)
     got = compile_torch(expr, [X, Y])([xs, ys])
     torch.testing.assert_close(torch.as_tensor(got, dtype=torch.float64).expand(3), ref)
+
+
+def test_compiled_rows_equal_each_compiled_expression_bit_for_bit():
+    """`compile_torch_rows` (one generated function, shared sub-expressions computed once)
+    gives exactly the floats of `compile_torch` per expression; constants fill a column."""
+    from certify.expr import compile_torch, compile_torch_rows
+
+    texts = ["x*(1 - x**2) + y", "sin(x*y) + sin(x*y)**2", "3.5", "y", "exp(y**0.5) / x",
+             "-x + y*(1 - x**2)"]
+    exprs = [parse_expression(t, NAMES) for t in texts]
+    gen = torch.Generator().manual_seed(0)
+    pts = 0.5 + torch.rand(257, 2, generator=gen, dtype=torch.float64)
+    got = compile_torch_rows(exprs, [X, Y])(pts)
+    assert got.shape == (257, len(texts))
+    for i, e in enumerate(exprs):
+        ref = compile_torch(e, [X, Y])([pts[:, 0], pts[:, 1]])
+        assert torch.equal(got[:, i], torch.as_tensor(ref, dtype=torch.float64).expand(257))
+        tree = evaluate(e, {X: pts[:, 0], Y: pts[:, 1]}, TORCH, pts[:, 0])
+        torch.testing.assert_close(got[:, i], tree, rtol=1e-15, atol=0)

@@ -304,14 +304,14 @@ def test_doubled_runs_share_the_batch_and_equal_separate_integrations():
     xh = 0.9 * x0
     noise = bounded_noise(200, 3, 1, 0.15, 0.01, seed=1)
     calls = []
-    f = vdp.f
-    vdp.f = lambda s: (calls.append(1), f(s))[1]
+    fh = vdp.f_and_h
+    vdp.f_and_h = lambda s: (calls.append(1), fh(s))[1]
     try:
         fine, coarse = simulate_doubled(vdp, net, x0, xh, dt=0.01, steps=200, noise=noise,
                                         doubled=[0, 2], doubled_steps=60)
     finally:
-        del vdp.f
-    assert len(calls) == 4 * 200  # one f call per stage, the doubled runs included
+        del vdp.f_and_h
+    assert len(calls) == 4 * 200  # one f (and h) call per stage, the doubled runs included
     alone = simulate(vdp, net, x0, xh, dt=0.01, steps=200, noise=noise)
     assert torch.equal(fine.x, alone.x) and torch.equal(fine.xhat, alone.xhat)
     ref = simulate(vdp, net, x0[[0, 2]], xh[[0, 2]], dt=0.02, steps=60,
@@ -373,3 +373,25 @@ def test_vdp_certified_runs_stay_valid_beyond_a_time_constant():
     chosen = [r for r in res.runs if r.label.startswith("start")]
     assert len(chosen) == 3 and all(r.window > res.time_constant for r in chosen)
     assert len(res.message) < 500 and "see the table of runs" in res.message
+
+
+@pytest.mark.parametrize("structure,p", [("structural", 1), ("structural", 2), ("direct", 1),
+                                         ("direct", 2)])
+def test_simulation_gain_equals_the_general_point_evaluation_bit_for_bit(structure, p):
+    """The simulation's leaner value-only arithmetic gives exactly the floats of
+    `certify.gain.gain_value` with the general row arithmetic (the one every kernel uses)."""
+    from certify.gain import gain_value
+    from certify.integrate import GainFunction
+
+    text = ("name='t'\nstates=['a','b','c']\noutputs=" + str(["o1", "o2"][:p]) +
+            "\nf=['b','c','-a']\nh=" + str(["a", "a*b"][:p]) +
+            "\n[box]\nX=[[-1,1],[-1,1],[-1,1]]\nY=" + str([[-1, 1], [-1, 1]][:p]) + "\n")
+    system = System.from_text(text, origin="test")
+    net = random_network(3, p, structure=structure, seed=3)
+    gen = torch.Generator().manual_seed(1)
+    xhat = torch.rand(11, 3, generator=gen, dtype=torch.float64) * 2 - 1
+    y = torch.rand(11, p, generator=gen, dtype=torch.float64) * 2 - 1
+    with torch.no_grad():
+        ref = gain_value(net.spec(torch.float64, detach=True), system, xhat, y)
+        got = GainFunction(system, net)(xhat, y)
+    assert torch.equal(got, ref)

@@ -6,7 +6,8 @@ certificate but that `verify()` does not run (the metric SDP of `certify check`)
 
 Fault isolation: a check that raises becomes that check's ERROR result (`CheckFailure`, with
 the exception's type and message); a check whose `needs` are missing or failed is not run
-and is reported as not applicable, with the reason; every other check still runs. Bad input
+and is reported as NOT APPLICABLE (`Status.NOT_APPLICABLE`, never SKIPPED, which means the
+user skipped it), with the reason; every other check still runs. Bad input
 (`CertifyError`) and interrupts are not isolated: they stop the run as they should.
 """
 
@@ -88,7 +89,8 @@ def run_one(check: Check, context: Context, skip: tuple[str, ...] = ()) -> tuple
     t0 = time.perf_counter()
     missing = _missing_inputs(check, context, skip)
     if missing:
-        result: Any = CheckFailure(Status.SKIPPED, "not applicable: " + "; ".join(missing))
+        result: Any = CheckFailure(Status.NOT_APPLICABLE,
+                                   "not applicable: " + "; ".join(missing))
     else:
         try:
             result = check.run(context)

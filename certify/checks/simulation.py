@@ -114,7 +114,9 @@ def _first_exit(problem: Problem, x: torch.Tensor, xhat: torch.Tensor, v: torch.
 
 
 def _thin(T: int, limit: int = MAX_SAMPLES) -> np.ndarray:
-    return np.unique(np.linspace(0, T - 1, min(T, limit)).round().astype(np.int64))
+    """At most `limit` sample indices spread evenly over [0, T), increasing, no repeats."""
+    idx = np.linspace(0, T - 1, min(T, limit)).round().astype(np.int64)  # non-decreasing
+    return idx[np.concatenate([[True], idx[1:] != idx[:-1]])]  # np.unique imports numpy.ma
 
 
 def _best_bound(bounds: BoundsResult | None, P: np.ndarray, e0: np.ndarray,
