@@ -5,7 +5,9 @@ Each run builds a seeded instance (tuned lam cached in --cache), proves it with 
 interval baseline (`prove_mpdi(..., taylor=False)`), then prints
 {instance, prover, status, boxes, seconds, upper, proved_volume, volume_history, baseline: {...}}.
 A final summary line per family gives the medians. The machine is shared: record the load
-(`load` field: 1-minute load average at the start of each run).
+(`load` field: 1-minute load average at the start of each run; `cpu_seconds` is the process's
+CPU time, steadier than the wall time under load). `--code DIR` imports `certify` from another
+checkout, for before/after comparisons in one run.
 
 Examples:
     python bench/prove_suite.py --family 2x10 --n 2 --margin 0.02 --seeds 0 1 2 --seconds 60
@@ -23,6 +25,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if "--code" in sys.argv:  # import `certify` from another checkout (side-by-side comparisons)
+    sys.path.insert(0, str(Path(sys.argv[sys.argv.index("--code") + 1]).resolve()))
 
 import torch  # noqa: E402
 
@@ -45,13 +49,14 @@ def _run(prob, seconds: float, max_boxes: int, taylor: object, crown: bool = Tru
     from certify.bounds.mpdi import STAGE_COUNTS
 
     before = dict(STAGE_COUNTS)
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     out = prove_mpdi(prob, seconds=seconds, max_boxes=max_boxes, taylor=taylor, crown=crown,
                      batch=batch)
     st = out.stats
     stages = {k: STAGE_COUNTS[k] - before[k] for k in STAGE_COUNTS}
     return {"status": out.status.value, "boxes": st.boxes_processed, "stages": stages,
-            "seconds": round(time.perf_counter() - t, 3), "upper": out.upper,
+            "seconds": round(time.perf_counter() - t, 3),
+            "cpu_seconds": round(time.process_time() - cpu, 3), "upper": out.upper,
             "lower": out.lower, "proved_volume": round(st.proved_volume_fraction, 6),
             "volume_history": _history(st.volume_history)}
 
@@ -99,6 +104,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--batch", type=int, default=1024, help="boxes per B&B round")
     ap.add_argument("--cache", default="/tmp/certify-bench/instances.json")
+    ap.add_argument("--code", default=None,
+                    help="checkout whose `certify` is imported (default: this one); for "
+                         "before/after runs side by side")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cache = Path(args.cache) if args.cache else None
@@ -116,7 +124,8 @@ def main() -> None:
                         prob, info = _cached_instance(spec, cache)
                         setup = time.perf_counter() - t
                         rec = {"instance": spec.name, "family": f"{fam}-g{g:g}-n{n}-m{margin:g}",
-                               "prover": args.prover, "load": round(os.getloadavg()[0], 2),
+                               "prover": args.prover, "code": args.code or "this",
+                               "load": round(os.getloadavg()[0], 2),
                                "lam": prob.lam, "sampled_max": info["sampled_max"],
                                "setup_seconds": round(setup, 2)}
                         rec.update(_run(prob, args.seconds, args.max_boxes, taylor, crown,
@@ -130,6 +139,7 @@ def main() -> None:
         summ = {"summary": fam, "runs": len(rs),
                 "statuses": [r["status"] for r in rs],
                 "median_seconds": statistics.median(r["seconds"] for r in rs),
+                "median_cpu_seconds": statistics.median(r["cpu_seconds"] for r in rs),
                 "median_boxes": statistics.median(r["boxes"] for r in rs)}
         if all("baseline" in r for r in rs):
             summ["baseline_statuses"] = [r["baseline"]["status"] for r in rs]

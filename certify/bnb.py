@@ -3,14 +3,17 @@
 The caller supplies `evaluate(lo, hi) -> BoxEval`: for each box a sound upper bound of the
 function over the box, its float64 value at the box centre (a falsification point) and a
 split score per dimension. The driver keeps the open boxes as tensors, takes the worst
-(largest upper bound) `batch` of them each step, bisects each along its best dimension and
-evaluates the children together. A box is closed when its bound is at most `threshold`
+(largest upper bound) `batch` of them each step (in decision mode: half worst, half nearest to
+closing), bisects each along its best dimension and evaluates the children together.
+A box is closed when its bound is at most `threshold`
 (decision mode: proved) or within `tol` of the best value found (maximisation mode). NaN or
 Inf bounds never close a box; a box split past `max_depth` is set aside as UNKNOWN.
 
 The loop runs in deterministic rounds (the executor contract, `certify.executor`): each round
 takes the `batch` worst open boxes in a fixed order (stable sort on the bound), bisects them,
 evaluates all children with one `evaluate(lo, hi)` call, then closes / sets aside in order.
+In decision mode half of each batch is instead the open boxes nearest to the threshold (the
+rest the worst), so a run cut short by its budget has closed what was nearly closed.
 With an `executor` of more than one worker and a picklable `remote = (chunk_fn, payload)`
 (`chunk_fn(payload, lo, hi) -> BoxEval`, module level), the children are cut into
 `executor.workers * CHUNKS_PER_WORKER` contiguous chunks evaluated with
@@ -287,10 +290,17 @@ def branch_and_bound(
         if now - t0 > seconds or processed >= max_boxes:
             budget_exhausted = True
             break
-        # pick the worst boxes (stable order: deterministic rounds)
+        # pick the boxes (stable order: deterministic rounds): the worst ones; in decision
+        # mode half of the batch is the boxes nearest to closing instead, so that a budgeted
+        # run closes regions early while the worst boxes (counterexamples) are still refined
         key = torch.nan_to_num(open_ub, nan=math.inf)
         k = min(batch, len(open_box))
-        idx = torch.sort(key, descending=True, stable=True).indices[:k]
+        order = torch.sort(key, descending=True, stable=True).indices
+        if threshold is not None and len(order) > k:
+            kw = (k + 1) // 2
+            idx = torch.cat([order[:kw], order[len(order) - (k - kw):]])
+        else:
+            idx = order[:k]
         mask = torch.zeros(len(open_box), dtype=torch.bool)
         mask[idx] = True
         work = _take(open_box, mask)

@@ -53,3 +53,21 @@ def test_chunked_rounds_match_the_serial_run() -> None:
 def test_chunked_rounds_still_find_a_planted_violation() -> None:
     out = prove_mpdi(planted_problem("corner"), seconds=20.0, executor=ChunkedSerial())
     assert out.status is Status.VIOLATED
+
+
+def test_budgeted_decision_rounds_close_the_easy_region() -> None:
+    """A region that never closes (bound 1 > 0) must not starve the rest: half of every
+    round goes to the boxes nearest to closing, so a budgeted run proves the easy half."""
+    from certify.bnb import BoxEval, branch_and_bound
+
+    def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+        width = (hi - lo)[:, 0]
+        hard = lo[:, 0] < 0.5
+        upper = torch.where(hard, torch.ones_like(width), width - 0.1)
+        return BoxEval(upper=upper, centre_value=-torch.ones_like(width))
+
+    out = branch_and_bound(torch.zeros(1, dtype=torch.float64), torch.ones(1, dtype=torch.float64),
+                           evaluate, threshold=0.0, max_boxes=400, batch=4, max_depth=200)
+    assert not out.complete and not out.violated
+    assert out.upper == 1.0
+    assert 0.49 <= out.stats.proved_volume_fraction <= 0.5

@@ -190,63 +190,85 @@ class _Layer:
 
 def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
               LQ: torch.Tensor | None, bias: torch.Tensor, cols: torch.Tensor,
-              lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+              lo: torch.Tensor, hi: torch.Tensor
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Backward pass from coefficients on a_{top-1} (La) and on Q_{top-1}^j (LQ; None for
-    value-only queries), both [B, R, J, h], down to z: returns (Lz [B, R, J, d], c [B, R, J])
-    with query >= Lz . (z - zc) + c for every z in the box (real arithmetic).
+    value-only queries), both [B, R, J, h], plus a constant `bias` [B, R, J], down to z:
+    returns (Lz [B, R, J, d], cl, cu [B, R, J]) with
+    Lz . (z - zc) + cl <= query <= Lz . (z - zc) + cu for every z in the box (real arithmetic).
+
+    Both sides come from ONE pass: every relaxation is a pair of parallel lines
+    a x + m +- w, so the coefficients of the query and of its negation are negatives of each
+    other and only the intercepts differ: the signed part S = sum L m (+ biases) is shared and
+    the radius part T = sum |L| w enters as S - T (lower) and S + T (upper).
 
     Slack: gamma_{2h+8} |L| . K per layer (folded into the intercept radii) covers every
     elementwise product, every sum of at most 2h bias terms and the products L @ W
-    (gamma_{h+2} |L| |W| |x|); each update of the running bias adds gamma_4 |bias|."""
+    (gamma_{h+2} |L| |W| |x|); each update of the running sums adds gamma_4 (|S| + T)."""
     B, d = lo.shape
     zc = 0.5 * (lo + hi)
-    err = torch.zeros_like(bias)
+    # internal layout [B, J, R, h]: the intercept sums over h are then batched matrix-vector
+    # products against the per-column constants (no [B, R, J, h] temporaries)
+    sw = lambda x: x.transpose(1, 2)  # noqa: E731  [B, R, J, .] <-> [B, J, R, .]
+    col = lambda x: x.transpose(1, 2).transpose(-1, -2)  # noqa: E731  [B,1,J,h] -> [B,J,h,1]
+    dot = lambda L, c: (L @ c)[..., 0]  # noqa: E731  sum_h L c for c [B, J or 1, h, 1]
+    La = sw(La) if La is not None else None
+    LQ = sw(LQ) if LQ is not None else None
+    S = sw(bias)
+    T = torch.zeros_like(S)
+    err = torch.zeros_like(S)
     Lz = None
     for li in range(top - 1, -1, -1):
         lay = layers[li]
         h = lay.pre.lo.shape[-1]
         if La is not None:
             Lpre = La * lay.a_a
-            bterm = La * lay.m_a - La.abs() * lay.wk_a
+            s_term = dot(La, col(lay.m_a))
+            t_term = dot(La.abs(), col(lay.wk_a))
         if LQ is not None:
             st, SA, MQ, WKQ = lay.col_consts(cols)
-            q_pre = LQ * SA
+            q_pre = LQ * sw(SA)
             Lpre = q_pre if La is None else Lpre + q_pre
-            q_b = LQ * MQ - LQ.abs() * WKQ
-            bterm = q_b if La is None else bterm + q_b
-            Lt = LQ * st
-        bias = bias + bterm.sum(-1) + Lpre @ lay.b
-        err = err + gamma(4) * bias.abs()
+            qs, qt = dot(LQ, col(MQ)), dot(LQ.abs(), col(WKQ))
+            s_term = qs if La is None else s_term + qs
+            t_term = qt if La is None else t_term + qt
+            Lt = LQ * sw(st)
+        S = S + s_term + Lpre @ lay.b
+        T = T + t_term
+        err = err + gamma(4) * (S.abs() + T)
         if lay.bslack is not None:
-            err = err + up((Lpre.abs() * lay.bslack).sum(-1) * (1 + gamma(h + 2)))
+            err = err + up(dot(Lpre.abs(), col(lay.bslack)) * (1 + gamma(h + 2)))
         if li > 0:
             La = Lpre @ lay.W
             LQ = Lt @ lay.W if LQ is not None else None
         else:
-            Lz = Lpre @ lay.W  # [B, R, J, d]
+            Lz = Lpre @ lay.W  # [B, J, R, d]
             if LQ is not None:
-                bias = bias + (Lt * lay.W[:, cols].T[None, None]).sum(-1)
-                err = err + gamma(4) * bias.abs()
+                S = S + dot(Lt, lay.W[:, cols].T[None, :, :, None])
+                err = err + gamma(4) * (S.abs() + T)
+    Lz, S, T, err = sw(Lz), sw(S), sw(T), sw(err)
     zcq = zc[:, None, None, :]
     cz = (Lz * zcq).sum(-1)
-    err = err + gamma(d + 4) * ((Lz * zcq).abs().sum(-1) + (cz + bias).abs())
-    c = down(cz + bias - up(up(err * (1.0 + 8 * U)) + TINY * (4 * d + 64)))
-    return Lz, c
+    S = cz + S
+    err = err + gamma(d + 4) * ((Lz * zcq).abs().sum(-1) + S.abs() + T)
+    E = up(up(err * (1.0 + 8 * U)) + TINY * (4 * d + 64))
+    return Lz, down((S - T) - E), up((S + T) + E)
 
 
-def _concretize_lower(Lz: torch.Tensor, c: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
-    """min over |dz| <= r of Lz . dz + c, rounded down."""
+def _concretize(Lz: torch.Tensor, cl: torch.Tensor, cu: torch.Tensor, r: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(min, max) over |dz| <= r of Lz . dz + cl and Lz . dz + cu, rounded outward."""
     d = Lz.shape[-1]
     rr = r.reshape(r.shape[0], *([1] * (Lz.ndim - 2)), d)
-    return down(c - up((Lz.abs() * rr).sum(-1) * (1.0 + gamma(d + 2))))
+    rad = up((Lz.abs() * rr).sum(-1) * (1.0 + gamma(d + 2)))
+    return down(cl - rad), up(cu + rad)
 
 
-def _queries(Wrows: torch.Tensor, J: int, B: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Coefficients [B, 2 out, J, h] for the queries (+-row i, column j) and the signs [2 out]."""
+def _queries(Wrows: torch.Tensor, J: int, B: int) -> torch.Tensor:
+    """Coefficients [B, out, J, h] for the queries (row i, column j); `_backward` bounds both
+    signs at once."""
     out, h = Wrows.shape
-    sign = torch.cat([torch.ones(out, dtype=torch.float64), -torch.ones(out, dtype=torch.float64)])
-    L = (sign[:, None] * torch.cat([Wrows, Wrows]))[None, :, None, :].expand(B, 2 * out, J, h)
-    return L, sign
+    return Wrows[None, :, None, :].expand(B, out, J, h)
 
 
 def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: torch.Tensor,
@@ -304,24 +326,22 @@ def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: 
         if crown:
             m = W.shape[0]
             tangents = len(colt) > 0
-            # value queries on pre_L = +-(W_L[i] a_{L-1} + b_L[i])
-            La, sign = _queries(W, 1, B)
-            bias = (sign * torch.cat([b, b]))[None, :, None].expand(B, 2 * m, 1)
-            Lz, c = _backward(layers, L, La, None, bias, colt[:1], lo, hi)
-            low = _concretize_lower(Lz, c, r)[..., 0].reshape(B, 2, m)
-            pre_iv = Interval(torch.maximum(pre_iv.lo, low[:, 0]),
-                              torch.minimum(pre_iv.hi, -low[:, 1]))
+            # value queries on pre_L = W_L[i] a_{L-1} + b_L[i] (both sides in one pass)
+            La = _queries(W, 1, B)
+            bias = b[None, :, None].expand(B, m, 1)
+            lowv, highv = _concretize(*_backward(layers, L, La, None, bias, colt[:1], lo, hi),
+                                      r)
+            pre_iv = Interval(torch.maximum(pre_iv.lo, lowv[..., 0]),
+                              torch.minimum(pre_iv.hi, highv[..., 0]))
             if not tangents:
                 continue
-            # tangent queries on t_L^j = +-W_L[i] Q_{L-1}^j
-            LQ, _ = _queries(W, len(colt), B)
-            Lz, c = _backward(layers, L, None, LQ, torch.zeros(B, 2 * m, len(colt),
-                                                                dtype=torch.float64),
-                              colt, lo, hi)
-            low = _concretize_lower(Lz, c, r).reshape(B, 2, m, len(colt))
+            # tangent queries on t_L^j = W_L[i] Q_{L-1}^j
+            LQ = _queries(W, len(colt), B)
+            zero = torch.zeros(B, m, len(colt), dtype=torch.float64)
+            lowt, hight = _concretize(*_backward(layers, L, None, LQ, zero, colt, lo, hi), r)
             tl, th = tan_iv.lo.clone(), tan_iv.hi.clone()
-            tl[..., colt] = torch.maximum(tl[..., colt], low[:, 0])
-            th[..., colt] = torch.minimum(th[..., colt], -low[:, 1])
+            tl[..., colt] = torch.maximum(tl[..., colt], lowt)
+            th[..., colt] = torch.minimum(th[..., colt], hight)
             tan_iv = Interval(tl, th)
     jac = TM(T.c.transpose(1, 2), T.g.transpose(1, 2), T.e.transpose(1, 2))  # [B, out, d]
     return ForwardBounds(pres, tans, val, jac, r, layers)
@@ -337,12 +357,10 @@ def jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, cols: l
     out = WH.shape[0]
     colt = torch.as_tensor(cols, dtype=torch.long)
     J = len(cols)
-    LQ, _ = _queries(WH, J, B)
-    Lz, c = _backward(fb.layers, len(fb.layers), None, LQ,
-                      torch.zeros(B, 2 * out, J, dtype=torch.float64), colt, lo, hi)
-    Lz = Lz.reshape(B, 2, out, J, d)
-    c = c.reshape(B, 2, out, J)
-    return LinearEnclosure(gl=Lz[:, 0], cl=c[:, 0], gu=-Lz[:, 1], cu=-c[:, 1])
+    LQ = _queries(WH, J, B)
+    Lz, cl, cu = _backward(fb.layers, len(fb.layers), None, LQ,
+                           torch.zeros(B, out, J, dtype=torch.float64), colt, lo, hi)
+    return LinearEnclosure(gl=Lz, cl=cl, gu=Lz, cu=cu)
 
 
 def value_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, fb: ForwardBounds
@@ -353,13 +371,11 @@ def value_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, fb: Forwar
     B, d = lo.shape
     WH, bH = (x.to(torch.float64) for x in net.weights()[-1])
     out = WH.shape[0]
-    La, sign = _queries(WH, 1, B)
-    bias = (sign * torch.cat([bH, bH]))[None, :, None].expand(B, 2 * out, 1)
-    Lz, c = _backward(fb.layers, len(fb.layers), La, None, bias, torch.zeros(1, dtype=torch.long),
-                      lo, hi)
-    Lz = Lz.reshape(B, 2, out, d)
-    c = c.reshape(B, 2, out)
-    return LinearEnclosure(gl=Lz[:, 0], cl=c[:, 0], gu=-Lz[:, 1], cu=-c[:, 1])
+    La = _queries(WH, 1, B)
+    bias = bH[None, :, None].expand(B, out, 1)
+    Lz, cl, cu = _backward(fb.layers, len(fb.layers), La, None, bias,
+                           torch.zeros(1, dtype=torch.long), lo, hi)
+    return LinearEnclosure(gl=Lz[..., 0, :], cl=cl[..., 0], gu=Lz[..., 0, :], cu=cu[..., 0])
 
 
 def network_crown_tms(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, cols: list[int],

@@ -1,6 +1,8 @@
 """Sound upper bounds of lam_max for point and interval symmetric matrices (batched).
 
-Rounding: n <= 2 closed forms rounded outward; otherwise LAPACK eigvalsh plus a margin of
+Rounding: n <= 2 closed forms rounded outward; n = 3 an approximate closed form certified by
+Sylvester's criterion on mu I - S with a priori error bounds of the minors (`_lam3_certified`;
+LAPACK where that fails); otherwise LAPACK eigvalsh plus a margin of
 8 (n + 1) u ||A||_F (Weyl plus backward stability); spectral radii of non-negative matrices by a
 Collatz-Wielandt quotient max_i (R u)_i / u_i rounded up (valid for any u > 0).
 """
@@ -10,7 +12,7 @@ from __future__ import annotations
 import torch
 
 from certify.bounds.interval_ops import nan_min
-from certify.intervals import TINY, Interval, gamma, up, widen_up
+from certify.intervals import TINY, Interval, down, gamma, up, widen_up
 
 U = 2.0**-53
 MAX_VERTEX_DIM = 8  # beyond 2^8 vertices per box, the first-order term joins the remainder
@@ -24,12 +26,67 @@ def lam_max_upper_point(S: torch.Tensor) -> torch.Tensor:
     if n == 2:
         a, b, c = S[..., 0, 0], S[..., 0, 1], S[..., 1, 1]
         return _lam2_upper(a, b.abs(), c)
+    if n == 3 and S.numel() > 0:
+        mu, ok = _lam3_certified(S)
+        if bool(ok.all()):
+            return mu
+        flat, okf = S.reshape(-1, 3, 3), ok.reshape(-1)
+        out = mu.reshape(-1).clone()
+        out[~okf] = _lam_max_upper_lapack(flat[~okf])
+        return out.reshape(mu.shape)
+    return _lam_max_upper_lapack(S)
+
+
+def _lam_max_upper_lapack(S: torch.Tensor) -> torch.Tensor:
+    """LAPACK eigvalsh plus the margin 8 (n + 1) u ||S||_F (module docstring)."""
+    n = S.shape[-1]
+    bad = ~torch.isfinite(S).reshape(*S.shape[:-2], -1).all(-1)
+    S = torch.where(bad[..., None, None], torch.zeros_like(S), S)  # LAPACK refuses NaN
     ev = torch.linalg.eigvalsh(S)[..., -1]
     norm = torch.linalg.matrix_norm(S)  # Frobenius
     margin = 8.0 * (n + 1) * U * up(norm * (1.0 + 4.0 * n * U)) + TINY
-    bad = ~torch.isfinite(S).reshape(*S.shape[:-2], -1).all(-1)
     out = up(ev + margin)
     return torch.where(bad, torch.full_like(out, float("nan")), out)
+
+
+def _lam3_certified(S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(mu, ok) for symmetric 3x3 matrices [..., 3, 3] (lower triangle used, as eigvalsh):
+    where ok, lam_max(S) < mu is proved; elsewhere mu is meaningless.
+
+    mu = an approximate lam_max (trigonometric closed form) plus a relative 2^-30; the proof
+    is Sylvester's criterion for mu I - S: with m_i = down(mu - s_ii) <= the exact diagonal
+    (so M <= mu I - S entrywise on the diagonal, equal elsewhere), M > 0 iff its leading
+    minors are positive, and each float minor is trusted only when it exceeds its rounding
+    error gamma_8 * (sum of the absolute values of its terms) (at most 5 roundings per
+    term; the bound itself computed with a further factor 1 + gamma_8; terms near underflow
+    are refused). NaN/Inf: not ok."""
+    a, b, c = S[..., 0, 0], S[..., 1, 1], S[..., 2, 2]
+    d, e, f = S[..., 1, 0], S[..., 2, 0], S[..., 2, 1]
+    q = (a + b + c) / 3.0
+    p1 = d * d + e * e + f * f
+    p2 = (a - q) ** 2 + (b - q) ** 2 + (c - q) ** 2 + 2.0 * p1
+    p = torch.sqrt(p2 / 6.0)
+    ps = torch.where(p > 0, p, torch.ones_like(p))
+    ba, bb, bc = (a - q) / ps, (b - q) / ps, (c - q) / ps
+    bd, be, bf = d / ps, e / ps, f / ps
+    det_b = ba * (bb * bc - bf * bf) - bd * (bd * bc - bf * be) + be * (bd * bf - bb * be)
+    phi = torch.acos((0.5 * det_b).clamp(-1.0, 1.0)) / 3.0
+    lam = torch.where(p > 0, q + 2.0 * p * torch.cos(phi), q)
+    scale = a.abs() + b.abs() + c.abs() + d.abs() + e.abs() + f.abs()
+    mu = up(lam + (2.0**-30) * scale + 1e-290)
+    m0, m1, m2 = down(mu - a), down(mu - b), down(mu - c)
+    g8 = gamma(8) * (1.0 + gamma(8))
+    D2 = m0 * m1 - d * d
+    e2 = g8 * (m0.abs() * m1.abs() + d * d)
+    D3 = m0 * (m1 * m2 - f * f) - d * (d * m2 + f * e) - e * (d * f + m1 * e)
+    per = m0.abs() * (m1.abs() * m2.abs() + f * f) + d.abs() * (d.abs() * m2.abs()
+                                                                + (f * e).abs()) \
+        + e.abs() * ((d * f).abs() + m1.abs() * e.abs())
+    e3 = g8 * per
+    # terms far from underflow (there the relative error bounds would not hold)
+    ok = (m0 > 0) & (D2 - e2 > 0) & (D3 - e3 > 0) & (e2 > 1e-250) & (e3 > 1e-250) \
+        & torch.isfinite(mu) & torch.isfinite(e3)
+    return mu, ok
 
 
 def _lam2_upper(a: torch.Tensor, babs: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
