@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import torch
 
 from certify.activations import Activation
+from certify.activations.base import LinearBounds  # one type for every relaxation
 from certify.intervals import (
     Interval,
     down,
@@ -46,16 +47,6 @@ from certify.intervals import (
 
 _C_D1 = math.atanh(1.0 / math.sqrt(3.0))  # inflection points of tanh' (zeros of tanh''')
 _GAP = 1e-9
-
-
-@dataclass
-class LinearBounds:
-    """For all x in [lo, hi]: ls * x + li <= f(x) <= us * x + ui (real arithmetic)."""
-
-    lower_slope: torch.Tensor
-    lower_icpt: torch.Tensor
-    upper_slope: torch.Tensor
-    upper_icpt: torch.Tensor
 
 
 def _f_and_df(kind: str, x: Interval) -> tuple[Interval, Interval]:
