@@ -1,7 +1,9 @@
 """Plain interval enclosures of the gain network: value, Jacobian and second derivatives.
 
 Boxes live in z = (xhat, y) space: lo, hi [B, d], d = n + p. Forward-mode interval propagation
-layer by layer, pre-activations tightened by a mean-value form around the box centre. Rounding:
+layer by layer (`certify.gain.propagate` with `certify.gain.interval.IntervalArithmetic`, the
+one propagation of the gain), pre-activations tightened by a mean-value form around the box
+centre. Rounding:
 products with point weight matrices in midpoint-radius form with Higham's gamma_k bound added
 (`certify.intervals.matmul_point_right`), everything else outward by one ulp, the activation
 and its derivatives by its own sound enclosures (`certify.activations`: `enclose_f`,
@@ -16,6 +18,8 @@ from dataclasses import dataclass
 import torch
 
 from certify.bounds.interval_ops import iadd, intersect, isum, point
+from certify.gain.interval import IntervalArithmetic
+from certify.gain.propagate import propagate
 from certify.intervals import (
     Interval,
     h_enclosure,
@@ -24,8 +28,6 @@ from certify.intervals import (
     imul,
     jacobian_f_enclosure,
     jacobian_h_enclosure,
-    matmul_point_right,
-    midrad_to_interval,
     up,
 )
 from certify.network import GainNetwork
@@ -55,61 +57,21 @@ def network_enclosure(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, orde
     """
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
-    B, d = lo.shape
-    J = d if second_cols is None else int(second_cols)
-    weights = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
-    act = net.act
-    W0, b0 = weights[0]
+    d = lo.shape[1]
+    spec = net.spec(torch.float64, detach=True)
     zc = 0.5 * (lo + hi)
     zr = up(torch.maximum(hi - zc, zc - lo))
-    zdev = Interval(-zr, zr)  # z - c
-    c, r = matmul_point_right(zc, zr, W0.T)
-    val = midrad_to_interval(c, r) + point(b0.expand_as(c))
-    h0 = W0.shape[0]
-    T = point(W0.T.unsqueeze(0).expand(B, d, h0))  # [B, d, h]
-    S = None
-    if order >= 2:
-        zero = torch.zeros(B, J * d, h0, dtype=torch.float64)
-        S = Interval(zero, zero)
+    zdev = Interval(-zr.unsqueeze(-1), zr.unsqueeze(-1))  # z - c, [B, d, 1]
     pres: list[Interval] = []
-    for li, (W, b) in enumerate(weights[1:]):
+
+    def tighten(layer: int, pre: Interval, T: Interval) -> Interval:
         if center_pre is not None:
-            mv = isum(imul(T, Interval(zdev.lo.unsqueeze(-1), zdev.hi.unsqueeze(-1))), 1)
-            val = intersect(val, center_pre[li] + mv)
-        pres.append(val)
-        t = act.enclose_f(val)
-        s1 = act.enclose_d1(val)
-        s1e = Interval(s1.lo.unsqueeze(1), s1.hi.unsqueeze(1))
-        Tn = imul(s1e, T)
-        rows_lo = [t.lo.unsqueeze(1), Tn.lo]
-        rows_hi = [t.hi.unsqueeze(1), Tn.hi]
-        if S is not None:
-            s2 = act.enclose_d2(val)
-            hw = T.lo.shape[-1]
-            Tj = Interval(T.lo[:, :J].unsqueeze(2), T.hi[:, :J].unsqueeze(2))  # [B, J, 1, h]
-            Tm = Interval(T.lo.unsqueeze(1), T.hi.unsqueeze(1))  # [B, 1, d, h]
-            TT = imul(Tj, Tm)  # [B, J, d, h]
-            s2e = Interval(s2.lo[:, None, None, :], s2.hi[:, None, None, :])
-            s1f = Interval(s1.lo[:, None, None, :], s1.hi[:, None, None, :])
-            Sn = iadd(imul(s2e, TT), imul(s1f, Interval(S.lo.reshape(B, J, d, hw),
-                                                        S.hi.reshape(B, J, d, hw))))
-            rows_lo.append(Sn.lo.reshape(B, J * d, hw))
-            rows_hi.append(Sn.hi.reshape(B, J * d, hw))
-        rows = Interval(torch.cat(rows_lo, 1), torch.cat(rows_hi, 1))
-        rc, rr = rows.midrad()
-        oc, orr = matmul_point_right(rc, rr, W.T)
-        out = midrad_to_interval(oc, orr)
-        val = out[:, 0] + point(b.expand_as(oc[:, 0]))
-        T = out[:, 1:1 + d]
-        if S is not None:
-            S = out[:, 1 + d:]
-    out_dim = val.lo.shape[-1]
-    d1 = Interval(T.lo.transpose(1, 2), T.hi.transpose(1, 2))  # [B, out, d]
-    d2 = None
-    if S is not None:
-        d2 = Interval(S.lo.reshape(B, J, d, out_dim).permute(0, 3, 1, 2),
-                      S.hi.reshape(B, J, d, out_dim).permute(0, 3, 1, 2))
-    return NetEnclosure(value=val, d1=d1, d2=d2, pre=pres)
+            pre = intersect(pre, center_pre[layer] + isum(imul(T, zdev), 1))
+        pres.append(pre)
+        return pre
+
+    out = propagate(spec, IntervalArithmetic(zc, zr), None, d, order, second_cols, tighten)
+    return NetEnclosure(value=out.value, d1=out.jac, d2=out.hess, pre=pres)
 
 
 # ----- the gain k(xhat, y) and its derivatives ---------------------------------------------

@@ -39,10 +39,11 @@ relaxation arithmetics implement the `Arithmetic` protocol of arithmetic.py):
    `act.enclose_d2` there); `scale` = `tm_mul`; `affine` = `tm_linear`.
 4. Linear relaxations: `act.relax(lo, hi)` and `act.relax_d1(lo, hi)` give sound lines for
    f and f' on each neuron's pre-activation interval.
-The prover already reads the activation (`net.act`) at each of those call sites (items 3 and
-4 are done: `certify.bounds.taylor.tm_activation`, `certify.bounds.relax.relax_value` /
-`relax_slope`; tanh keeps its own tighter rules); items 1 and 2, running the interval
-arithmetic through `propagate`, are not.
+Item 1 is done: `IntervalArithmetic` (interval.py) and `network_enclosure` is a call to
+`propagate` (bit-identical to the old layer walk, tests/test_gain_interval.py). The prover
+reads the activation (`net.act`) at the sites of items 3 and 4
+(`certify.bounds.taylor.tm_activation`, `certify.bounds.relax.relax_value` / `relax_slope`;
+tanh keeps its own tighter rules). Item 2, `gain_enclosure` through `compose`, is not done.
 """
 
 from __future__ import annotations
