@@ -12,7 +12,12 @@ import torch
 from certify.bounds.eigen import lam_max_upper_interval, taylor_upper
 from certify.bounds.interval_ops import bcast, const_lam, iadd, nan_min
 from certify.bounds.network_interval import gain_enclosure
-from certify.bounds.preconditioner import Preconditioner, _congruence, make_preconditioner
+from certify.bounds.preconditioner import (
+    Preconditioner,
+    _congruence,
+    candidate_preconditioners,
+    make_preconditioner,
+)
 from certify.bounds.taylor import jcl_taylor, tm_congruence, tm_lam_upper
 from certify.intervals import Interval, imul, up
 from certify.problem import Problem
@@ -158,3 +163,35 @@ def estimate_crown_gain(net, root_lo: torch.Tensor, root_hi: torch.Tensor,
         gains.append(float(ratio.median().clamp(2.0, 1e6)) if len(ratio) else CROWN_GAIN)
     return CrownGain(torch.tensor(scales, dtype=torch.float64),
                      torch.tensor(gains, dtype=torch.float64))
+
+
+def choose_preconditioner(problem: Problem, lam: float, probes: int = 48,
+                          scales: tuple[float, ...] = (1 / 16, 1 / 32)) -> Preconditioner:
+    """The congruence M (`candidate_preconditioners`) under which the box bounds close the most
+    of `probes` deterministic boxes per relative radius in `scales` (ties: the earlier
+    candidate, M ~ L^-1 first). Only tightness depends on the choice, never soundness; it is
+    deterministic in the problem, so every worker of a distributed proof chooses alike."""
+    cands = candidate_preconditioners(problem.P_t)
+    if len(cands) == 1:
+        return cands[0]
+    s = problem.system
+    import numpy as np
+
+    root = torch.as_tensor(np.concatenate([s.X, s.Y], 0), dtype=torch.float64)
+    rlo, rhi = root[:, 0], root[:, 1]
+    w = rhi - rlo
+    g = torch.Generator().manual_seed(4321)
+    u = torch.rand(probes, len(w), generator=g, dtype=torch.float64)
+    los, his = [], []
+    for sc in scales:
+        c = rlo + w * (sc + (1 - 2 * sc) * u)
+        los.append(c - w * sc)
+        his.append(c + w * sc)
+    lo, hi = torch.cat(los), torch.cat(his)
+    best, best_closed = cands[0], -1
+    for pc in cands:
+        bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, screen=None)
+        closed = int((bb.upper <= 0).sum())
+        if closed > best_closed:
+            best, best_closed = pc, closed
+    return best
