@@ -106,10 +106,16 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
                 from certify.bounds.crown import network_crown_tms
 
                 al, ah, ar = wl[again], wh[again], wr[again]
-                net_tms = network_crown_tms(net, al, ah, list(range(problem.n)),
-                                            value=problem.structural)
-                Jc = jcl_taylor(system, net, al, ah, net_tms=net_tms)
-                t_c, s_c = tm_lam_upper(tm_congruence(pc, Jc, lam, ar), ar)
+                if pc.kind == "none" and net.structure == "direct":
+                    from certify.bounds.mixed import contraction_tm_mixed
+
+                    Ac = contraction_tm_mixed(problem, pc, al, ah, ar, lam)
+                else:
+                    net_tms = network_crown_tms(net, al, ah, list(range(problem.n)),
+                                                value=problem.structural)
+                    Jc = jcl_taylor(system, net, al, ah, net_tms=net_tms)
+                    Ac = tm_congruence(pc, Jc, lam, ar)
+                t_c, s_c = tm_lam_upper(Ac, ar)
                 STAGE_COUNTS["crown"] += int(again.sum())
                 STAGE_COUNTS["crown_closed"] += int((t_c <= level).sum())
                 better = torch.nan_to_num(t_c, nan=float("inf")) < t_w[again]
