@@ -18,6 +18,7 @@ from certify.bounds.preconditioner import (
     candidate_preconditioners,
     make_preconditioner,
 )
+from certify.bounds.split import split_score
 from certify.bounds.taylor import jcl_taylor, tm_congruence, tm_lam_upper
 from certify.intervals import Interval, imul, up
 from certify.problem import Problem
@@ -43,7 +44,8 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
                     pc: Preconditioner | None = None, taylor: bool | str = True,
                     crown: bool = True, screen: float | None = None,
                     crown_gain: float | CrownGain = CROWN_GAIN,
-                    root_width: torch.Tensor | None = None) -> BoxBounds:
+                    root_width: torch.Tensor | None = None,
+                    split_rule: str = "sensitivity") -> BoxBounds:
     """Sound upper bounds of max over each box of lam_max(M D M^T), D with rate lam.
 
     taylor: True (first-order Taylor models through the network, the default), "interval"
@@ -52,7 +54,8 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     backward linear bound propagation (`certify.bounds.crown`). screen: boxes whose plain
     interval bound is already <= screen skip the Taylor / linear-relaxation work; the linear
     bounds are tried where a remainder `crown_gain` times smaller would pass (see
-    `estimate_crown_gain`)."""
+    `estimate_crown_gain`). split_rule: how the split score is formed
+    (`certify.bounds.split.split_score`)."""
     system, net = problem.system, problem.network
     if pc is None:
         pc = make_preconditioner(problem.P_t)
@@ -123,7 +126,7 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
                 t_w[idx] = t_c[better]
                 s_w[idx] = s_c[better]
         tay[work] = t_w
-        score[work] = s_w
+        score[work] = split_score(split_rule, s_w, wr, root_width, net)
     return BoxBounds(nan_min(plain, tay), plain, tay, score)
 
 
