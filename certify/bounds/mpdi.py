@@ -55,7 +55,10 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     backward linear bound propagation (`certify.bounds.crown`). screen: boxes whose plain
     interval bound is already <= screen skip the Taylor / linear-relaxation work; the linear
     bounds are tried where a remainder `crown_gain` times smaller would pass (see
-    `estimate_crown_gain`). split_rule: how the split score is formed
+    `estimate_crown_gain`). With the congruence M = I (pc.kind "none", chosen by
+    `choose_preconditioner`) and a direct network, the boxes the plain bound leaves go straight
+    to the linear bounds of P dN/dx with mixed rows (`certify.bounds.mixed`), which contain
+    the Taylor models entry by entry. split_rule: how the split score is formed
     (`certify.bounds.split.split_score`)."""
     system, net = problem.system, problem.network
     if pc is None:
