@@ -15,8 +15,12 @@ import numpy as np
 import torch
 
 from certify.bnb import Box, BoxEval, branch_and_bound
-from certify.bounds.mpdi import CROWN_GAIN, choose_preconditioner, estimate_crown_gain
-from certify.bounds.split import choose_split_rule
+from certify.bounds.mpdi import (
+    CROWN_GAIN,
+    choose_preconditioner,
+    direct_mixed,
+    estimate_crown_gain,
+)
 from certify.enclosures import (
     Preconditioner,
     dk_dy_box_upper,
@@ -87,23 +91,13 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
     P = problem.P_t
     gain = CROWN_GAIN
     rlo, rhi = _root(problem)
-    rule = "sensitivity"
-    if crown and taylor is True:
+    if crown and taylor is True and not direct_mixed(problem, pc):
         gain = estimate_crown_gain(problem.network, rlo, rhi)
-
-        def bounds(lo: torch.Tensor, hi: torch.Tensor, r: str):
-            bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, taylor=taylor, crown=crown,
-                                 screen=0.0, crown_gain=gain, root_width=rhi - rlo,
-                                 split_rule=r)
-            return bb.upper, bb.score
-
-        rule = choose_split_rule(bounds, rlo, rhi)
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
         # boxes the plain interval bound already proves skip the Taylor / relaxation work
         bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, taylor=taylor, crown=crown,
-                             screen=0.0, crown_gain=gain, root_width=rhi - rlo,
-                             split_rule=rule)
+                             screen=0.0, crown_gain=gain, root_width=rhi - rlo)
         ub = to_lam_max_D(bb.upper, P, pc)
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         c = 0.5 * (lo + hi)

@@ -93,7 +93,7 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     score = wscore.clone()
     if bool(work.any()):
         wl, wh, wr = lo[work], hi[work], zr[work]
-        if crown and DIRECT_MIXED and pc.kind == "none" and net.structure == "direct":
+        if crown and direct_mixed(problem, pc):
             # the mixed-row linear bounds contain the Taylor models entry by entry: no
             # Taylor stage first (measured on the 2x10 4-state chain: fewer boxes per CPU
             # second than screening with the Taylor models)
@@ -146,6 +146,12 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     return BoxBounds(nan_min(plain, tay), plain, tay, score)
 
 
+def direct_mixed(problem: Problem, pc: Preconditioner) -> bool:
+    """Whether `mpdi_box_bounds` (with crown) sends the boxes the plain bound leaves straight
+    to the mixed-row linear bounds: M = I (P != I) and a direct network."""
+    return DIRECT_MIXED and pc.kind == "none" and problem.network.structure == "direct"
+
+
 @dataclass
 class CrownGain:
     """Remainder reduction of the linear bounds over the Taylor models, as a function of the
@@ -190,7 +196,7 @@ def estimate_crown_gain(net, root_lo: torch.Tensor, root_hi: torch.Tensor,
                      torch.tensor(gains, dtype=torch.float64))
 
 
-def choose_preconditioner(problem: Problem, lam: float, probes: int = 48,
+def choose_preconditioner(problem: Problem, lam: float, probes: int = 24,
                           scales: tuple[float, ...] = (1 / 16, 1 / 32)) -> Preconditioner:
     """The congruence M (`candidate_preconditioners`) under which the box bounds close the most
     of `probes` deterministic boxes per relative radius in `scales` (ties: the earlier
