@@ -46,7 +46,6 @@ from certify.network import GainNetwork
 from certify.system import System
 
 U = 2.0**-53
-HERTZ_REMAINDER_DIM = 3  # tm_lam_upper: the remainder enters each vertex entrywise up to here
 
 
 @dataclass
@@ -347,7 +346,7 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False):
         lv = lam_max_upper_point(A.c)
     rr = rho_upper(rem)
     bound = up(lv + rr)
-    if S is not None and n <= HERTZ_REMAINDER_DIM:
+    if S is not None and n <= 3:
         hz = hertz_upper(S, rem.unsqueeze(1).expand_as(S)).amax(-1)
         bound = torch.where(torch.isnan(bound) | torch.isnan(hz), bound + hz,
                             torch.minimum(bound, hz))
