@@ -121,6 +121,14 @@ def _exp_log_constant_base(exponent: torch.Tensor, base: float) -> torch.Tensor:
     return torch.exp(exponent * torch.log(torch.full_like(exponent, base)))
 
 
+def _negated(term: sympy.Expr) -> sympy.Expr | None:
+    """u when `term` is -1 * u with u not constant (sympy's form of a subtracted term)."""
+    if term.is_Mul and len(term.args) == 2 and term.args[0] == -1 \
+            and term.args[1].free_symbols:
+        return term.args[1]
+    return None
+
+
 class _Tape:
     """A straight-line program for sympy trees, built once from the parsed tree: a list of
     steps (function, operand slots) that `compile_torch*` run in order. No code generation.
@@ -128,11 +136,12 @@ class _Tape:
     The operations are exactly those of a bottom-up walk (the same as `evaluate` with
     `TORCH`, except that constant subtrees are folded to Python floats): sums and products
     folded left to right, x**2 as x*x, x**k (k < 0) as 1/x**-k, a**b (b not a number) as
-    exp(b * log(a)), functions from `FUNCTIONS`. A sub-expression that occurs twice is
-    computed once (the same operations on the same inputs give the same floats, so this
-    changes no value). The steps call builtins (`operator.add`, `torch.sin`, ...) directly,
-    so a step costs one C call and no Python frame. A run's value list holds the input
-    columns, then the folded constants (Python numbers), then one value per step.
+    exp(b * log(a)), functions from `FUNCTIONS`; a later term -1 * u of a sum is subtracted
+    (s + (-1.0 * u) and s - u are the same float: negation is exact). A sub-expression that
+    occurs twice is computed once (the same operations on the same inputs give the same
+    floats, so this changes no value). The steps call builtins (`operator.add`, `torch.sin`,
+    ...) directly, so a step costs one C call and no Python frame. A run's value list holds
+    the input columns, then the folded constants (Python numbers), then one value per step.
     """
 
     def __init__(self, symbols: Sequence[sympy.Symbol]) -> None:
@@ -161,12 +170,21 @@ class _Tape:
             return ("col", self.index[e])
         if not e.free_symbols:
             return self._const(float(e))
-        if e.is_Add or e.is_Mul:
+        if e.is_Add:
+            out = self.emit(e.args[0])
+            for term in e.args[1:]:
+                negated = _negated(term)
+                if negated is not None and term not in self.memo:
+                    # out + (-1.0 * u) is out - u exactly (IEEE negation is exact): one step
+                    out = self._op(operator.sub, out, self.emit(negated))
+                else:
+                    out = self._op(operator.add, out, self.emit(term))
+            return out
+        if e.is_Mul:
             parts = [self.emit(a) for a in e.args]
-            op = operator.add if e.is_Add else operator.mul
             out = parts[0]
             for part in parts[1:]:
-                out = self._op(op, out, part)
+                out = self._op(operator.mul, out, part)
             return out
         if e.is_Pow:
             base, exponent = e.args
