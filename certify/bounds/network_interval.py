@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import torch
 
-from certify.bounds.interval_ops import iadd, intersect, isum, point
+from certify.bounds.interval_ops import intersect, isum
 from certify.gain.interval import IntervalArithmetic
-from certify.gain.propagate import propagate
+from certify.gain.propagate import NetOutput, compose, compose_second, propagate
 from certify.intervals import (
     Interval,
     h_enclosure,
@@ -91,79 +91,37 @@ class GainEnclosure:
 def gain_enclosure(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
                    order: int = 1, center_pre: list[Interval] | None = None
                    ) -> tuple[GainEnclosure, NetEnclosure]:
-    """What `certify.kernels.gain_terms` computes, enclosed over boxes z in [lo, hi]."""
+    """What `certify.kernels.gain_terms` computes, enclosed over boxes z in [lo, hi]: the
+    network's enclosure (`network_enclosure`) composed with the injection by
+    `certify.gain.compose` (and `compose_second`) in `IntervalArithmetic`, plus Jf."""
     n, p = system.n, system.p
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     B, d = lo.shape
+    spec = net.spec(torch.float64, detach=True)
     ne = network_enclosure(net, lo, hi, order=order, second_cols=n, center_pre=center_pre)
     xl, xh = lo[:, :n], hi[:, :n]
-    yI = Interval(lo[:, n:], hi[:, n:])
-    K = net.K.to(torch.float64)
-    has_K = bool(torch.any(K != 0))
-    structural = net.structure == "structural"
     jf = Interval(*jacobian_f_enclosure(system, xl, xh))
     djf = None
     if order >= 2:
-        hf = Interval(*hessian_f_enclosure(system, xl, xh))  # [B, n, n, n]
-        zpad = torch.zeros(B, n, n, p, dtype=torch.float64)
-        djf = Interval(torch.cat([hf.lo, zpad], -1), torch.cat([hf.hi, zpad], -1))
-    need_h = structural or has_K
-    if need_h:
-        hI = Interval(*h_enclosure(system, xl, xh))
-        r = yI - hI  # [B, p]
+        djf = _pad_y(Interval(*hessian_f_enclosure(system, xl, xh)), p)  # [B, n, n, d]
+    r = Hx = dr = d2r = None
+    if spec.needs_h:
+        r = Interval(lo[:, n:], hi[:, n:]) - Interval(*h_enclosure(system, xl, xh))  # [B, p]
         Hx = Interval(*jacobian_h_enclosure(system, xl, xh))  # [B, p, n]
-        # dr/dz [B, p, d]: (-Hx | I)
-        eye = torch.eye(p, dtype=torch.float64).expand(B, p, p)
-        dr = Interval(torch.cat([-Hx.hi, eye], -1), torch.cat([-Hx.lo, eye], -1))
-        d2r = None
         if order >= 2:
+            eye = torch.eye(p, dtype=torch.float64).expand(B, p, p)
+            dr = Interval(torch.cat([-Hx.hi, eye], -1), torch.cat([-Hx.lo, eye], -1))
             hh = Interval(*hessian_h_enclosure(system, xl, xh))  # [B, p, n, n]
-            zpad = torch.zeros(B, p, n, p, dtype=torch.float64)
-            d2r = Interval(torch.cat([-hh.hi, zpad], -1), torch.cat([-hh.lo, zpad], -1))
-    if not structural:
-        k = ne.value
-        dk = ne.d1  # [B, n, d]
-        d2k = ne.d2  # [B, n, n, d]
-    else:
-        G = Interval(ne.value.lo.reshape(B, n, p), ne.value.hi.reshape(B, n, p))
-        dG = Interval(ne.d1.lo.reshape(B, n, p, d), ne.d1.hi.reshape(B, n, p, d))
-        rI = Interval(r.lo[:, None, :], r.hi[:, None, :])
-        k = isum(imul(G, rI), 2)
-        # dk_i/dz_j = sum_l dG_ilj r_l + G_il dr_lj
-        t1 = isum(imul(dG, Interval(r.lo[:, None, :, None], r.hi[:, None, :, None])), 2)
-        t2 = isum(imul(Interval(G.lo[..., None], G.hi[..., None]),
-                       Interval(dr.lo[:, None], dr.hi[:, None])), 2)
-        dk = iadd(t1, t2)
-        d2k = None
-        if order >= 2:
-            d2G = Interval(ne.d2.lo.reshape(B, n, p, n, d), ne.d2.hi.reshape(B, n, p, n, d))
-            rr = Interval(r.lo[:, None, :, None, None], r.hi[:, None, :, None, None])
-            a1 = imul(d2G, rr)  # sum_l d2G_iljm r_l
-            drj = Interval(dr.lo[:, None, :, :n, None], dr.hi[:, None, :, :n, None])
-            drm = Interval(dr.lo[:, None, :, None, :], dr.hi[:, None, :, None, :])
-            dGj = Interval(dG.lo[:, :, :, :n, None], dG.hi[:, :, :, :n, None])
-            dGm = Interval(dG.lo[:, :, :, None, :], dG.hi[:, :, :, None, :])
-            a2 = imul(dGj, drm)
-            a3 = imul(dGm, drj)
-            Ge = Interval(G.lo[..., None, None], G.hi[..., None, None])
-            a4 = imul(Ge, Interval(d2r.lo[:, None, :, :n, :], d2r.hi[:, None, :, :n, :]))
-            d2k = isum(iadd(iadd(a1, a2), iadd(a3, a4)), 2)
-    if has_K:
-        Kp = point(K)
-        k = iadd(k, isum(imul(Interval(K.expand(B, n, p), K.expand(B, n, p)),
-                              Interval(r.lo[:, None, :], r.hi[:, None, :])), 2))
-        Kdr = isum(imul(Interval(K[None, :, :, None].expand(B, n, p, d),
-                                 K[None, :, :, None].expand(B, n, p, d)),
-                        Interval(dr.lo[:, None], dr.hi[:, None])), 2)  # [B, n, d]
-        dk = iadd(dk, Kdr)
-        if order >= 2:
-            Kd2 = isum(imul(Interval(K[None, :, :, None, None].expand(B, n, p, n, d),
-                                     K[None, :, :, None, None].expand(B, n, p, n, d)),
-                            Interval(d2r.lo[:, None, :, :n, :], d2r.hi[:, None, :, :n, :])), 2)
-            d2k = iadd(d2k, Kd2)
-        del Kp
-    dk_dx = dk[:, :, :n]
-    dk_dy = dk[:, :, n:]
-    return GainEnclosure(k=k, dk_dx=dk_dx, dk_dy=dk_dy, d2k=d2k, jf=jf, djf=djf), ne
+            d2r = _pad_y(Interval(-hh.hi, -hh.lo), p)  # [B, p, n, d]
+    arith = IntervalArithmetic(None, None)  # compose needs no box
+    out = NetOutput(ne.value, ne.d1, ne.d2)
+    g = compose(spec, arith, out, r, Hx)
+    d2k = compose_second(spec, arith, out, r, dr, d2r) if order >= 2 else None
+    return GainEnclosure(k=g.k, dk_dx=g.dk_dx, dk_dy=g.dk_dy, d2k=d2k, jf=jf, djf=djf), ne
 
+
+def _pad_y(iv: Interval, p: int) -> Interval:
+    """Derivatives in xhat [..., n] as derivatives in z [..., n + p] (zero in y)."""
+    z = torch.zeros(*iv.lo.shape[:-1], p, dtype=iv.lo.dtype)
+    return Interval(torch.cat([iv.lo, z], -1), torch.cat([iv.hi, z], -1))

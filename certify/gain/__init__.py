@@ -50,9 +50,16 @@ from __future__ import annotations
 
 from certify.gain.arithmetic import COLUMNS, ROWS, Arithmetic, ColumnArithmetic, RowArithmetic
 from certify.gain.point import gain_at_points, gain_value
-from certify.gain.propagate import GainValues, NetOutput, columns_needed, compose, propagate
+from certify.gain.propagate import (
+    GainValues,
+    NetOutput,
+    columns_needed,
+    compose,
+    compose_second,
+    propagate,
+)
 from certify.gain.spec import STRUCTURES, GainSpec
 
 __all__ = ["Arithmetic", "COLUMNS", "ColumnArithmetic", "GainSpec", "GainValues", "NetOutput",
-           "ROWS", "RowArithmetic", "STRUCTURES", "columns_needed", "compose", "gain_at_points",
-           "gain_value", "propagate"]
+           "ROWS", "RowArithmetic", "STRUCTURES", "columns_needed", "compose", "compose_second",
+           "gain_at_points", "gain_value", "propagate"]
