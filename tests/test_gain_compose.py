@@ -14,12 +14,15 @@ from __future__ import annotations
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from certify import activations
 from certify.bounds.interval_ops import iadd, isum
 from certify.bounds.network_interval import gain_enclosure, network_enclosure
 from certify.bounds.taylor import (
     TM,
+    gain_taylor,
     jcl_taylor,
     network_taylor,
     tm_absorb,
@@ -43,6 +46,7 @@ from certify.intervals import (
     jacobian_h_enclosure,
     up,
 )
+from certify.kernels import gain_terms
 from certify.network import GainNetwork
 from certify.system import System
 
@@ -292,3 +296,31 @@ def test_second_order_compose_at_points_matches_autograd(structure: str) -> None
         lambda u: torch.autograd.functional.jacobian(k_of, u, create_graph=True), v)
         for v in z])[:, :, :n, :]  # [B, n, n, d]
     torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("act", activations.names())
+@settings(max_examples=4, deadline=None)
+@given(seed=st.integers(0, 10_000), structure=st.sampled_from(["direct", "structural"]),
+       with_K=st.booleans(), scale=st.sampled_from([1e-6, 1e-3, 0.05, 0.3]))
+def test_gain_taylor_models_contain_k_and_its_jacobians(act: str, seed: int, structure: str,
+                                                        with_K: bool, scale: float) -> None:
+    """k, dk/dxhat, dk/dy at sampled float64 points lie in the Taylor models `compose`
+    builds in `TaylorArithmetic` (value, both Jacobians, every injection)."""
+    system = System.from_text(SPEC, origin="test curved")
+    torch.manual_seed(seed)
+    net = GainNetwork(3, 2, (5, 4), structure=structure, K=torch.randn(3, 2) if with_K else None,
+                      activation=act).requires_grad_(False)
+    g = torch.Generator().manual_seed(seed)
+    c = 2.0 * torch.rand(8, 5, generator=g, dtype=F64) - 1.0
+    w = scale * torch.rand(8, 5, generator=g, dtype=F64)
+    lo, hi = c - w, c + w
+    tms = gain_taylor(system, net, lo, hi)
+    u = torch.rand(8, 64, 5, generator=g, dtype=F64)
+    u[:, :2] = torch.stack([torch.zeros(8, 5, dtype=F64), torch.ones(8, 5, dtype=F64)], 1)
+    z = (lo[:, None] + u * (hi - lo)[:, None]).reshape(-1, 5)
+    t = gain_terms(system, net, z[:, :3], z[:, 3:])
+    dz = (z - c.repeat_interleave(64, 0))
+    for tm, v in ((tms.k, t.k), (tms.dk_dx, t.dk_dx), (tms.dk_dy, t.dk_dy)):
+        rep = lambda x: x.repeat_interleave(64, 0)  # noqa: E731
+        lin = rep(tm.c) + torch.einsum("b...d,bd->b...", rep(tm.g), dz)
+        assert bool(((v - lin).abs() <= rep(tm.e) + 1e-12 * (1 + v.abs())).all())

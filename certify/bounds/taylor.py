@@ -28,6 +28,7 @@ from certify.bounds.eigen import (
 )
 from certify.bounds.interval_ops import const_lam
 from certify.bounds.preconditioner import Preconditioner
+from certify.gain.propagate import GainValues
 from certify.intervals import (
     TINY,
     Interval,
@@ -232,47 +233,62 @@ def network_taylor(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor
     return out.value, out.jac, r
 
 
-def jcl_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
-               net_tms: tuple[TM, TM, torch.Tensor] | None = None) -> TM:
-    """TM of the closed-loop Jacobian Jf(xhat) + dk/dxhat(xhat, y) over z-boxes -> [B, n, n].
+def gain_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
+                net_tms: tuple[TM, TM, torch.Tensor] | None = None, with_k: bool = True,
+                with_dy: bool = True) -> GainValues:
+    """TMs over z-boxes of k [B, n], dk/dxhat [B, n, n] and (with_dy) dk/dy [B, n, p].
 
-    dk/dxhat is `certify.gain.compose` in `TaylorArithmetic` on the network's models and the
-    models of r = y - h(xhat) and dh/dxhat (mean-value forms from the centre values and the
-    box enclosures of their derivatives). net_tms: (value [B, out], Jacobian [B, out, d],
-    radii) of the network from elsewhere (e.g. tightened by linear bound propagation);
-    default `network_taylor`."""
-    from certify.gain.propagate import NetOutput, compose
+    `certify.gain.compose` in `TaylorArithmetic` on the network's models and the models of
+    r = y - h(xhat) and dh/dxhat (mean-value forms from the centre values and the box
+    enclosures of their derivatives). net_tms: (value [B, out], Jacobian [B, out, d], radii)
+    of the network from elsewhere (e.g. tightened by linear bound propagation); default
+    `network_taylor`."""
+    from certify.gain.propagate import NetOutput, compose  # certify.gain.taylor imports us
     from certify.gain.taylor import TaylorArithmetic
 
     n, p = system.n, system.p
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
-    B, d = lo.shape
+    B = lo.shape[0]
     val, d1, r = network_taylor(net, lo, hi) if net_tms is None else net_tms
     spec = net.spec(torch.float64, detach=True)
     zc = 0.5 * (lo + hi)
-    xc = zc[:, :n]
-    xl, xh = lo[:, :n], hi[:, :n]
-
-    def pad(iv: Interval) -> Interval:  # derivative w.r.t. x only -> pad y columns with 0
-        z = torch.zeros(*iv.lo.shape[:-1], p, dtype=torch.float64)
-        return Interval(torch.cat([iv.lo, z], -1), torch.cat([iv.hi, z], -1))
-
-    jf = tm_from_intervals(Interval(*jacobian_f_enclosure(system, xc, xc)),
-                           pad(Interval(*hessian_f_enclosure(system, xl, xh))), r)
+    xc, xl, xh = zc[:, :n], lo[:, :n], hi[:, :n]
     rt = Jh = None
     if spec.needs_h:
         Jh = tm_from_intervals(Interval(*jacobian_h_enclosure(system, xc, xc)),
-                               pad(Interval(*hessian_h_enclosure(system, xl, xh))), r)  # [B,p,n]
-    if spec.structural:
+                               _pad_y(Interval(*hessian_h_enclosure(system, xl, xh)), p),
+                               r)  # [B, p, n]
         hc = Interval(*h_enclosure(system, xc, xc))
         jhb = Interval(*jacobian_h_enclosure(system, xl, xh))
         eye_p = torch.eye(p, dtype=torch.float64).expand(B, p, p)
         dr_box = Interval(torch.cat([-jhb.hi, eye_p], -1), torch.cat([-jhb.lo, eye_p], -1))
         yc = Interval(zc[:, n:], zc[:, n:])
         rt = tm_from_intervals(yc - hc, dr_box, r)  # r = y - h(x) [B, p]
-    arith = TaylorArithmetic(zc, r)
-    dkdx = compose(spec, arith, NetOutput(val, d1), rt, Jh, with_dy=False, with_k=False).dk_dx
+    return compose(spec, TaylorArithmetic(zc, r), NetOutput(val, d1), rt, Jh,
+                   with_dy=with_dy, with_k=with_k)
+
+
+def _pad_y(iv: Interval, p: int) -> Interval:
+    """Derivatives in xhat as derivatives in z = (xhat, y): zero columns for y."""
+    z = torch.zeros(*iv.lo.shape[:-1], p, dtype=torch.float64)
+    return Interval(torch.cat([iv.lo, z], -1), torch.cat([iv.hi, z], -1))
+
+
+def jcl_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
+               net_tms: tuple[TM, TM, torch.Tensor] | None = None) -> TM:
+    """TM of the closed-loop Jacobian Jf(xhat) + dk/dxhat(xhat, y) over z-boxes -> [B, n, n]
+    (dk/dxhat from `gain_taylor`; net_tms as there)."""
+    n = system.n
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    net_tms = network_taylor(net, lo, hi) if net_tms is None else net_tms
+    r = net_tms[2]
+    dkdx = gain_taylor(system, net, lo, hi, net_tms, with_k=False, with_dy=False).dk_dx
+    xc = (0.5 * (lo + hi))[:, :n]
+    jf = tm_from_intervals(Interval(*jacobian_f_enclosure(system, xc, xc)),
+                           _pad_y(Interval(*hessian_f_enclosure(system, lo[:, :n], hi[:, :n])),
+                                  system.p), r)
     return tm_add(jf, dkdx, r)
 
 
