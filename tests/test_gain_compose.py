@@ -35,20 +35,17 @@ from certify.bounds.taylor import (
     tm_sum,
 )
 from certify.gain import ROWS, compose_second, propagate
-from certify.intervals import (
-    Interval,
-    gamma,
-    h_enclosure,
-    hessian_f_enclosure,
-    hessian_h_enclosure,
-    imul,
-    jacobian_f_enclosure,
-    jacobian_h_enclosure,
-    up,
-)
+from certify.intervals import Interval, gamma, imul, up
 from certify.kernels import gain_terms
 from certify.network import GainNetwork
 from certify.system import System
+from certify.system_enclosures import (
+    h_enclosure,
+    hessian_f_enclosure,
+    hessian_h_enclosure,
+    jacobian_f_enclosure,
+    jacobian_h_enclosure,
+)
 
 F64 = torch.float64
 

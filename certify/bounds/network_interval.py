@@ -20,18 +20,16 @@ import torch
 from certify.bounds.interval_ops import intersect, isum
 from certify.gain.interval import IntervalArithmetic
 from certify.gain.propagate import NetOutput, compose, compose_second, propagate
-from certify.intervals import (
-    Interval,
+from certify.intervals import Interval, imul, up
+from certify.network import GainNetwork
+from certify.system import System
+from certify.system_enclosures import (
     h_enclosure,
     hessian_f_enclosure,
     hessian_h_enclosure,
-    imul,
     jacobian_f_enclosure,
     jacobian_h_enclosure,
-    up,
 )
-from certify.network import GainNetwork
-from certify.system import System
 
 
 # ----- MLP enclosure -------------------------------------------------------------------

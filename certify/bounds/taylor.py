@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from certify.activations import Activation
+from certify.activations.tanh import d2tanh_enclosure
 from certify.bounds.eigen import (
     MAX_VERTEX_DIM,
     _vertices,
@@ -29,22 +30,16 @@ from certify.bounds.eigen import (
 from certify.bounds.interval_ops import const_lam
 from certify.bounds.preconditioner import Preconditioner
 from certify.gain.propagate import GainValues
-from certify.intervals import (
-    TINY,
-    Interval,
-    d2tanh_enclosure,
-    down,
-    gamma,
+from certify.intervals import TINY, Interval, down, gamma, imul, up
+from certify.network import GainNetwork
+from certify.system import System
+from certify.system_enclosures import (
     h_enclosure,
     hessian_f_enclosure,
     hessian_h_enclosure,
-    imul,
     jacobian_f_enclosure,
     jacobian_h_enclosure,
-    up,
 )
-from certify.network import GainNetwork
-from certify.system import System
 
 U = 2.0**-53
 
