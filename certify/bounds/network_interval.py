@@ -9,6 +9,12 @@ products with point weight matrices in midpoint-radius form with Higham's gamma_
 and its derivatives by its own sound enclosures (`certify.activations`: `enclose_f`,
 `enclose_d1`, `enclose_d2`, widened libm rules; for ELU, whose f'' jumps at 0, `enclose_d2`
 holds both one-sided values, which is what the mean-value forms built on it need).
+
+The gain k is the network composed with the injection by `certify.gain.compose` (value and
+first derivatives) and `compose_second` (d2k / dxhat dz) in the same arithmetic: interval
+products summed with `isum` (gamma_k sum|x| for the summation), K and the identity block of
+dk/dy as exact point intervals; h, Jh, Jf and the second derivatives of f and h come from
+`certify.system_enclosures`.
 """
 
 from __future__ import annotations
@@ -29,6 +35,8 @@ from certify.system_enclosures import (
     hessian_h_enclosure,
     jacobian_f_enclosure,
     jacobian_h_enclosure,
+    pad_y,
+    residual_jacobian,
 )
 
 
@@ -95,31 +103,24 @@ def gain_enclosure(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch
     n, p = system.n, system.p
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
-    B, d = lo.shape
     spec = net.spec(torch.float64, detach=True)
     ne = network_enclosure(net, lo, hi, order=order, second_cols=n, center_pre=center_pre)
     xl, xh = lo[:, :n], hi[:, :n]
     jf = Interval(*jacobian_f_enclosure(system, xl, xh))
     djf = None
     if order >= 2:
-        djf = _pad_y(Interval(*hessian_f_enclosure(system, xl, xh)), p)  # [B, n, n, d]
+        djf = pad_y(Interval(*hessian_f_enclosure(system, xl, xh)), p)  # [B, n, n, d]
     r = Hx = dr = d2r = None
     if spec.needs_h:
         r = Interval(lo[:, n:], hi[:, n:]) - Interval(*h_enclosure(system, xl, xh))  # [B, p]
         Hx = Interval(*jacobian_h_enclosure(system, xl, xh))  # [B, p, n]
         if order >= 2:
-            eye = torch.eye(p, dtype=torch.float64).expand(B, p, p)
-            dr = Interval(torch.cat([-Hx.hi, eye], -1), torch.cat([-Hx.lo, eye], -1))
+            dr = residual_jacobian(Hx)  # [B, p, d]
             hh = Interval(*hessian_h_enclosure(system, xl, xh))  # [B, p, n, n]
-            d2r = _pad_y(Interval(-hh.hi, -hh.lo), p)  # [B, p, n, d]
+            d2r = pad_y(Interval(-hh.hi, -hh.lo), p)  # [B, p, n, d]
     arith = IntervalArithmetic(None, None)  # compose needs no box
     out = NetOutput(ne.value, ne.d1, ne.d2)
     g = compose(spec, arith, out, r, Hx)
     d2k = compose_second(spec, arith, out, r, dr, d2r) if order >= 2 else None
     return GainEnclosure(k=g.k, dk_dx=g.dk_dx, dk_dy=g.dk_dy, d2k=d2k, jf=jf, djf=djf), ne
 
-
-def _pad_y(iv: Interval, p: int) -> Interval:
-    """Derivatives in xhat [..., n] as derivatives in z [..., n + p] (zero in y)."""
-    z = torch.zeros(*iv.lo.shape[:-1], p, dtype=iv.lo.dtype)
-    return Interval(torch.cat([iv.lo, z], -1), torch.cat([iv.hi, z], -1))

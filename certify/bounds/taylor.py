@@ -39,6 +39,8 @@ from certify.system_enclosures import (
     hessian_h_enclosure,
     jacobian_f_enclosure,
     jacobian_h_enclosure,
+    pad_y,
+    residual_jacobian,
 )
 
 U = 2.0**-53
@@ -244,7 +246,6 @@ def gain_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Te
     n, p = system.n, system.p
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
-    B = lo.shape[0]
     val, d1, r = network_taylor(net, lo, hi) if net_tms is None else net_tms
     spec = net.spec(torch.float64, detach=True)
     zc = 0.5 * (lo + hi)
@@ -252,22 +253,15 @@ def gain_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Te
     rt = Jh = None
     if spec.needs_h:
         Jh = tm_from_intervals(Interval(*jacobian_h_enclosure(system, xc, xc)),
-                               _pad_y(Interval(*hessian_h_enclosure(system, xl, xh)), p),
+                               pad_y(Interval(*hessian_h_enclosure(system, xl, xh)), p),
                                r)  # [B, p, n]
         hc = Interval(*h_enclosure(system, xc, xc))
         jhb = Interval(*jacobian_h_enclosure(system, xl, xh))
-        eye_p = torch.eye(p, dtype=torch.float64).expand(B, p, p)
-        dr_box = Interval(torch.cat([-jhb.hi, eye_p], -1), torch.cat([-jhb.lo, eye_p], -1))
+        dr_box = residual_jacobian(jhb)
         yc = Interval(zc[:, n:], zc[:, n:])
         rt = tm_from_intervals(yc - hc, dr_box, r)  # r = y - h(x) [B, p]
     return compose(spec, TaylorArithmetic(zc, r), NetOutput(val, d1), rt, Jh,
                    with_dy=with_dy, with_k=with_k)
-
-
-def _pad_y(iv: Interval, p: int) -> Interval:
-    """Derivatives in xhat as derivatives in z = (xhat, y): zero columns for y."""
-    z = torch.zeros(*iv.lo.shape[:-1], p, dtype=torch.float64)
-    return Interval(torch.cat([iv.lo, z], -1), torch.cat([iv.hi, z], -1))
 
 
 def jcl_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
@@ -282,7 +276,7 @@ def jcl_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Ten
     dkdx = gain_taylor(system, net, lo, hi, net_tms, with_k=False, with_dy=False).dk_dx
     xc = (0.5 * (lo + hi))[:, :n]
     jf = tm_from_intervals(Interval(*jacobian_f_enclosure(system, xc, xc)),
-                           _pad_y(Interval(*hessian_f_enclosure(system, lo[:, :n], hi[:, :n])),
+                           pad_y(Interval(*hessian_f_enclosure(system, lo[:, :n], hi[:, :n])),
                                   system.p), r)
     return tm_add(jf, dkdx, r)
 
