@@ -9,9 +9,9 @@ and the input decide):
 - `ColumnArithmetic`: points in columns (feature-major [width, B] and [width, m, B]): every
   layer is one large product with contiguous elementwise passes; for dense no-grad grids.
 
-`certify.gain.buffered.ChunkArithmetic` writes into a training chunk's preallocated buffers.
-Interval / Taylor-model / relaxation arithmetics implement the same protocol over their own
-value types (see the package docstring for how `certify/enclosures.py` ports to it).
+`certify.gain.buffered.ChunkArithmetic` writes into a training chunk's preallocated buffers;
+`certify.gain.interval.IntervalArithmetic` and `certify.gain.taylor.TaylorArithmetic`
+implement the same protocol over intervals and first-order Taylor models.
 """
 
 from __future__ import annotations
