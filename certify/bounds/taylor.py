@@ -255,6 +255,7 @@ def gain_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Te
         Jh = tm_from_intervals(Interval(*jacobian_h_enclosure(system, xc, xc)),
                                pad_y(Interval(*hessian_h_enclosure(system, xl, xh)), p),
                                r)  # [B, p, n]
+    if spec.structural or (spec.has_K and with_k):  # what compose reads r for
         hc = Interval(*h_enclosure(system, xc, xc))
         jhb = Interval(*jacobian_h_enclosure(system, xl, xh))
         dr_box = residual_jacobian(jhb)

@@ -20,7 +20,6 @@ import torch
 from certify.activations import Activation
 from certify.bounds.taylor import (
     TM,
-    gamma,
     tm_absorb,
     tm_activation,
     tm_add,
@@ -28,9 +27,9 @@ from certify.bounds.taylor import (
     tm_linear,
     tm_mul,
     tm_sum,
-    up,
 )
 from certify.gain.propagate import NetOutput
+from certify.intervals import gamma, up
 
 
 def _neg(t: TM) -> TM:
@@ -38,12 +37,10 @@ def _neg(t: TM) -> TM:
 
 
 def _index(t: TM, idx: tuple) -> TM:
-    """Index the value dims with slices and new axes (the coefficient dim stays last)."""
-    gidx = tuple(slice(None) if i is Ellipsis else i for i in idx)
-    if Ellipsis in idx:  # the coefficient dim sits behind the value dims the ellipsis covers
-        k = idx.index(Ellipsis)
-        gidx = idx[:k] + (Ellipsis,) + idx[k + 1:] + (slice(None),)
-        return TM(t.c[idx], t.g[gidx], t.e[idx])
+    """Index the value dims with slices, integers and new axes (the coefficient dim stays
+    last: behind an ellipsis, g's index gets one more full slice at the end)."""
+    if Ellipsis in idx:
+        return TM(t.c[idx], t.g[idx + (slice(None),)], t.e[idx])
     return tm_index(t, idx)
 
 
