@@ -3,7 +3,7 @@
 Parsing lives in `certify.parse` (re-exported here as `parse_expression`): only numbers,
 declared names, `+ - * / **`, unary minus/plus and the functions of `FUNCTIONS` are
 accepted. The same table drives point evaluation (torch) and interval enclosures
-(`certify.intervals`), so whatever parses can also be evaluated and enclosed;
+(`certify.interval_rules`), so whatever parses can also be evaluated and enclosed;
 `certify.domain` checks that it is defined and smooth on the box.
 """
 
