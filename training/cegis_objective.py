@@ -47,8 +47,6 @@ class CertObjective(Objective):
         self.mpdi_weight = float(mpdi_weight)
         n, p = system.n, system.p
         dt = net.layers[0].weight.dtype
-        self.K_t = net.K.detach().to(dt)
-        self.r_all = (y.to(torch.float64) - system.h(xhat.to(torch.float64))).to(dt)
         self.m = n + p  # forward tangents for every input column (xhat and y)
         widths = [n + p, *[layer.weight.shape[0] for layer in net.layers]]
         self.chunks = [ChunkBuffers(ch.Z, ch.C, widths, self.m, not self.structural)
@@ -58,21 +56,13 @@ class CertObjective(Objective):
 
     def _head(self, val: torch.Tensor, tan: torch.Tensor, k_bc: torch.Tensor | None,
               grad: bool) -> tuple[float, float, list[torch.Tensor] | None]:
-        n, p, N = self.n, self.p, self.N
+        N = self.N
         val_l = val.detach().requires_grad_(grad)
         tan_l = tan.detach().requires_grad_(grad)
         kbc_l = None if k_bc is None else k_bc.detach().requires_grad_(grad)
         with torch.enable_grad():
-            if self.structural:
-                G = val_l.view(N, n, p)
-                dG = tan_l.view(self.m, N, n, p)  # [j, b, i, q] = dG_iq / dz_j
-                M = torch.einsum("jbiq,bq->bij", dG[:n], self.r)
-                if self.Hx is not None:
-                    M = M - G @ self.Hx
-                dky = torch.einsum("jbiq,bq->bij", dG[n:], self.r) + G + self.K_t
-            else:
-                M = tan_l[:n].permute(1, 2, 0)
-                dky = tan_l[n:].permute(1, 2, 0) + self.K_t
+            gain = self._compose(val_l, tan_l, with_dy=True)  # dk/dxhat less -K Hx (in D0)
+            M, dky = gain.dk_dx, gain.dk_dy
             D = self.D0 + sym(M if self.P_is_identity else self.P @ M)
             mpdi = losses.eigen_loss(D, self.margin, reduce="sum")
             total = self.mpdi_weight * mpdi / N

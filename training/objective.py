@@ -32,8 +32,8 @@ from typing import Any
 
 import torch
 
-from certify.gain import propagate
-from certify.gain.buffered import ChunkArithmetic, ChunkBuffers
+from certify.gain import GainValues, NetOutput, compose, propagate
+from certify.gain.buffered import CHUNK_COMPOSE, ChunkArithmetic, ChunkBuffers
 from certify.kernels import sym
 from certify.network import GainNetwork
 from certify.system import System
@@ -181,25 +181,30 @@ class Objective:
         torch.mv(G0.T, ch.ones, out=grads[1])
 
     # ----- loss head: D from the trunk's outputs, the loss, and its gradient ----------
+    def _compose(self, val: torch.Tensor, tan: torch.Tensor, with_dy: bool) -> GainValues:
+        """dk/dxhat (and, `with_dy`, dk/dy) at the collocation points from the trunk's value
+        val [N, out] and tangents tan [m, N, out] (chunk layout), by `certify.gain.compose`.
+        dk/dxhat leaves out -K dh/dxhat: that term is weight-free and sits in the float64
+        constant D0 (`with_K_dx=False`)."""
+        return compose(self.spec, CHUNK_COMPOSE, NetOutput(val, tan), self.r, self.Hx,
+                       with_dy=with_dy, with_k=False, with_K_dx=False)
+
     def _head(self, val: torch.Tensor, tan: torch.Tensor, k_bc: torch.Tensor | None,
               grad: bool) -> tuple[float, float, list[torch.Tensor] | None]:
         """MPDI and BC sums over all points; with `grad`, d(total)/d(val, tan, k_bc).
 
         val [N, out] and tan [m, N, out] are the trunk's value and xhat-tangents at the
         collocation points, k_bc [N, n] its value at (x, h(x)) (None if structural). D is
-        linear in (val, tan), so only d(loss)/dD needs differentiating (closed form for the
-        minor loss with n <= 2, autograd otherwise); the rest is mapped back by hand.
+        linear in dk/dxhat, so only d(loss)/dD needs differentiating (closed form for the
+        minor loss with n <= 2, autograd otherwise); autograd through `compose` maps it back
+        to (val, tan).
         """
-        n, p, N = self.n, self.p, self.N
-        if self.structural:
-            G = val.view(N, n, p)
-            dG = tan.view(self.m, N, n, p)  # [j, b, i, q] = dG_iq/dxhat_j
-            M = torch.einsum("jbiq,bq->bij", dG, self.r)
-            if self.Hx is not None:
-                M = M - G @ self.Hx
-        else:
-            M = tan.permute(1, 2, 0)  # [b, i, j] = dk_i/dxhat_j
-        D = self.D0 + sym(M if self.P_is_identity else self.P @ M)
+        N = self.N
+        val_l = val.detach().requires_grad_(grad)
+        tan_l = tan.detach().requires_grad_(grad)
+        with torch.set_grad_enabled(grad):
+            M = self._compose(val_l, tan_l, with_dy=False).dk_dx  # [b, i, j] = dk_i/dxhat_j
+        D = self.D0 + sym(M.detach() if self.P_is_identity else self.P @ M.detach())
         bc = 0.0 if k_bc is None else float((k_bc * k_bc).sum())
         if self.loss == "minors":
             if grad:
@@ -218,18 +223,16 @@ class Objective:
         mpdi = float(mpdi_t)
         if not grad:
             return mpdi, bc, None
-        scale = self.weights.mu1 / N
-        gM = sym(gD) * scale
+        gM = sym(gD) * (self.weights.mu1 / N)
         if not self.P_is_identity:
             gM = self.P.T @ gM
+        g_val, g_tan = torch.autograd.grad(M, [val_l, tan_l], grad_outputs=gM,
+                                           allow_unused=True)
+        g_val = torch.zeros_like(val) if g_val is None else g_val
         if self.structural:
-            g_tan = torch.einsum("bij,bq->jbiq", gM, self.r).reshape(self.m, N, n * p)
-            g_val = torch.zeros_like(val) if self.Hx is None else \
-                (-(gM @ self.Hx.transpose(1, 2))).reshape(N, n * p)
             return mpdi, bc, [g_val, g_tan]
-        g_tan = gM.permute(2, 0, 1)
         g_bc = k_bc * (2.0 * self.weights.mu2 / N)
-        return mpdi, bc, [torch.zeros_like(val), g_tan, g_bc]
+        return mpdi, bc, [g_val, g_tan, g_bc]
 
     def evaluate(self, grad: bool = True) -> LossValues:
         """Loss terms at the current weights; with `grad`, d(total)/d(weights) into `.grad`.

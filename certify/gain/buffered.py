@@ -5,7 +5,13 @@ direct structure, the value at C boundary points (x, h(x))) thousands of times. 
 buffer X [R + m C, width] holds the activations of the R value rows followed by the m tangent
 blocks of the first C rows, so `affine` is a single `torch.mm(..., out=)` for value and
 tangents; `activate` writes f and f' in place. The buffers stay filled after `propagate`
-for the hand-written reverse pass in `training.train`.
+for the hand-written reverse pass in `training.objective` (`Objective._backward`).
+
+`compose` runs on the chunk layout too (the training loss heads): the tangents dN/dz of all
+points are [m, N, out], derivative first. `cols` hands `compose` a standard-layout view
+[N, ..., k] of the columns it asks for (no copy), and `contract` turns that view back into
+the derivative-first one before its einsum, so the heads' arithmetic is the one they always
+did, operation for operation (tests/test_training_heads.py freezes the old heads).
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ from __future__ import annotations
 import torch
 
 from certify.activations import Activation
+from certify.gain.arithmetic import PointCompose
 from certify.gain.propagate import NetOutput
 
 
@@ -43,9 +50,28 @@ class ChunkBuffers:
                       for a, b in zip(widths[:-1], widths[1:]) for k in (0, 1)]
 
 
-class ChunkArithmetic:
+class ChunkCompose(PointCompose):
+    """`compose` primitives for N [B, out] and dN/dz in the chunk layout [m, B, out]."""
+
+    def cols(self, x: torch.Tensor, start: int, stop: int) -> torch.Tensor:
+        """Derivative columns start:stop of x [m, B, ...] as a view [B, ..., stop - start]."""
+        return x[start:stop].movedim(0, -1)
+
+    def reshape_jac(self, jac: torch.Tensor, n: int, p: int) -> torch.Tensor:
+        return jac.view(jac.shape[0], jac.shape[1], n, p)  # [m, B, n, p], chunk layout
+
+    def contract(self, dA: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """sum_q dA[b, i, q, j] v[b, q], on the derivative-first view `cols` came from."""
+        return torch.einsum("jbiq,bq->bij", dA.movedim(-1, 0), v)
+
+
+CHUNK_COMPOSE = ChunkCompose()
+
+
+class ChunkArithmetic(ChunkCompose):
     """First-order point arithmetic writing into `ChunkBuffers` (layout: value rows [R, w],
-    tangents [m, C, w]); `output` returns that layout, not the standard one."""
+    tangents [m, C, w]); `output` returns that layout, not the standard one, and the
+    `compose` primitives (`ChunkCompose`) read it."""
 
     def __init__(self, chunk: ChunkBuffers) -> None:
         self.ch = chunk
