@@ -29,6 +29,27 @@ from training.curvature import CurvaturePenalty
 from training.objective import LossValues, Objective
 
 
+def power_mean_norm(s: torch.Tensor, q: float) -> torch.Tensor:
+    """(mean_j s_j^q)^(1/(2q)) for s_j = ||dk/dy_j||_F^2 >= 0, q >= 1: the penalty's power
+    mean of the norms ||dk/dy_j||_F, computed as sqrt(m) (mean_j (s_j/m)^q)^(1/(2q)) with
+    m = max_j s_j so that s^q cannot overflow for large q.
+
+    It is a norm of the field dk/dy (an L^(2q) mean of Frobenius norms: convex and
+    1-homogeneous), differentiable except where every dk/dy_j is zero (the zero warm start,
+    K = 0 and the MLP's last layer zero). There its value is its minimum, 0, and the formula's
+    gradient would be 0 * inf = NaN; the gradient given there is 0, which is a subgradient of
+    a norm at its minimum (the subdifferential at 0 is the dual unit ball). A smoothed form
+    (e.g. sqrt(x + eps^2) - eps) would also be finite, but would change the penalty's value
+    everywhere and its meaning (the constant L of the error bound, as recorded per round);
+    this keeps both exact. For q >= 1 the points with s_j = 0 among nonzero ones have a
+    finite derivative (d s^q / ds = q s^(q-1) is 0 or 1 at s = 0).
+    """
+    scale = s.detach().max()
+    if not bool(scale > 0):  # every dk/dy is zero (or s is not finite: NaN/inf propagate)
+        return s.sum() * 0.0
+    return torch.sqrt(scale) * ((s / scale) ** q).mean() ** (1.0 / (2.0 * q))
+
+
 class CertObjective(Objective):
     """Eigenvalue loss in the metric P with margin, plus the ||dk/dy|| penalty.
 
@@ -44,9 +65,10 @@ class CertObjective(Objective):
         super().__init__(system, net, xhat, y, lam=lam, P=P, weights=weights, loss="eigen",
                          margin=margin, workers=workers, curvature=curvature)
         self.lip_weight, self.lip_power = float(lip_weight), float(lip_power)
+        if not self.lip_power >= 1:
+            raise ValueError(f"lip_power must be >= 1; got {lip_power!r}")
         self.mpdi_weight = float(mpdi_weight)
         n, p = system.n, system.p
-        dt = net.layers[0].weight.dtype
         self.m = n + p  # forward tangents for every input column (xhat and y)
         widths = [n + p, *[layer.weight.shape[0] for layer in net.layers]]
         self.chunks = [ChunkBuffers(ch.Z, ch.C, widths, self.m, not self.structural)
@@ -68,10 +90,7 @@ class CertObjective(Objective):
             total = self.mpdi_weight * mpdi / N
             lip = torch.zeros((), dtype=D.dtype)
             if self.lip_weight > 0:
-                s = (dky * dky).sum(dim=(1, 2))  # ||dk/dy||_F^2 per point
-                q = self.lip_power
-                scale = s.detach().max().clamp_min(1e-30)  # for a stable power mean
-                lip = torch.sqrt(scale) * ((s / scale) ** q).mean() ** (1.0 / (2.0 * q))
+                lip = power_mean_norm((dky * dky).sum(dim=(1, 2)), self.lip_power)
                 total = total + self.lip_weight * lip
             bc = torch.zeros((), dtype=D.dtype)
             if kbc_l is not None:

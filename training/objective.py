@@ -25,6 +25,7 @@ optimises it (Adam, then L-BFGS) is `training.train`; the CEGIS loop extends it
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -32,6 +33,7 @@ from typing import Any
 
 import torch
 
+from certify.errors import SettingsError
 from certify.gain import GainValues, NetOutput, compose, propagate
 from certify.gain.buffered import CHUNK_COMPOSE, ChunkArithmetic, ChunkBuffers
 from certify.kernels import sym
@@ -60,6 +62,60 @@ class LossValues:
 
     def as_dict(self) -> dict[str, float]:
         return {"total": self.total, "mpdi": self.mpdi, "bc": self.bc, "curv": self.curv}
+
+
+class TrainingDiverged(SettingsError):
+    """A loss term or a weight became non-finite (or the gradient overflowed) in training.
+
+    The objective is finite and differentiable for finite weights, so this is float32
+    overflow of the problem as set up (lam, the metric's scale, the system's scales, the
+    learning rate): the user's settings, exit 2 with one line, no checkpoint."""
+
+
+class NonFiniteGradient(RuntimeError):
+    """The weight gradient is NaN at finite loss terms and finite weights: the objective's
+    derivative is undefined where it must not be, a defect of this code, not of the
+    settings (the command line's internal error, exit 4)."""
+
+
+def _param_name(k: int) -> str:
+    return f"layer {k // 2} {'weight' if k % 2 == 0 else 'bias'}"
+
+
+def check_finite(terms: dict[str, float], params: list[torch.Tensor], where: str,
+                 grad: bool = True) -> None:
+    """Stop training when something went non-finite at `where` (e.g. "adam iteration 12").
+
+    Checks the loss terms (the parts before `total`), then the weights, then (with `grad`)
+    their gradients; raises `TrainingDiverged` naming the first bad one, or
+    `NonFiniteGradient` for a NaN gradient when everything else is finite."""
+    for name in sorted(terms, key=lambda t: t == "total"):
+        v = terms[name]
+        if not math.isfinite(v):
+            raise TrainingDiverged(
+                f"training diverged at {where}: the loss term {name} is {v} (float32 overflow:"
+                f" lower lam, the metric's scale or the learning rate); nothing was written")
+    with torch.no_grad():
+        for k, prm in enumerate(params):
+            if not bool(torch.isfinite(prm).all()):
+                raise TrainingDiverged(
+                    f"training diverged at {where}: the {_param_name(k)} has a non-finite "
+                    f"entry (lower lam, the metric's scale or the learning rate); nothing "
+                    f"was written")
+        if not grad:
+            return
+        for k, prm in enumerate(params):
+            g = prm.grad
+            if g is None or bool(torch.isfinite(g).all()):
+                continue
+            if bool(torch.isnan(g).any()):
+                raise NonFiniteGradient(
+                    f"training stopped at {where}: the gradient of the {_param_name(k)} is NaN "
+                    f"at finite loss terms and weights; nothing was written")
+            raise TrainingDiverged(
+                f"training diverged at {where}: the gradient of the {_param_name(k)} "
+                f"overflowed (lower lam, the metric's scale or the learning rate); nothing "
+                f"was written")
 
 
 class Objective:
