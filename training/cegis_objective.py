@@ -11,9 +11,11 @@ the error bound sqrt(kappa(P)) (eps_bar + L vbar) / (2 lam). C (`training.curvat
 verification-aware term: the variation of dk/dxhat over pairs of points at a small distance,
 which keeps the network cheap to prove. It reuses the fast float32 forward-mode trunk of
 `training.objective.Objective` (the one propagation `certify.gain.propagate` over chunk
-buffers) with the y-columns added to the forward tangents, and autograd for the small loss
-head only. Kept apart from the loop (`training.cegis`) because it is the part that is
-differentiated: tests compare its gradient with autograd.
+buffers) with the y-columns added to the forward tangents; the head forms dk/dxhat and dk/dy
+by `certify.gain.compose` (as the parent does) and autograd differentiates the small head
+only. The penalty's gradient at the zero field dk/dy = 0 is 0 (`power_mean_norm`). Kept apart
+from the loop (`training.cegis`) because it is the part that is differentiated: tests
+compare its gradient with autograd.
 """
 
 from __future__ import annotations

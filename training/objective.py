@@ -8,19 +8,32 @@ instead evaluates the MLP trunk by hand:
 - forward mode for the n Jacobian columns by the one propagation of the gain
   (`certify.gain.propagate` with `certify.gain.buffered.ChunkArithmetic`): value and tangent
   rows stacked in one buffer so each layer is one matrix product (no Python loop over points);
-- a hand-written reverse pass through that forward-mode computation; the activation's own
-  reverse rule (`Activation.chain_pre`) brings in f'' (for tanh, f'' = -2 f f': one fused
-  multiply-add);
-- preallocated buffers, float32 (the checkpoint and the verifier stay float64);
-- autograd only for the small loss head on [B, n, n] matrices, so any n, p, either structure,
-  the linear injection K and every loss kind share one code path.
+- the loss head forms dk/dxhat (CEGIS: and dk/dy) from the trunk's outputs by the one
+  composition `certify.gain.compose`, over the chunk layout [m, N, out]
+  (`certify.gain.buffered.ChunkCompose`), leaving out the weight-free -K dh/dxhat
+  (`with_K_dx=False`): that term is folded, in float64, into the constant part D0 of D;
+- the head's gradient: d(loss)/dD in closed form (minors, n <= 2) or by autograd on the
+  small [N, n, n] matrices, then autograd back through `compose` to d(loss)/d(N, dN/dz);
+  no hand-written adjoint of the head, so the head's chain rule is written once;
+- the trunk's reverse pass, `ChunkArithmetic.reverse`, is hand-written: the adjoint of the
+  forward-mode propagation over the chunk buffers (the activation's own reverse rule
+  `Activation.chain_pre` brings in f''; for tanh f'' = -2 f f', one fused multiply-add). It
+  cannot be derived from `propagate`'s structure: `propagate` runs forward mode against an
+  arithmetic and records nothing, and its reverse is the adjoint of each step in the
+  opposite order (the tangent recurrence T <- f'(pre) T included). Autograd would derive
+  it, at the cost above; a generic `reverse` in the arithmetic protocol would be needed by
+  this one arithmetic only. So the adjoint is written once, beside the forward whose
+  buffers it reads (`certify.gain.buffered`), and checked against autograd here;
+- preallocated buffers, float32 (the checkpoint and the verifier stay float64).
 
 Everything that does not depend on the weights (Jf at the points, the constant part of D,
 h and dh/dx for the structural gain) is computed once, in float64, before training.
-`tests/test_training.py` checks the hand-written gradient against autograd through
-`GainNetwork.forward_with_jacobian` and `certify.kernels.gain_terms`. The training run that
-optimises it (Adam, then L-BFGS) is `training.train`; the CEGIS loop extends it
-(`training.cegis_objective`).
+`tests/test_training.py` checks the gradient against autograd through
+`GainNetwork.forward_with_jacobian` and `certify.kernels.gain_terms`, and
+`tests/test_training_heads.py` the heads against frozen copies of the hand-composed ones
+they replaced (the same bits). `check_finite` stops a training loop whose loss, weights or
+gradient went non-finite. The training run that optimises it (Adam, then L-BFGS) is
+`training.train`; the CEGIS loop extends it (`training.cegis_objective`).
 """
 
 from __future__ import annotations
@@ -200,41 +213,9 @@ class Objective:
 
     @torch.no_grad()
     def _backward(self, ch: ChunkBuffers, g_val: torch.Tensor, g_tan: torch.Tensor) -> None:
-        """Reverse pass through `_forward`: this chunk's weight gradient into `ch.grads`."""
-        Ws = self.params[0::2]
-        act = self.spec.activation
-        grads = ch.grads
-        R, C, m = ch.R, ch.C, self.m
-        L = len(Ws) - 1
-        G = ch.G[L]
-        G[:R].copy_(g_val)
-        G[R:].copy_(g_tan.reshape(m * C, -1))
-        for i in range(L, 0, -1):
-            X, S, G = ch.X[i], ch.S[i], ch.G[i]
-            torch.mm(G.T, X, out=grads[2 * i])
-            torch.mv(G[:R].T, ch.ones, out=grads[2 * i + 1])
-            GX = ch.GX[i]
-            torch.mm(G, Ws[i], out=GX)
-            gt, gA = GX[:R], GX[R:].view(m, C, -1)
-            gs = ch.gs[i]
-            if i == 1:
-                w0t = Ws[0][:, :m].T
-                torch.mul(gA[0], w0t[0], out=gs)
-                for j in range(1, m):
-                    gs.addcmul_(gA[j], w0t[j])
-                w0_tangent_grad = (gA * S[:C].unsqueeze(0)).sum(1).T
-            else:
-                U = ch.pre[i - 1][R:].view(m, C, -1)
-                torch.mul(gA[0], U[0], out=gs)
-                for j in range(1, m):
-                    gs.addcmul_(gA[j], U[j])
-                torch.mul(gA, S[:C].unsqueeze(0), out=ch.G[i - 1][R:].view(m, C, -1))
-            # through a = f(pre), s = f'(pre): d/dpre = gt f' + gs f'' (tangent rows only)
-            act.chain_pre(gt, gs, ch.pre[i - 1][:R], X[:R], S, ch.G[i - 1][:R])
-        G0 = ch.G[0]
-        torch.mm(G0.T, ch.Z, out=grads[0])
-        grads[0][:, :m].add_(w0_tangent_grad)
-        torch.mv(G0.T, ch.ones, out=grads[1])
+        """Reverse pass through `_forward`: this chunk's weight gradient into `ch.grads`
+        (`ChunkArithmetic.reverse`, beside the forward whose buffers it reads)."""
+        ChunkArithmetic(ch).reverse(self.spec, g_val, g_tan)
 
     # ----- loss head: D from the trunk's outputs, the loss, and its gradient ----------
     def _compose(self, val: torch.Tensor, tan: torch.Tensor, with_dy: bool) -> GainValues:
