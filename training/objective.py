@@ -109,6 +109,10 @@ def check_finite(terms: dict[str, float], params: list[torch.Tensor], where: str
                 f"training diverged at {where}: the loss term {name} is {v} (float32 overflow:"
                 f" lower lam, the metric's scale or the learning rate); nothing was written")
     with torch.no_grad():
+        tensors = [t.reshape(-1) for prm in params
+                   for t in ((prm, prm.grad) if grad and prm.grad is not None else (prm,))]
+        if not tensors or bool(torch.isfinite(torch.cat(tensors)).all()):
+            return  # one pass over everything (cheap); name the culprit only when needed
         for k, prm in enumerate(params):
             if not bool(torch.isfinite(prm).all()):
                 raise TrainingDiverged(
