@@ -106,7 +106,7 @@ def check_finite(terms: dict[str, float], params: list[torch.Tensor], where: str
         v = terms[name]
         if not math.isfinite(v):
             raise TrainingDiverged(
-                f"training diverged at {where}: the loss term {name} is {v} (float32 overflow:"
+                f"training diverged at {where}: the loss term {name} is {v} (overflow:"
                 f" lower lam, the metric's scale or the learning rate); nothing was written")
     with torch.no_grad():
         tensors = [t.reshape(-1) for prm in params
