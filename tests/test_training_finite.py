@@ -123,13 +123,16 @@ def test_cegis_stops_on_overflow_naming_round_and_step():
               settings=_tiny_cegis())
 
 
+def _old_penalty(s, q):
+    """The penalty as it was: its gradient at the zero field is 0 * inf = NaN."""
+    scale = s.detach().max().clamp_min(1e-30)
+    return torch.sqrt(scale) * ((s / scale) ** q).mean() ** (1.0 / (2.0 * q))
+
+
 def test_cegis_stops_on_a_nan_gradient_as_an_internal_error(monkeypatch):
-    """The old penalty (its gradient at the zero field is 0 * inf) put back: the loop stops
-    at the first step instead of writing NaN weights."""
-    def old_penalty(s, q):
-        scale = s.detach().max().clamp_min(1e-30)
-        return torch.sqrt(scale) * ((s / scale) ** q).mean() ** (1.0 / (2.0 * q))
-    monkeypatch.setattr(cegis_objective, "power_mean_norm", old_penalty)
+    """The old penalty put back: the loop stops at the first step instead of writing NaN
+    weights."""
+    monkeypatch.setattr(cegis_objective, "power_mean_norm", _old_penalty)
     system = linear_system(A=[[1.0]], C=[[1.0]], lam=0.5)
     with pytest.raises(NonFiniteGradient, match=r"CEGIS round 1, Adam step 0: the gradient"):
         cegis(system, warm_start_network(system, (4,)), np.eye(1), 0.5, points=20,
@@ -183,4 +186,19 @@ def test_cli_certified_overflow_exits_2_and_writes_nothing(monkeypatch, capsys, 
                            "--quiet")
     assert code == 2
     assert err.count("\n") == 1 and "CEGIS round 1, Adam step 0" in err
+    assert not out.exists()
+
+
+def test_cli_nan_gradient_is_an_internal_error_exit_4(monkeypatch, capsys, tmp_path):
+    """A defect of the objective's derivative (the old penalty put back) is exit 4 with one
+    line naming the round and step, and no checkpoint."""
+    _small_certified(monkeypatch)
+    monkeypatch.setattr(cegis_objective, "power_mean_norm", _old_penalty)
+    out = tmp_path / "m.ckpt"
+    code, _, err = run_cli(capsys, "train", "vdp", "--preset", "certified", "--metric",
+                           "[[1,0],[0,1]]", "--points", "64", "--hidden", "6",
+                           "--adam-iters", "5", "--curvature-weight", "0", "-o", str(out),
+                           "--quiet")
+    assert code == 4
+    assert err.count("\n") == 1 and "CEGIS round 1, Adam step 0: the gradient" in err
     assert not out.exists()
