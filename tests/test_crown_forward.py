@@ -187,13 +187,15 @@ def test_forward_bounds_bit_identical_composed_first_layer(act: str, cols: list[
 
 @settings(max_examples=8, deadline=None)
 @given(seed=st.integers(0, 10_000), act=st.sampled_from(activations.names()),
-       scale=st.sampled_from([0.01, 0.1, 0.5]))
-def test_forward_ranges_contain_sampled_values(seed: int, act: str, scale: float) -> None:
+       scale=st.sampled_from([0.01, 0.1, 0.5]), crown=st.booleans())
+def test_forward_ranges_contain_sampled_values(seed: int, act: str, scale: float,
+                                               crown: bool) -> None:
     """Every recorded range of pre_l and t_l = d pre_l / dz contains the float64 values at
-    sampled points of the box (the layer walk of `propagate` over `PairedArithmetic`)."""
+    sampled points of the box (`propagate` over `PairedArithmetic` alone, or with the CROWN
+    queries of the layer hook)."""
     net = _net(seed, 3, 2, 5, 1.5, act)
     lo, hi = _boxes(seed, 3, 3, scale)
-    fb = forward_bounds(net, lo, hi)
+    fb = forward_bounds(net, lo, hi, crown=crown)
     B, S = lo.shape[0], 16
     x = _points(lo, hi, S, seed).reshape(B * S, 3)
     ws = [(W.to(F64), b.to(F64)) for W, b in net.weights()]
