@@ -14,7 +14,11 @@
     entry points;
   * intervals: `IntervalArithmetic` (interval.py), outward-rounded;
   * first-order Taylor models: `TaylorArithmetic` (taylor.py), over
-    `certify.bounds.taylor.TM`, whose `tm_activation` is its `activate`.
+    `certify.bounds.taylor.TM`, whose `tm_activation` is its `activate`;
+  * a Taylor model and an interval per value: `PairedArithmetic` (paired.py; `propagate`
+    only, no compose primitives), which delegates to the two above (the interval step's
+    products with W kept per value) and intersects the interval with the model's range when
+    asked (`intersect`).
 
 Adding an activation touches one file in `certify/activations/`. Through `propagate` and
 `compose` run: the point kernels (`certify.kernels`, `certify.gridkernel`,
@@ -23,22 +27,22 @@ CEGIS' `training.cegis_objective`, the curvature term), and the prover's enclosu
 `network_enclosure` and `gain_enclosure`
 (`certify.bounds.network_interval`: `propagate`, `compose`, `compose_second` in
 `IntervalArithmetic`), `network_taylor`, `gain_taylor` and `jcl_taylor`
-(`certify.bounds.taylor`, in `TaylorArithmetic`). The ports were bit-identical to the code
-they replaced (frozen in tests/test_gain_interval.py, tests/test_gain_compose.py and, for
-the training heads, tests/test_training_heads.py), except
-dk/dy of the interval gain, which `compose` forms as dN/dy r + G + K with exact constants
-where the old code summed G_il * 1 and K_il * 1 with product and summation rounding: the new
-enclosure lies inside the old one.
+(`certify.bounds.taylor`, in `TaylorArithmetic`), and the CROWN prover's forward ranges
+`certify.bounds.crown.forward_bounds` (`propagate` in `PairedArithmetic`; its `layer_hook`
+intersects, adds the composed first layer's slack at layer 0, runs the backward CROWN
+queries that tighten pre_l and the tangent columns, and records each layer's relaxations).
+The ports were bit-identical to the code they replaced (frozen in
+tests/test_gain_interval.py, tests/test_gain_compose.py, tests/test_crown_forward.py and,
+for the training heads, tests/test_training_heads.py), except dk/dy of the interval gain,
+which `compose` forms as dN/dy r + G + K with exact constants where the old code summed
+G_il * 1 and K_il * 1 with product and summation rounding: the new enclosure lies inside
+the old one.
 
 Not (yet) written once:
-- The linear-relaxation arithmetic. `certify.bounds.crown.forward_bounds` repeats the Taylor
-  forward pass of `TaylorArithmetic` (tm_linear / tm_activation / tm_mul per layer) and an
-  interval pass of value and tangents, interleaved with their intersections and CROWN
-  queries; it could be `propagate` over a paired interval + Taylor arithmetic whose
-  `pre_hook` intersects (and adds the composed first layer's slack at layer 0). Its backward
-  pass, the adjoint of the chain rule with `act.relax` / `act.relax_d1` lines, is separate
-  by nature. `certify.bounds.side.dk_dy_box_upper_crown` adds K to crown's dN/dy model by
-  hand (`TaylorArithmetic.add_const`).
+- The linear-relaxation arithmetic: CROWN's backward pass (`certify.bounds.crown_backward`),
+  the adjoint of the chain rule with `act.relax` / `act.relax_d1` lines, is separate by
+  nature (backward mode; `propagate` is forward mode). `certify.bounds.side.
+  dk_dy_box_upper_crown` adds K to crown's dN/dy model by hand (`TaylorArithmetic.add_const`).
 - The reverse pass of training (`ChunkArithmetic.reverse`, the weight gradient) is the
   hand-written adjoint of `propagate` over the chunk buffers, not derived from it:
   `propagate` is forward mode and records nothing to reverse; autograd through it costs

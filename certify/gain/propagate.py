@@ -11,8 +11,9 @@ interval / Taylor / relaxation) and the memory layout. For every hidden layer:
 
 starting from pre = W_0 z + b_0, T = W_0[:, :m] (arith.input_layer), and an optional
 `pre_hook(layer, pre, T)` that may tighten each pre-activation (the interval arithmetic's
-mean-value intersection). `compose` then builds k, dk/dxhat, dk/dy from N, dN/dz and
-r = y - h(xhat), dh/dxhat, for the direct or structural injection plus K r, with the
+mean-value intersection) or `layer_hook(layer, pre, T)` that may replace both (the CROWN
+prover's ranges, over `PairedArithmetic`). `compose` then builds k, dk/dxhat, dk/dy from N,
+dN/dz and r = y - h(xhat), dh/dxhat, for the direct or structural injection plus K r, with the
 arithmetic's contraction primitives; `compose_second` the second derivatives
 d2k_i / dxhat_j dz_m from d2N and dr/dz, d2r/dxhat dz (the prover's curvature term).
 """
@@ -26,6 +27,7 @@ from typing import Any
 from certify.gain.spec import GainSpec
 
 PreHook = Callable[[int, Any, Any], Any]
+LayerHook = Callable[[int, Any, Any], tuple[Any, Any]]
 
 
 @dataclass
@@ -39,10 +41,14 @@ class NetOutput:
 
 
 def propagate(spec: GainSpec, arith: Any, z: Any, m: int, order: int = 1,
-              second_cols: int | None = None, pre_hook: PreHook | None = None) -> NetOutput:
+              second_cols: int | None = None, pre_hook: PreHook | None = None,
+              layer_hook: LayerHook | None = None) -> NetOutput:
     """N(z) with its derivatives in the first m inputs (order 2: d2/dz_j dz_k, j < second_cols).
 
     `z` is whatever the arithmetic takes as input ([B, d] points for the point arithmetics).
+    `layer_hook(layer, pre, T) -> (pre, T)`, called after `pre_hook`, may replace both the
+    pre-activation and the first-derivative rows of each hidden layer (the CROWN prover's
+    forward ranges: intersections and backward queries, `certify.bounds.crown`).
     """
     act = spec.activation
     (W0, b0), rest = spec.layers[0], spec.layers[1:]
@@ -52,6 +58,8 @@ def propagate(spec: GainSpec, arith: Any, z: Any, m: int, order: int = 1,
     for i, (W, b) in enumerate(rest, start=1):
         if pre_hook is not None:
             pre = pre_hook(i - 1, pre, T)
+        if layer_hook is not None:
+            pre, T = layer_hook(i - 1, pre, T)
         a, s, s2 = arith.activate(act, pre, i, order)
         if S is not None:
             S = arith.second(s2, T, s, S, J, i)
