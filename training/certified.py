@@ -1,9 +1,15 @@
 """The `certified` preset's recipe: LMI metric and warm start, structural gain, CEGIS loop.
 
 1. The metric P and a certified linear gain K come from the joint LMI of METHOD §4
-   (`training.baseline.make_lmi_baseline`), solved with a margin (`P_MARGIN`) larger than the
-   baseline's, so that the kernel condition (which no gain can change, METHOD §3.5) leaves
-   room for a proved rate above the design lam.
+   (`training.baseline.make_lmi_baseline`; memory-bounded vertex enumeration for n = 6),
+   solved with a margin (`P_MARGIN`) larger than the baseline's, so that the kernel condition
+   (which no gain can change, METHOD §3.5) leaves room for a proved rate above the design lam.
+   Round 0: the warm start (MLP output zero, gain exactly K (y - h)) is proved before Adam
+   moves it; when it does not prove within `WARM_PROOF_SECONDS`, the LMI is solved again with
+   a larger margin (`WARM_MARGINS`): a flat lam_max(D) just below -margin leaves the prover
+   no room on large boxes (vdp3 at margin 0.5: 5% of the volume in 60 s; at 4: proved in
+   seconds). When no CEGIS round proves, the PROVED warm start is returned (a certified
+   linear-injection observer), never an unproved network.
 2. The gain is structural, k = G(xhat, y) (y - h(xhat)) + K (y - h(xhat)), so eps_bar = 0 by
    construction; the MLP's last layer starts at zero, so the initial gain IS the certified
    LMI gain.
@@ -19,6 +25,7 @@ With `--metric` the given P is used instead and there is no warm start (K = 0).
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import sys
 import time
@@ -31,6 +38,7 @@ import numpy as np
 from certify import checkpoint
 from certify.errors import CertifyError
 from certify.network import GainNetwork
+from certify.prover import ProofOutcome
 from certify.results import Status
 from certify.system import System
 from training.cegis import CegisResult, CegisSettings, cegis, warm_start_network
@@ -38,6 +46,12 @@ from training.presets import TrainConfig
 
 #: margin of the LMI that gives P and the warm-start K (the baseline uses 0.05)
 P_MARGIN = 0.5
+
+#: margins tried in turn (from P_MARGIN up) until the warm start proves in round 0
+WARM_MARGINS = (P_MARGIN, 2.0, 4.0, 8.0)
+
+#: prover budget of each round-0 proof of a warm start (seconds; boxes: the CEGIS budget)
+WARM_PROOF_SECONDS = 30.0
 
 #: CEGIS settings of the certified preset (TrainConfig carries margin, points, hidden, seed,
 #: adam_iters = Adam steps per round, adam_lr)
@@ -100,6 +114,49 @@ def lmi_start(system: System, lam: float, *, margin: float = P_MARGIN, hidden: t
                        f"({last})")
 
 
+def proved_lmi_start(system: System, lam: float, config: TrainConfig, cs: CegisSettings,
+                     log: Any = None) -> tuple[GainNetwork, np.ndarray, dict[str, Any],
+                                                ProofOutcome | None]:
+    """Round 0: the LMI warm start at the first margin of WARM_MARGINS whose network (MLP
+    output zero, structural gain) `prove_mpdi` proves within WARM_PROOF_SECONDS and the CEGIS
+    box budget. Returns (network, P, start info, its PROVED outcome); when none proves, the
+    first margin's start and None (training goes on from it, as before)."""
+    from certify.problem import Problem
+    from certify.prover import prove_mpdi
+
+    first: tuple[GainNetwork, np.ndarray, dict[str, Any]] | None = None
+    tried: list[dict[str, Any]] = []
+    for margin in WARM_MARGINS:
+        try:
+            base, P, info = lmi_start(system, lam, margin=margin)
+        except CertifyError:
+            if first is None and margin == WARM_MARGINS[-1]:
+                raise
+            continue
+        net = warm_start_network(system, config.hidden, K=base.K.detach().clone(),
+                                 structure="structural", seed=config.seed,
+                                 activation=config.activation)
+        first = first or (net, P, info)
+        t0 = time.perf_counter()
+        out = prove_mpdi(Problem(system, net, lam, P), seconds=WARM_PROOF_SECONDS,
+                         max_boxes=cs.proof_boxes)
+        seconds = time.perf_counter() - t0
+        tried.append({"margin": info["margin"], "status": out.status.value,
+                      "upper": out.upper, "seconds": round(seconds, 2),
+                      "boxes": out.stats.boxes_processed,
+                      "proved_volume": out.stats.proved_volume_fraction})
+        if log is not None:
+            log(f"round 0: LMI warm start at margin {info['margin']:g} (||K|| "
+                f"{info['gain_norm']:.4g}, cond P {info['kappa_P']:.4g}): {out.status.value} "
+                f"in {seconds:.1f} s, {out.stats.boxes_processed} boxes, proved volume "
+                f"{out.stats.proved_volume_fraction:.3f}")
+        if out.status is Status.PROVED:
+            return net, P, {**info, "round0": tried}, out
+    if first is None:  # pragma: no cover - every margin raised, the last re-raised above
+        raise CertifyError(f"certified preset: no LMI metric for {system.name}")
+    return first[0], first[1], {**first[2], "round0": tried}, None
+
+
 def cegis_settings(config: TrainConfig, base: CegisSettings = DEFAULT_CEGIS,
                    **overrides: Any) -> CegisSettings:
     """The loop's settings from the preset's config (margin, seed, Adam steps and lr)."""
@@ -117,22 +174,31 @@ def train_certified(system: System, config: TrainConfig, *, P: np.ndarray | None
     """Run the certified recipe for `system` at config.lam (P given: no warm start)."""
     t0 = time.perf_counter()
     lam = float(config.lam if config.lam is not None else system.lam)
+    cs = settings or cegis_settings(config)
+    warm_proof: ProofOutcome | None = None
     if P is None:
-        base_net, P, start = lmi_start(system, lam)
-        K = base_net.K.detach().clone()
+        net, P, start, warm_proof = proved_lmi_start(system, lam, config, cs, log)
+        K = net.K.detach().clone()
         start = {"source": "joint LMI (P, K), warm start k0 = K (y - h(xhat))", **start}
     else:
         P = np.asarray(P, dtype=np.float64)
         K = None
         start = {"source": "--metric (no warm start)", "kappa_P": float(np.linalg.cond(P))}
-    net = warm_start_network(system, config.hidden, K=K, structure="structural",
-                             seed=config.seed, activation=config.activation)
-    cs = settings or cegis_settings(config)
+        net = warm_start_network(system, config.hidden, K=K, structure="structural",
+                                 seed=config.seed, activation=config.activation)
+    warm_net = copy.deepcopy(net)
     if log is not None:
         warm = "none" if K is None else f"K = {np.round(K.numpy().ravel(), 3).tolist()}"
         log(f"metric P = {np.array2string(P, precision=4)} (cond {np.linalg.cond(P):.4g}); "
             f"warm start: {warm}")
     res = cegis(system, net, P, lam, settings=cs, points=config.points, log=log)
+    if res.status is not Status.PROVED and warm_proof is not None:
+        note = ("no CEGIS round proved; returning the round-0 warm start (the LMI observer, "
+                "MLP output zero), which is PROVED")
+        if log is not None:
+            log(note)
+        res = dataclasses.replace(res, network=warm_net, status=Status.PROVED,
+                                  proof=warm_proof, notes=[*res.notes, note])
     return CertifiedResult(network=res.network, P=np.asarray(P), lam=lam, status=res.status,
                            cegis=res, start=start, seconds=time.perf_counter() - t0,
                            config=config)

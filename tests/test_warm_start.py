@@ -1,0 +1,98 @@
+"""The certified preset's warm start: a memory-bounded joint LMI for the 6-state built-in
+(its linear gain really makes D <= -margin on X), round 0 proves the warm start before Adam
+moves it and raises the margin until it proves, and a training run whose CEGIS rounds never
+prove returns the PROVED warm start instead of an unproved network."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from certify.kernels import gain_terms, mpdi_lam_max
+from certify.results import Status
+from certify.system import load_system
+from training import baseline, certified
+from training.cegis import warm_start_network
+from training.presets import make_config
+
+
+def _box_points(system, count: int, seed: int) -> torch.Tensor:
+    box = np.concatenate([system.X, system.Y])
+    lo, hi = torch.as_tensor(box[:, 0]), torch.as_tensor(box[:, 1])
+    g = torch.Generator().manual_seed(seed)
+    return lo + (hi - lo) * torch.rand(count, len(lo), generator=g, dtype=torch.float64)
+
+
+def test_six_state_lmi_is_memory_bounded_and_really_certifies():
+    """vdp3's default subdivision would build ~3 million vertex LMIs (past 16 GB); the bounded
+    LMI uses at most MAX_SDP_VERTICES, and its gain makes lam_max(D) <= -margin at sampled
+    points of X (the LMI holds on the hull of the Jacobian enclosure, so everywhere)."""
+    vdp3 = load_system("vdp3")
+    assert baseline.default_vertex_count(vdp3) > baseline.MAX_DEFAULT_VERTICES
+    for name in ("vdp", "lorenz", "vdp2"):  # their preset keeps observer_lmi's subdivision
+        assert baseline.default_vertex_count(load_system(name)) <= \
+            baseline.MAX_DEFAULT_VERTICES
+    margin = 4.0
+    res = baseline.bounded_observer_lmi(vdp3, vdp3.lam, margin=margin, kappa_max=1e4,
+                                        gain_max=1e4)
+    assert res.status is Status.PROVED, res.message
+    assert res.solver["sdp_vertices"] <= baseline.MAX_SDP_VERTICES
+    assert res.solver["check_max_vertex_value"] <= -0.5 * margin
+    net = warm_start_network(vdp3, (4,), K=np.asarray(res.K))
+    z = _box_points(vdp3, 3000, seed=1)
+    values = mpdi_lam_max(vdp3, net, torch.as_tensor(res.P, dtype=torch.float64), vdp3.lam, z[:, :6], z[:, 6:])
+    assert float(values.detach().max()) <= -margin * (1 - 1e-9)
+
+
+def test_round0_raises_the_margin_until_the_warm_start_proves(monkeypatch):
+    """vdp3 at margin 0.5 does not prove within the box budget (lam_max(D) is flat just below
+    -0.5); round 0 then solves the LMI at margin 4, whose warm start proves."""
+    vdp3 = load_system("vdp3")
+    config = make_config(vdp3, "certified")
+    cs = certified.cegis_settings(config, proof_boxes=30_000)
+    monkeypatch.setattr(certified, "WARM_MARGINS", (0.5, 4.0))
+    monkeypatch.setattr(certified, "WARM_PROOF_SECONDS", 1e9)  # deterministic: boxes only
+    lines: list[str] = []
+    net, P, info, proof = certified.proved_lmi_start(vdp3, vdp3.lam, config, cs, lines.append)
+    assert [r["status"] for r in info["round0"]] == ["UNKNOWN", "PROVED"]
+    assert info["margin"] == 4.0 and proof is not None and proof.status is Status.PROVED
+    assert proof.upper <= 0 and len(lines) == 2 and "margin 4" in lines[1]
+    z = _box_points(vdp3, 200, seed=2)
+    t = gain_terms(vdp3, net, z[:, :6], z[:, 6:])  # the warm start is the linear gain
+    assert torch.equal(t.k, (z[:, 6:] - vdp3.h(z[:, :6])) @ net.K.T)
+
+
+def test_unproved_training_returns_the_proved_warm_start(monkeypatch):
+    """CEGIS rounds that never prove (here: a stand-in that breaks the network) do not give an
+    unproved checkpoint: the PROVED round-0 warm start comes back, with a note."""
+    vdp = load_system("vdp")
+    config = make_config(vdp, "certified", lam=2.5)
+
+    def breaking_cegis(system, network, P, lam, *, settings, points, log):
+        broken = warm_start_network(system, config.hidden, seed=1)
+        with torch.no_grad():
+            broken.layers[-1].weight.fill_(3.0)
+        from training.cegis import CegisResult
+
+        return CegisResult(network=broken, P=np.asarray(P), lam=lam, status=Status.UNKNOWN,
+                           rounds=[], proof=None, xhat=torch.zeros(0, 2), y=torch.zeros(0, 1),
+                           seconds=0.0, settings=settings)
+
+    monkeypatch.setattr(certified, "cegis", breaking_cegis)
+    out = certified.train_certified(vdp, config)
+    assert out.status is Status.PROVED and out.cegis.proof is not None
+    assert out.cegis.proof.status is Status.PROVED
+    assert any("warm start" in note for note in out.cegis.notes)
+    assert float(out.network.layers[-1].weight.abs().max()) == 0.0  # MLP output zero
+    assert out.start["round0"][0]["status"] == "PROVED"
+    assert dataclasses.asdict(out.config)["lam"] == 2.5
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0])
+def test_bounded_lmi_refuses_a_nonpositive_rate(bad):
+    with pytest.raises(ValueError, match="lam must be > 0"):
+        baseline.bounded_observer_lmi(load_system("vdp3"), bad, margin=1.0, kappa_max=1e4,
+                                      gain_max=1e4)
