@@ -43,7 +43,8 @@ def test_six_state_lmi_is_memory_bounded_and_really_certifies():
     assert res.solver["check_max_vertex_value"] <= -0.5 * margin
     net = warm_start_network(vdp3, (4,), K=np.asarray(res.K))
     z = _box_points(vdp3, 3000, seed=1)
-    values = mpdi_lam_max(vdp3, net, torch.as_tensor(res.P, dtype=torch.float64), vdp3.lam, z[:, :6], z[:, 6:])
+    P = torch.as_tensor(res.P, dtype=torch.float64)
+    values = mpdi_lam_max(vdp3, net, P, vdp3.lam, z[:, :6], z[:, 6:])
     assert float(values.detach().max()) <= -margin * (1 - 1e-9)
 
 
@@ -52,17 +53,22 @@ def test_round0_raises_the_margin_until_the_warm_start_proves(monkeypatch):
     -0.5); round 0 then solves the LMI at margin 4, whose warm start proves."""
     vdp3 = load_system("vdp3")
     config = make_config(vdp3, "certified")
-    cs = certified.cegis_settings(config, proof_boxes=30_000)
+    cs = certified.cegis_settings(config, proof_boxes=20_000)
     monkeypatch.setattr(certified, "WARM_MARGINS", (0.5, 4.0))
     monkeypatch.setattr(certified, "WARM_PROOF_SECONDS", 1e9)  # deterministic: boxes only
     lines: list[str] = []
-    net, P, info, proof = certified.proved_lmi_start(vdp3, vdp3.lam, config, cs, lines.append)
+    net, P, info, proved = certified.proved_lmi_start(vdp3, vdp3.lam, config, cs,
+                                                      lines.append)
     assert [r["status"] for r in info["round0"]] == ["UNKNOWN", "PROVED"]
-    assert info["margin"] == 4.0 and proof is not None and proof.status is Status.PROVED
-    assert proof.upper <= 0 and len(lines) == 2 and "margin 4" in lines[1]
+    assert info["margin"] == 4.0 and proved is not None
+    observer, proof = proved
+    assert proof.status is Status.PROVED and proof.upper <= 0
+    assert len(lines) == 2 and "margin 4" in lines[1]
     z = _box_points(vdp3, 200, seed=2)
-    t = gain_terms(vdp3, net, z[:, :6], z[:, 6:])  # the warm start is the linear gain
-    assert torch.equal(t.k, (z[:, 6:] - vdp3.h(z[:, :6])) @ net.K.T)
+    r = z[:, 6:] - vdp3.h(z[:, :6])
+    for gain in (net, observer):  # CEGIS's warm start and the proved observer: K (y - h)
+        assert torch.equal(gain.K, net.K)
+        assert torch.equal(gain_terms(vdp3, gain, z[:, :6], z[:, 6:]).k, r @ net.K.T)
 
 
 def test_unproved_training_returns_the_proved_warm_start(monkeypatch):
@@ -85,7 +91,7 @@ def test_unproved_training_returns_the_proved_warm_start(monkeypatch):
     out = certified.train_certified(vdp, config)
     assert out.status is Status.PROVED and out.cegis.proof is not None
     assert out.cegis.proof.status is Status.PROVED
-    assert any("warm start" in note for note in out.cegis.notes)
+    assert any("proved in round 0" in note for note in out.cegis.notes)
     assert float(out.network.layers[-1].weight.abs().max()) == 0.0  # MLP output zero
     assert out.start["round0"][0]["status"] == "PROVED"
     assert dataclasses.asdict(out.config)["lam"] == 2.5

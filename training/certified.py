@@ -4,12 +4,12 @@
    (`training.baseline.make_lmi_baseline`; memory-bounded vertex enumeration for n = 6),
    solved with a margin (`P_MARGIN`) larger than the baseline's, so that the kernel condition
    (which no gain can change, METHOD §3.5) leaves room for a proved rate above the design lam.
-   Round 0: the warm start (MLP output zero, gain exactly K (y - h)) is proved before Adam
-   moves it; when it does not prove within `WARM_PROOF_SECONDS`, the LMI is solved again with
-   a larger margin (`WARM_MARGINS`): a flat lam_max(D) just below -margin leaves the prover
-   no room on large boxes (vdp3 at margin 0.5: 5% of the volume in 60 s; at 4: proved in
-   seconds). When no CEGIS round proves, the PROVED warm start is returned (a certified
-   linear-injection observer), never an unproved network.
+   Round 0: the linear-injection observer K (y - h) (the warm start's gain) is proved
+   before Adam moves anything; when it does not prove within `WARM_PROOF_SECONDS`, the LMI
+   is solved again with a larger margin (`WARM_MARGINS`): a flat lam_max(D) just below
+   -margin leaves the prover no room on large boxes (vdp3 at margin 0.5: 5% of the volume
+   in 60 s; at 4: proved in seconds). When no CEGIS round proves, that PROVED observer is
+   returned (a certified linear injection, MLP output zero), never an unproved network.
 2. The gain is structural, k = G(xhat, y) (y - h(xhat)) + K (y - h(xhat)), so eps_bar = 0 by
    construction; the MLP's last layer starts at zero, so the initial gain IS the certified
    LMI gain.
@@ -25,7 +25,6 @@ With `--metric` the given P is used instead and there is no warm start (K = 0).
 from __future__ import annotations
 
 import argparse
-import copy
 import dataclasses
 import sys
 import time
@@ -116,11 +115,15 @@ def lmi_start(system: System, lam: float, *, margin: float = P_MARGIN, hidden: t
 
 def proved_lmi_start(system: System, lam: float, config: TrainConfig, cs: CegisSettings,
                      log: Any = None) -> tuple[GainNetwork, np.ndarray, dict[str, Any],
-                                                ProofOutcome | None]:
-    """Round 0: the LMI warm start at the first margin of WARM_MARGINS whose network (MLP
-    output zero, structural gain) `prove_mpdi` proves within WARM_PROOF_SECONDS and the CEGIS
-    box budget. Returns (network, P, start info, its PROVED outcome); when none proves, the
-    first margin's start and None (training goes on from it, as before)."""
+                                                tuple[GainNetwork, ProofOutcome] | None]:
+    """Round 0: the LMI warm start at the first margin of WARM_MARGINS whose linear-injection
+    observer `prove_mpdi` proves within WARM_PROOF_SECONDS and the CEGIS box budget.
+
+    The observer proved is the LMI baseline network (direct structure, MLP output exactly
+    zero: gain K (y - h)); the structural warm start for CEGIS has the same gain, but the
+    prover pays for its (16, 16) MLP on every box (vdp3: ~150 boxes/s instead of ~9000).
+    Returns (structural warm start, P, start info, (proved network, its outcome) or None);
+    when no margin proves, the first margin's start and None (training goes on from it)."""
     from certify.problem import Problem
     from certify.prover import prove_mpdi
 
@@ -138,7 +141,7 @@ def proved_lmi_start(system: System, lam: float, config: TrainConfig, cs: CegisS
                                  activation=config.activation)
         first = first or (net, P, info)
         t0 = time.perf_counter()
-        out = prove_mpdi(Problem(system, net, lam, P), seconds=WARM_PROOF_SECONDS,
+        out = prove_mpdi(Problem(system, base, lam, P), seconds=WARM_PROOF_SECONDS,
                          max_boxes=cs.proof_boxes)
         seconds = time.perf_counter() - t0
         tried.append({"margin": info["margin"], "status": out.status.value,
@@ -146,12 +149,12 @@ def proved_lmi_start(system: System, lam: float, config: TrainConfig, cs: CegisS
                       "boxes": out.stats.boxes_processed,
                       "proved_volume": out.stats.proved_volume_fraction})
         if log is not None:
-            log(f"round 0: LMI warm start at margin {info['margin']:g} (||K|| "
+            log(f"round 0: LMI observer at margin {info['margin']:g} (||K|| "
                 f"{info['gain_norm']:.4g}, cond P {info['kappa_P']:.4g}): {out.status.value} "
                 f"in {seconds:.1f} s, {out.stats.boxes_processed} boxes, proved volume "
                 f"{out.stats.proved_volume_fraction:.3f}")
         if out.status is Status.PROVED:
-            return net, P, {**info, "round0": tried}, out
+            return net, P, {**info, "round0": tried}, (base, out)
     if first is None:  # pragma: no cover - every margin raised, the last re-raised above
         raise CertifyError(f"certified preset: no LMI metric for {system.name}")
     return first[0], first[1], {**first[2], "round0": tried}, None
@@ -175,9 +178,9 @@ def train_certified(system: System, config: TrainConfig, *, P: np.ndarray | None
     t0 = time.perf_counter()
     lam = float(config.lam if config.lam is not None else system.lam)
     cs = settings or cegis_settings(config)
-    warm_proof: ProofOutcome | None = None
+    proved: tuple[GainNetwork, ProofOutcome] | None = None
     if P is None:
-        net, P, start, warm_proof = proved_lmi_start(system, lam, config, cs, log)
+        net, P, start, proved = proved_lmi_start(system, lam, config, cs, log)
         K = net.K.detach().clone()
         start = {"source": "joint LMI (P, K), warm start k0 = K (y - h(xhat))", **start}
     else:
@@ -186,19 +189,18 @@ def train_certified(system: System, config: TrainConfig, *, P: np.ndarray | None
         start = {"source": "--metric (no warm start)", "kappa_P": float(np.linalg.cond(P))}
         net = warm_start_network(system, config.hidden, K=K, structure="structural",
                                  seed=config.seed, activation=config.activation)
-    warm_net = copy.deepcopy(net)
     if log is not None:
         warm = "none" if K is None else f"K = {np.round(K.numpy().ravel(), 3).tolist()}"
         log(f"metric P = {np.array2string(P, precision=4)} (cond {np.linalg.cond(P):.4g}); "
             f"warm start: {warm}")
     res = cegis(system, net, P, lam, settings=cs, points=config.points, log=log)
-    if res.status is not Status.PROVED and warm_proof is not None:
-        note = ("no CEGIS round proved; returning the round-0 warm start (the LMI observer, "
-                "MLP output zero), which is PROVED")
+    if res.status is not Status.PROVED and proved is not None:
+        note = ("no CEGIS round proved; returning the observer proved in round 0 (the joint-"
+                "LMI linear injection K (y - h), MLP output zero)")
         if log is not None:
             log(note)
-        res = dataclasses.replace(res, network=warm_net, status=Status.PROVED,
-                                  proof=warm_proof, notes=[*res.notes, note])
+        res = dataclasses.replace(res, network=proved[0], status=Status.PROVED,
+                                  proof=proved[1], notes=[*res.notes, note])
     return CertifiedResult(network=res.network, P=np.asarray(P), lam=lam, status=res.status,
                            cegis=res, start=start, seconds=time.perf_counter() - t0,
                            config=config)
