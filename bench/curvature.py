@@ -34,7 +34,8 @@ from certify.system import load_system  # noqa: E402
 
 def cost(reps: int = 15, steps: int = 5) -> None:
     """Milliseconds per Adam step, term off vs on (interleaved)."""
-    from training.cegis import CertObjective, warm_start_network
+    from training.cegis import warm_start_network
+    from training.cegis_objective import CertObjective
     from training.certified import lmi_start
     from training.collocation import collocation_points
     from training.curvature import CurvaturePenalty, CurvatureSettings

@@ -82,7 +82,7 @@ def make_system(name: str, n: int) -> System:
 
 def _jf_vertices(system: System) -> list[np.ndarray]:
     """Vertices of an interval enclosure of Jf over X (grid of 3^n sub-boxes)."""
-    from certify.intervals import jacobian_f_enclosure
+    from certify.system_enclosures import jacobian_f_enclosure
 
     n = system.n
     X = torch.as_tensor(system.X, dtype=torch.float64)

@@ -24,8 +24,9 @@ import torch  # noqa: E402
 
 from certify import checkpoint  # noqa: E402
 from certify.system import load_system  # noqa: E402
+from training.objective import WORKERS  # noqa: E402
 from training.presets import make_config  # noqa: E402
-from training.train import WORKERS, train  # noqa: E402
+from training.train import train  # noqa: E402
 
 
 def main() -> int:

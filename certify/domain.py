@@ -31,15 +31,8 @@ import sympy
 import torch
 
 from certify.errors import SpecError
-from certify.intervals import (
-    Interval,
-    _contains_point,
-    const_interval,
-    enclose_function,
-    imul,
-    ipow_int,
-    ipow_real,
-)
+from certify.interval_rules import _contains_point, enclose_function
+from certify.intervals import Interval, const_interval, imul, ipow_int, ipow_real
 
 MAX_ROUNDS = 40  # bisection rounds
 MAX_BOXES = 4096  # flagged sub-boxes kept per round

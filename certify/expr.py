@@ -3,12 +3,13 @@
 Parsing lives in `certify.parse` (re-exported here as `parse_expression`): only numbers,
 declared names, `+ - * / **`, unary minus/plus and the functions of `FUNCTIONS` are
 accepted. The same table drives point evaluation (torch) and interval enclosures
-(`certify.intervals`), so whatever parses can also be evaluated and enclosed;
+(`certify.interval_rules`), so whatever parses can also be evaluated and enclosed;
 `certify.domain` checks that it is defined and smooth on the box.
 """
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol
 
@@ -109,51 +110,81 @@ Compiled = Callable[[Sequence[torch.Tensor]], "torch.Tensor | float"]
 CompiledRows = Callable[[torch.Tensor], torch.Tensor]
 
 
-class _Emitter:
-    """Straight-line Python source for sympy trees, one temporary per operation.
+Slot = int  # index into the value list of one evaluation: columns, constants, temporaries
+Ref = tuple[str, int]  # ("col" | "const" | "step", index) while the tape is being built
+#: One operation: (function, slot of the first operand, slot of the second or -1 if unary).
+Step = tuple[Callable[..., Any], Slot, Slot]
+
+
+def _exp_log_constant_base(exponent: torch.Tensor, base: float) -> torch.Tensor:
+    """base**exponent for a constant base, as exp(exponent * log(base)) (as `evaluate`)."""
+    return torch.exp(exponent * torch.log(torch.full_like(exponent, base)))
+
+
+def _negated(term: sympy.Expr) -> sympy.Expr | None:
+    """u when `term` is -1 * u with u not constant (sympy's form of a subtracted term)."""
+    if term.is_Mul and len(term.args) == 2 and term.args[0] == -1 \
+            and term.args[1].free_symbols:
+        return term.args[1]
+    return None
+
+
+class _Tape:
+    """A straight-line program for sympy trees, built once from the parsed tree: a list of
+    steps (function, operand slots) that `compile_torch*` run in order. No code generation.
 
     The operations are exactly those of a bottom-up walk (the same as `evaluate` with
     `TORCH`, except that constant subtrees are folded to Python floats): sums and products
-    folded left to right, x**2 as x*x, x**k (k < 0) as 1/x**-k, functions from `FUNCTIONS`.
-    A sub-expression that occurs twice is computed once (the same operations on the same
-    inputs give the same floats, so this changes no value). The source holds only generated
-    names (columns c0.., temporaries t0.., constants k.. and functions F.. bound in its
-    namespace): no text of the spec reaches `exec`.
+    folded left to right, x**2 as x*x, x**k (k < 0) as 1/x**-k, a**b (b not a number) as
+    exp(b * log(a)), functions from `FUNCTIONS`; a later term -1 * u of a sum is subtracted
+    (s + (-1.0 * u) and s - u are the same float: negation is exact). A sub-expression that
+    occurs twice is computed once (the same operations on the same inputs give the same
+    floats, so this changes no value). The steps call builtins (`operator.add`, `torch.sin`,
+    ...) directly, so a step costs one C call and no Python frame. A run's value list holds
+    the input columns, then the folded constants (Python numbers), then one value per step.
     """
 
     def __init__(self, symbols: Sequence[sympy.Symbol]) -> None:
         self.index = {s: i for i, s in enumerate(symbols)}
-        self.lines: list[str] = []
-        self.names: dict[str, Any] = {"torch": torch}
-        self.memo: dict[sympy.Expr, str] = {}
+        self.columns = len(symbols)
+        self.constants: list[float | int] = []
+        self.ops: list[tuple[Callable[..., Any], Ref, Ref | None]] = []
+        self.memo: dict[sympy.Expr, Ref] = {}
 
-    def _bind(self, prefix: str, value: Any) -> str:
-        name = f"{prefix}{len(self.names)}"
-        self.names[name] = value
-        return name
+    def _const(self, value: float | int) -> Ref:
+        self.constants.append(value)
+        return ("const", len(self.constants) - 1)
 
-    def _temp(self, code: str) -> str:
-        name = f"t{len(self.lines)}"
-        self.lines.append(f"{name} = {code}")
-        return name
+    def _op(self, fn: Callable[..., Any], a: Ref, b: Ref | None = None) -> Ref:
+        self.ops.append((fn, a, b))
+        return ("step", len(self.ops) - 1)
 
-    def emit(self, e: sympy.Expr) -> str:
-        """The name holding e's value (a tensor, or a Python float for a constant)."""
+    def emit(self, e: sympy.Expr) -> Ref:
+        """The reference holding e's value (a tensor, or a Python float for a constant)."""
         if e not in self.memo:
             self.memo[e] = self._emit(e)
         return self.memo[e]
 
-    def _emit(self, e: sympy.Expr) -> str:
+    def _emit(self, e: sympy.Expr) -> Ref:
         if e.is_Symbol:
-            return f"c{self.index[e]}"
+            return ("col", self.index[e])
         if not e.free_symbols:
-            return self._bind("k", float(e))
-        if e.is_Add or e.is_Mul:
+            return self._const(float(e))
+        if e.is_Add:
+            out = self.emit(e.args[0])
+            for term in e.args[1:]:
+                negated = _negated(term)
+                if negated is not None and term not in self.memo:
+                    # out + (-1.0 * u) is out - u exactly (IEEE negation is exact): one step
+                    out = self._op(operator.sub, out, self.emit(negated))
+                else:
+                    out = self._op(operator.add, out, self.emit(term))
+            return out
+        if e.is_Mul:
             parts = [self.emit(a) for a in e.args]
-            op = " + " if e.is_Add else " * "
             out = parts[0]
             for part in parts[1:]:
-                out = self._temp(out + op + part)
+                out = self._op(operator.mul, out, part)
             return out
         if e.is_Pow:
             base, exponent = e.args
@@ -161,61 +192,92 @@ class _Emitter:
             if exponent.is_Integer:
                 k = int(exponent)
                 if k == 2:
-                    return self._temp(f"{b} * {b}")
-                return self._temp(f"{b} ** {k}" if k >= 0 else f"1.0 / {b} ** {-k}")
+                    return self._op(operator.mul, b, b)
+                if k >= 0:
+                    return self._op(operator.pow, b, self._const(k))
+                # 1.0 / b ** -k: the power, then the quotient
+                return self._op(operator.truediv, self._const(1.0),
+                                self._op(operator.pow, b, self._const(-k)))
             if exponent.is_Number:
-                return self._temp(f"{b} ** {self._bind('k', float(exponent))}")
+                return self._op(operator.pow, b, self._const(float(exponent)))
             ex = self.emit(exponent)
-            return self._temp(f"torch.exp({ex} * torch.log({b}))")
+            if b[0] == "const":
+                return self._op(_exp_log_constant_base, ex, b)
+            return self._op(torch.exp, self._op(operator.mul, ex, self._op(torch.log, b)))
         if isinstance(e, sympy.Function) and len(e.args) == 1:
             name = function_name(e)
             fn = (FUNCTIONS if name in FUNCTIONS else DERIVED_FUNCTIONS)[name][1]
-            a = self.emit(e.args[0])
-            return self._temp(f"{self._bind('F', fn)}({a})")
+            return self._op(fn, self.emit(e.args[0]))
         raise SpecError(f"cannot evaluate expression node {e.func.__name__}: {e}")
 
-    def function(self, header: str, unpack: str, result: str, label: str) -> Callable:
-        body = "\n".join(f"    {line}" for line in [unpack, *self.lines, f"return {result}"])
-        namespace = dict(self.names)
-        exec(compile(f"def _fn({header}):\n{body}\n", f"<certify: {label}>", "exec"),
-             namespace)
-        return namespace["_fn"]
+    def as_column(self, ref: Ref) -> Ref:
+        """`ref` itself, or for a constant (a float) a step filling a column like x's first."""
+        return self._op(torch.full_like, ("col", 0), ref) if ref[0] == "const" else ref
 
+    def slot(self, ref: Ref) -> Slot:
+        """Where `ref` lives in a run's value list."""
+        kind, i = ref
+        if kind == "col":
+            return i
+        if kind == "const":
+            return self.columns + i
+        return self.columns + len(self.constants) + i
 
-def _columns(count: int) -> str:
-    return ", ".join(f"c{i}" for i in range(count)) + ("," if count == 1 else "")
+    def program(self) -> tuple[tuple[float | int, ...], tuple[Step, ...]]:
+        """The folded constants and the steps with their operands resolved to slots."""
+        steps = tuple((fn, self.slot(a), -1 if b is None else self.slot(b))
+                      for fn, a, b in self.ops)
+        return tuple(self.constants), steps
 
 
 def compile_torch(expr: sympy.Expr, symbols: Sequence[sympy.Symbol]) -> Compiled:
-    """A function evaluating `expr` on tensors (one per symbol), generated once from the tree.
+    """A function evaluating `expr` on tensors (one per symbol), built once from the tree.
 
     No tree walk per call (the simulation evaluates f and h tens of thousands of times on
-    small batches). Constant subtrees are folded to Python floats; the result may be a float
-    for a constant expression. See `compile_torch_rows` for whole vectors of expressions.
+    small batches): a tape (`_Tape`) of builtin calls runs the operations in order. Constant
+    subtrees are folded to Python floats; the result may be a float for a constant
+    expression. See `compile_torch_rows` for whole vectors of expressions.
     """
-    em = _Emitter(symbols)
-    result = em.emit(expr)
-    return em.function("v", f"{_columns(len(symbols))} = v" if symbols else "pass", result,
-                       str(expr)[:60])
+    tape = _Tape(symbols)
+    out = tape.slot(tape.emit(expr))
+    constants, steps = tape.program()
+
+    def run(values: Sequence[torch.Tensor]) -> torch.Tensor | float:
+        v = [*values, *constants]
+        append = v.append
+        for fn, a, b in steps:  # one C call per step (the loop is inlined: small batches)
+            append(fn(v[a]) if b < 0 else fn(v[a], v[b]))
+        return v[out]
+
+    return run
 
 
 def compile_torch_rows(exprs: Sequence[sympy.Expr], symbols: Sequence[sympy.Symbol],
                        label: str = "expressions") -> CompiledRows:
-    """One generated function x [B, len(symbols)] -> [B, len(exprs)]: every expression at
-    every row, columns stacked (a constant expression fills its column).
+    """One function x [B, len(symbols)] -> [B, len(exprs)]: every expression at every row,
+    columns stacked (a constant expression fills its column).
 
-    The same operations as `compile_torch` on each expression (so the same floats), in one
-    Python function: the columns are unpacked once and shared sub-expressions computed once,
-    which matters for the many small calls of the simulation and the grid sweeps.
+    The same operations as `compile_torch` on each expression (so the same floats), on one
+    tape: the columns are unpacked once and shared sub-expressions computed once, which
+    matters for the many small calls of the simulation and the grid sweeps. `label` names
+    the expressions in errors.
     """
-    em = _Emitter(symbols)
-    results = []
-    for e in exprs:
-        name = em.emit(e)
-        # a constant expression is a float (name "k..."): it fills a column like x's first
-        results.append(f"torch.full_like(c0, {name})" if name.startswith("k") else name)
-    return em.function("x", f"{_columns(len(symbols))} = x.unbind(1)",
-                       f"torch.stack([{', '.join(results)}], dim=-1)", label)
+    if not symbols:
+        raise SpecError(f"{label}: no state variables to evaluate on")
+    tape = _Tape(symbols)
+    refs = [tape.emit(e) for e in exprs]
+    outs = [tape.slot(tape.as_column(r)) for r in refs]
+    constants, steps = tape.program()
+    pick = operator.itemgetter(*outs) if len(outs) > 1 else (lambda v: [v[i] for i in outs])
+
+    def run(x: torch.Tensor) -> torch.Tensor:
+        v = [*x.unbind(1), *constants]
+        append = v.append
+        for fn, a, b in steps:  # one C call per step (the loop is inlined: small batches)
+            append(fn(v[a]) if b < 0 else fn(v[a], v[b]))
+        return torch.stack(pick(v), dim=-1)
+
+    return run
 
 
 class TorchAlgebra:

@@ -6,26 +6,20 @@ the true real-number result of the operation on any reals inside the operands li
 the computed interval. NaN anywhere means "undefined somewhere in the box": callers treat
 it as UNKNOWN, never as proved.
 
-`RULES` is the one table: each whitelisted function name of `certify.expr.FUNCTIONS` maps to
-its torch point function and, beside it, its enclosure rule. Monotone functions share the
-endpoint rule; `sin`, `cos`, `tan`, `abs`, even powers and products are hand-written.
-`INTERVAL` is the `certify.expr.Algebra` that evaluates sympy trees over intervals, used
-for the enclosures of f, h, their Jacobians and second derivatives.
+This module holds the number type and its arithmetic: the rounding helpers (`down`, `up`,
+the libm widening, Higham's `gamma`), +, -, *, powers and reciprocals, and products with
+point or interval matrices in midpoint-radius form. The elementary-function rules and the
+`certify.expr.Algebra` over intervals are in `certify.interval_rules`; the enclosures of a
+system's f, h and their derivatives over boxes in `certify.system_enclosures`.
 """
 
 from __future__ import annotations
 
 import math
-import weakref
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import sympy
 import torch
-
-from certify.errors import SpecError
-from certify.expr import DERIVED_FUNCTIONS, FUNCTIONS, evaluate
 
 ROUNDING = (
     "outward rounding: every +, -, *, / and sqrt result is moved one ulp outward with "
@@ -208,152 +202,6 @@ def ipow_real(a: Interval, e: float) -> Interval:
     return Interval(lo, hi)
 
 
-# ----- function rules --------------------------------------------------------------------
-def _monotone_increasing(point: Callable[[torch.Tensor], torch.Tensor]
-                         ) -> Callable[[Interval], Interval]:
-    """Endpoint rule for an increasing libm function (widened by LIBM_ULPS)."""
-
-    def rule(a: Interval) -> Interval:
-        return Interval(widen_down(point(a.lo)), widen_up(point(a.hi)))
-
-    return rule
-
-
-def _contains_point(a: Interval, offset: float, period: float) -> torch.Tensor:
-    """Whether [lo, hi] may contain offset + k * period for an integer k (errs towards yes)."""
-    s = 1e-7
-    k_lo = torch.ceil((a.lo - offset) / period - s)
-    k_hi = torch.floor((a.hi - offset) / period + s)
-    return k_lo <= k_hi
-
-
-_TWO_PI = 2.0 * math.pi
-_BIG = 1e6  # beyond this |x|, trigonometric rules give the trivial enclosure
-
-
-def _sin_cos_rule(point: Callable[[torch.Tensor], torch.Tensor], max_at: float, min_at: float
-                  ) -> Callable[[Interval], Interval]:
-    def rule(a: Interval) -> Interval:
-        v1, v2 = point(a.lo), point(a.hi)
-        lo = widen_down(torch.minimum(v1, v2))
-        hi = widen_up(torch.maximum(v1, v2))
-        trivial = ((a.hi - a.lo) >= _TWO_PI) | (a.mag() > _BIG)
-        has_max = trivial | _contains_point(a, max_at, _TWO_PI)
-        has_min = trivial | _contains_point(a, min_at, _TWO_PI)
-        one = torch.ones_like(lo)
-        hi = torch.where(has_max, one, hi).clamp(max=1.0)
-        lo = torch.where(has_min, -one, lo).clamp(min=-1.0)
-        nan = torch.isnan(a.lo) | torch.isnan(a.hi)
-        return Interval(torch.where(nan, a.lo + a.hi, lo), torch.where(nan, a.lo + a.hi, hi))
-
-    return rule
-
-
-def _tan_rule(a: Interval) -> Interval:
-    pole = _contains_point(a, math.pi / 2, math.pi) | ((a.hi - a.lo) >= math.pi) | (a.mag() > _BIG)
-    lo = torch.where(pole, torch.full_like(a.lo, -_POS_INF), widen_down(torch.tan(a.lo)))
-    hi = torch.where(pole, torch.full_like(a.lo, _POS_INF), widen_up(torch.tan(a.hi)))
-    return Interval(lo, hi)
-
-
-def _abs_rule(a: Interval) -> Interval:
-    return Interval(a.mig(), a.mag())
-
-
-def _sqrt_rule(a: Interval) -> Interval:
-    nan = torch.full_like(a.lo, float("nan"))
-    ok = a.lo >= 0
-    return Interval(torch.where(ok, down(torch.sqrt(a.lo)).clamp_min(0.0), nan),
-                    torch.where(ok, up(torch.sqrt(a.hi)), nan))
-
-
-def _log_rule(a: Interval) -> Interval:
-    # log(x < 0) is NaN (undefined in the box); log(0) = -inf: both UNKNOWN downstream.
-    return Interval(widen_down(torch.log(a.lo)), widen_up(torch.log(a.hi)))
-
-
-@dataclass(frozen=True)
-class Rule:
-    """A whitelisted function: its torch point function and its interval enclosure."""
-
-    point: Callable[[torch.Tensor], torch.Tensor]
-    enclose: Callable[[Interval], Interval]
-
-
-#: name -> (point function, enclosure rule), side by side.
-RULES: dict[str, Rule] = {
-    "sin": Rule(torch.sin, _sin_cos_rule(torch.sin, math.pi / 2, -math.pi / 2)),
-    "cos": Rule(torch.cos, _sin_cos_rule(torch.cos, 0.0, math.pi)),
-    "tan": Rule(torch.tan, _tan_rule),
-    "exp": Rule(torch.exp, _monotone_increasing(torch.exp)),
-    "log": Rule(torch.log, _log_rule),
-    "sqrt": Rule(torch.sqrt, _sqrt_rule),
-    "tanh": Rule(torch.tanh, _monotone_increasing(torch.tanh)),
-    "abs": Rule(torch.abs, _abs_rule),
-    "sign": Rule(torch.sign, lambda a: Interval(torch.sign(a.lo), torch.sign(a.hi))),  # exact
-}
-
-
-def enclose_function(name: str, a: Interval) -> Interval:
-    """Apply the rule of `name`; a function without a rule stops with an error naming it."""
-    rule = RULES.get(name)
-    if rule is None:
-        raise SpecError(f"no interval enclosure rule for function '{name}' "
-                        f"(rules exist for: {', '.join(sorted(RULES))})")
-    return rule.enclose(a)
-
-
-class IntervalAlgebra:
-    """`certify.expr.Algebra` over `Interval` values (for `certify.expr.evaluate`)."""
-
-    def const(self, value: float, like: Interval) -> Interval:
-        return const_interval(value, like.lo)
-
-    def add(self, a: Interval, b: Interval) -> Interval:
-        return a + b
-
-    def mul(self, a: Interval, b: Interval) -> Interval:
-        return imul(a, b)
-
-    def pow_int(self, a: Interval, k: int) -> Interval:
-        return ipow_int(a, k)
-
-    def pow_real(self, a: Interval, e: float) -> Interval:
-        return ipow_real(a, e)
-
-    def func(self, name: str, a: Interval) -> Interval:
-        return enclose_function(name, a)
-
-
-INTERVAL = IntervalAlgebra()
-
-assert set(RULES) == set(FUNCTIONS) | set(DERIVED_FUNCTIONS), \
-    "every whitelisted function needs an enclosure rule"
-
-
-# ----- tanh and its derivatives: moved to certify.activations.tanh -----------------------
-# Thin re-exports (imported at call time: certify.activations imports this module).
-def tanh_enclosure(a: Interval) -> Interval:
-    """tanh over [lo, hi]; see `certify.activations.tanh`."""
-    from certify.activations.tanh import tanh_enclosure as rule
-
-    return rule(a)
-
-
-def dtanh_enclosure(a: Interval) -> Interval:
-    """tanh' over [lo, hi]; see `certify.activations.tanh`."""
-    from certify.activations.tanh import dtanh_enclosure as rule
-
-    return rule(a)
-
-
-def d2tanh_enclosure(a: Interval) -> Interval:
-    """tanh'' over [lo, hi]; see `certify.activations.tanh`."""
-    from certify.activations.tanh import d2tanh_enclosure as rule
-
-    return rule(a)
-
-
 # ----- products with point matrices (midpoint-radius, Higham's bound) --------------------
 def matmul_point_right(c: torch.Tensor, r: torch.Tensor, W: torch.Tensor
                        ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -385,85 +233,3 @@ def imatmul(A: Interval, B: Interval) -> Interval:
     ry = ry + g * (ca.abs() @ cb.abs())
     ry = up(ry * (1.0 + 2.0 * g) + k * TINY)
     return midrad_to_interval(cy, ry)
-
-
-# ----- enclosures of f, h and their derivatives over boxes --------------------------------
-_DERIV_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def _derivatives(system: Any) -> dict[str, list[sympy.Expr]]:
-    """Sympy second derivatives of f and h, cached per system."""
-    cached = _DERIV_CACHE.get(system)
-    if cached is None:
-        xs = system.symbols
-        cached = {
-            "hf": [sympy.diff(e, a, b) for e in system.f_expr for a in xs for b in xs],
-            "hh": [sympy.diff(e, a, b) for e in system.h_expr for a in xs for b in xs],
-        }
-        _DERIV_CACHE[system] = cached
-    return cached
-
-
-def _enclose_list(system: Any, exprs: list[sympy.Expr], lo: torch.Tensor, hi: torch.Tensor
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    if lo.ndim != 2 or lo.shape[1] != system.n or lo.shape != hi.shape:
-        raise ValueError(f"expected boxes lo, hi of shape [batch, {system.n}]; got "
-                         f"{list(lo.shape)} and {list(hi.shape)}")
-    lo, hi = lo.to(torch.float64), hi.to(torch.float64)
-    env = {s: Interval(lo[:, i], hi[:, i]) for i, s in enumerate(system.symbols)}
-    like = Interval(lo[:, 0], hi[:, 0])
-    outs = [evaluate(e, env, INTERVAL, like) for e in exprs]
-    return torch.stack([o.lo for o in outs], -1), torch.stack([o.hi for o in outs], -1)
-
-
-def f_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """f over boxes: lo, hi [B, n] -> [B, n] each."""
-    return _enclose_list(system, system.f_expr, lo, hi)
-
-
-def h_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """h over boxes: lo, hi [B, n] -> [B, p] each."""
-    return _enclose_list(system, system.h_expr, lo, hi)
-
-
-def jacobian_f_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
-                         ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Symbolic Jf over boxes: lo, hi [B, n] -> Jlo, Jhi [B, n, n]."""
-    a, b = _enclose_list(system, list(system.jf_expr), lo, hi)
-    n = system.n
-    return a.reshape(-1, n, n), b.reshape(-1, n, n)
-
-
-def jacobian_h_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
-                         ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Symbolic dh/dx over boxes -> [B, p, n] each."""
-    a, b = _enclose_list(system, list(system.jh_expr), lo, hi)
-    return a.reshape(-1, system.p, system.n), b.reshape(-1, system.p, system.n)
-
-
-def hessian_f_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
-                        ) -> tuple[torch.Tensor, torch.Tensor]:
-    """d^2 f_i / dx_j dx_k over boxes -> [B, n, n, n] (index order i, j, k)."""
-    a, b = _enclose_list(system, _derivatives(system)["hf"], lo, hi)
-    n = system.n
-    return a.reshape(-1, n, n, n), b.reshape(-1, n, n, n)
-
-
-def hessian_h_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
-                        ) -> tuple[torch.Tensor, torch.Tensor]:
-    """d^2 h_l / dx_j dx_k over boxes -> [B, p, n, n]."""
-    a, b = _enclose_list(system, _derivatives(system)["hh"], lo, hi)
-    n = system.n
-    return a.reshape(-1, system.p, n, n), b.reshape(-1, system.p, n, n)
-
-
-def hessian_f_point(system: Any, x: torch.Tensor) -> torch.Tensor:
-    """Point second derivatives of f at x [B, n] -> [B, n, n, n] (for tests)."""
-    from certify.expr import TORCH
-
-    env = {s: x[:, i] for i, s in enumerate(system.symbols)}
-    vals = [evaluate(e, env, TORCH, x[:, 0]) for e in _derivatives(system)["hf"]]
-    n = system.n
-    return torch.stack(vals, -1).reshape(-1, n, n, n)

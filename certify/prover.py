@@ -27,12 +27,13 @@ from certify.enclosures import (
     residual_box_upper_crown,
     to_lam_max_D,
 )
-from certify.intervals import ROUNDING, h_enclosure, up
+from certify.intervals import ROUNDING, up
 from certify.kernels import mpdi_lam_max, pointwise_rate
 from certify.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import Counterexample, ProofStats, Status
 from certify.system import System
+from certify.system_enclosures import h_enclosure
 from certify.witness import is_witness, mpdi_lower
 
 __all__ = [
@@ -365,7 +366,8 @@ def bound_manifold_quantity(system: System, P: np.ndarray | torch.Tensor, lam: f
     Pn = float(torch.linalg.matrix_norm(Pt, ord=2)) * (1 + 1e-12)
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
-        from certify.intervals import Interval, jacobian_f_enclosure
+        from certify.intervals import Interval
+        from certify.system_enclosures import jacobian_f_enclosure
 
         ub = manifold_enclosure(system, lo, hi, Pt, lam, Zt)
         jf = Interval(*jacobian_f_enclosure(system, lo, hi))

@@ -135,7 +135,7 @@ def report_maps(problem: Problem, checks: dict[str, Any], out: FigureData) -> Fi
         if ran("residual"):
             out.residual_map = grid(residual_norm(problem, pts))
         if ran("necessary"):
-            from certify.checks.necessary import manifold_quantity
+            from certify.checks.necessary_quantity import manifold_quantity
 
             q = manifold_quantity(system, problem.P, problem.lam, pts)
             yv = system.h(pts)

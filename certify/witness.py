@@ -29,7 +29,8 @@ import math
 import numpy as np
 import torch
 
-from certify.intervals import Interval, down, imatmul, jacobian_h_enclosure, up
+from certify.intervals import Interval, down, imatmul, up
+from certify.system_enclosures import jacobian_h_enclosure
 
 _F64 = torch.float64
 _NAN = float("nan")
@@ -139,7 +140,7 @@ def residual_lower(problem, x: torch.Tensor) -> torch.Tensor:
 
     h(x) is enclosed first; k is enclosed over {x} x [h(x)], which contains k(x, h(x))."""
     from certify.enclosures import gain_enclosure
-    from certify.intervals import h_enclosure
+    from certify.system_enclosures import h_enclosure
 
     x, _ = _point_box(x)
     hl, hh = h_enclosure(problem.system, x, x)
@@ -196,7 +197,7 @@ def manifold_lower(system, P: np.ndarray | torch.Tensor, lam: float, x: torch.Te
     u^T S u >= v^T S v - (2 e ||v|| + e^2) ||S||_F and ||u|| <= ||v||. Returns NaN when dh(x)
     may lose rank or anything is non-finite; -inf when ker dh = {0}.
     """
-    from certify.intervals import jacobian_f_enclosure
+    from certify.system_enclosures import jacobian_f_enclosure
 
     x, _ = _point_box(x)
     B, n = x.shape
@@ -244,7 +245,7 @@ def manifold_lower(system, P: np.ndarray | torch.Tensor, lam: float, x: torch.Te
 def manifold_witness_lower(system, P: np.ndarray, lam: float, x: torch.Tensor) -> float:
     """Sound lower bound of q at one point x, or NaN when h(x) is not soundly inside Y
     (then x is no witness on the output manifold)."""
-    from certify.intervals import h_enclosure
+    from certify.system_enclosures import h_enclosure
 
     x = torch.as_tensor(x, dtype=_F64).reshape(1, -1)
     hl, hh = h_enclosure(system, x, x)

@@ -3,7 +3,7 @@ and the true and estimated states per run (only on request: `--trajectories`).
 
 Panels are small multiples, three to a row; titles are short (the run's name, wrapped) so
 none is cut off, and the long story of each run stays in the report's table of runs. What
-is drawn is recorded (`reports.figures.mark`) and the captions are written from it.
+is drawn is recorded (`reports.figure_kit.mark`) and the captions are written from it.
 """
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
 from certify.certificate import Certificate
-from reports.figures import STATE_COLOURS, _array, _check, _names, _new, mark
+from reports.figure_data import as_array, check_result, state_names
+from reports.figure_kit import STATE_COLOURS, mark, new_figure
 
 #: at most this many runs are drawn (the table lists all)
 MAX_PANELS = 9
@@ -27,7 +28,7 @@ PANEL_HEIGHT = 1.75  # inches per row
 
 
 def _runs(cert: Certificate) -> list[Any]:
-    r = _check(cert, "simulation")
+    r = check_result(cert, "simulation")
     return [] if r is None else [run for run in r.runs if run.t][:MAX_PANELS]
 
 
@@ -55,7 +56,7 @@ def _height(k: int) -> float:
 
 
 def _half_diagonal(cert: Certificate) -> float | None:
-    b = _check(cert, "bounds")
+    b = check_result(cert, "bounds")
     return None if b is None else getattr(b, "box_half_diagonal", None)
 
 
@@ -64,14 +65,14 @@ def fig_bounds(cert: Certificate) -> Figure | None:
     runs = _runs(cert)
     if not runs:
         return None
-    fig = _new(_height(len(runs)))
+    fig = new_figure(_height(len(runs)))
     half = _half_diagonal(cert)
     for ax, run in zip(_grid(fig, len(runs)), runs):
-        t, e = _array(run.t), _array(run.error)
+        t, e = as_array(run.t), as_array(run.error)
         ax.semilogy(t, np.maximum(e, 1e-12), color="#1f2937", lw=1.0)
         mark(fig, "error")
         if run.bound:
-            b = _array(run.bound)
+            b = as_array(run.bound)
             ax.semilogy(t[:len(b)], b, color="#2563eb", lw=1.4, ls="--")
             mark(fig, "bound")
             if half is not None and float(np.nanmax(b)) > half:
@@ -122,12 +123,12 @@ def fig_simulation(cert: Certificate) -> Figure | None:
     runs = _runs(cert)
     if not runs or not runs[0].x:
         return None
-    names = _names(cert)
-    fig = _new(_height(len(runs)))
-    X = _array((cert.system or {}).get("X") or [])
+    names = state_names(cert)
+    fig = new_figure(_height(len(runs)))
+    X = as_array((cert.system or {}).get("X") or [])
     for ax, run in zip(_grid(fig, len(runs)), runs):
-        t = _array(run.t)
-        x, xh = _array(run.x), _array(run.xhat)
+        t = as_array(run.t)
+        x, xh = as_array(run.x), as_array(run.xhat)
         if x.ndim != 2:
             continue
         for j in range(x.shape[1]):

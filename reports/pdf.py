@@ -1,325 +1,26 @@
-"""PDF report with matplotlib only: multi-page PdfPages, real (selectable) text, tables, figures.
+"""PDF report of a certificate: what goes on the pages, in order.
 
-A small flow layout: text is measured from the fonts' advance widths, wrapped to the column, and
-drawn as PDF text (TrueType, so it is searchable); tables wrap inside their cells and repeat
-their header after a page break; figures are the same PNGs as the HTML report, embedded at
-their native resolution. No system library beyond the Python packages is needed.
+The verdict banner, the table of checks, the system, provenance, versions and timings, one
+section per check (`reports.sections`, shared with the HTML report) with its figures, and
+the settings, laid out by the flow layout of `reports.pdf_layout` (real, selectable text;
+tables; the same PNG figures as the HTML report).
 """
 
 from __future__ import annotations
 
 import io
-from collections.abc import Sequence
-from dataclasses import dataclass, field
 
 import matplotlib
-import matplotlib.image as mpimg
-from matplotlib import ft2font
 from matplotlib.backends.backend_pdf import PdfPages
-from matplotlib.figure import Figure
-from matplotlib.font_manager import FontProperties, findfont
-from matplotlib.lines import Line2D
-from matplotlib.patches import FancyBboxPatch, Rectangle
 
 from certify.certificate import Certificate
 from reports import content as C
 from reports import sections as S
 from reports.figures import RenderedFigure, render_figures
-
-PAGE_W, PAGE_H = 8.27, 11.69  # A4, inches
-MARGIN_X, MARGIN_TOP, MARGIN_BOTTOM = 0.7, 0.7, 0.75
-CONTENT_W = PAGE_W - 2 * MARGIN_X
-FONT = "DejaVu Sans"
-INK, MUTED, LINE, PANEL = "#111827", "#4b5563", "#d1d5db", "#f3f4f6"
-RC = {"pdf.fonttype": 42, "pdf.compression": 6, "font.family": FONT}
+from reports.pdf_layout import CONTENT_W, INK, MARGIN_X, MUTED, PANEL, RC, Cell, PdfDocument, Run
 
 
-@dataclass
-class Run:
-    """A paragraph inside a cell or block, with its style."""
-
-    text: str
-    size: float = 9.0
-    weight: str = "normal"
-    color: str = INK
-    family: str = FONT
-    style: str = "normal"
-    pill: tuple[str, str] | None = None  # (text colour, background) for status badges
-
-
-@dataclass
-class Cell:
-    runs: list[Run] = field(default_factory=list)
-
-
-class _Measure:
-    """Text widths in inches from the fonts' unhinted advance widths (cached per glyph).
-
-    Rendering text to measure it is slow, and hinting at small sizes rounds every glyph up
-    and wraps lines early; summed advances match the PDF layout to within about 1%.
-    """
-
-    def __init__(self) -> None:
-        self._fonts: dict[tuple, ft2font.FT2Font] = {}
-        self._adv: dict[tuple, float] = {}
-
-    def _font(self, run: Run) -> tuple[tuple, ft2font.FT2Font]:
-        key = (run.family, run.weight, run.style)
-        font = self._fonts.get(key)
-        if font is None:
-            prop = FontProperties(family=run.family, weight=run.weight, style=run.style)
-            font = ft2font.FT2Font(findfont(prop))
-            font.set_size(100, 72)
-            self._fonts[key] = font
-        return key, font
-
-    def width(self, text: str, run: Run) -> float:
-        key, font = self._font(run)
-        em = 0.0
-        for ch in text:
-            a = self._adv.get((key, ch))
-            if a is None:
-                glyph = font.load_char(ord(ch), flags=ft2font.LoadFlags.NO_HINTING)
-                a = glyph.linearHoriAdvance / 65536 / 100
-                self._adv[(key, ch)] = a
-            em += a
-        return em * run.size / 72.0 * 1.01
-
-    def wrap(self, text: str, run: Run, width: float) -> list[str]:
-        """Greedy word wrap; words wider than the column (hashes) are cut by characters."""
-        lines: list[str] = []
-        for para in text.split("\n"):
-            cur = ""
-            for word in para.split(" "):
-                trial = word if not cur else f"{cur} {word}"
-                if self.width(trial, run) <= width:
-                    cur = trial
-                    continue
-                if cur:
-                    lines.append(cur)
-                cur = ""
-                while self.width(word, run) > width and len(word) > 1:
-                    cut = len(word)
-                    while cut > 1 and self.width(word[:cut], run) > width:
-                        cut = max(1, int(cut * 0.8)) if cut > 8 else cut - 1
-                    lines.append(word[:cut])
-                    word = word[cut:]
-                cur = word
-            lines.append(cur)
-        return lines
-
-
-def _line_h(run: Run) -> float:
-    return run.size * 1.32 / 72.0
-
-
-class _Doc:
-    """Flowing layout on A4 pages; coordinates in inches from the top-left corner."""
-
-    def __init__(self, pdf: PdfPages, footer: str) -> None:
-        self.pdf, self.footer = pdf, footer
-        self.m = _Measure()
-        self.fig: Figure | None = None
-        self.y = 0.0
-        self.page_no = 0
-
-    # -- pages
-    def new_page(self) -> None:
-        self.flush()
-        self.fig = Figure(figsize=(PAGE_W, PAGE_H))
-        self.page_no += 1
-        self.y = MARGIN_TOP
-        self.text(MARGIN_X, PAGE_H - 0.45, self.footer, Run(self.footer, 7.5, color=MUTED))
-        self.text(PAGE_W - MARGIN_X, PAGE_H - 0.45, f"page {self.page_no}",
-                  Run("", 7.5, color=MUTED), ha="right")
-
-    def flush(self) -> None:
-        if self.fig is not None:
-            self.pdf.savefig(self.fig)
-            self.fig = None
-
-    @property
-    def room(self) -> float:
-        return PAGE_H - MARGIN_BOTTOM - self.y
-
-    def need(self, h: float) -> None:
-        if self.fig is None or h > self.room:
-            self.new_page()
-
-    # -- primitives
-    def text(self, x: float, y: float, s: str, run: Run, ha: str = "left") -> None:
-        assert self.fig is not None
-        self.fig.text(x / PAGE_W, 1 - y / PAGE_H, s, fontsize=run.size, fontweight=run.weight,
-                      color=run.color, family=run.family, style=run.style, ha=ha, va="top")
-
-    def rect(self, x: float, y: float, w: float, h: float, color: str, *,
-             edge: str | None = None, round_: bool = False) -> None:
-        assert self.fig is not None
-        tr = self.fig.transFigure
-        xy = (x / PAGE_W, 1 - (y + h) / PAGE_H)
-        if round_:
-            patch = FancyBboxPatch(xy, w / PAGE_W, h / PAGE_H, boxstyle="round,pad=0,"
-                                   "rounding_size=0.006", transform=tr, facecolor=color,
-                                   edgecolor=edge or "none", linewidth=0.6)
-        else:
-            patch = Rectangle(xy, w / PAGE_W, h / PAGE_H, transform=tr, facecolor=color,
-                              edgecolor=edge or "none", linewidth=0.6)
-        self.fig.patches.append(patch)
-
-    def hline(self, y: float, x0: float = MARGIN_X, x1: float = PAGE_W - MARGIN_X,
-              color: str = LINE, lw: float = 0.6) -> None:
-        assert self.fig is not None
-        self.fig.add_artist(Line2D(
-            [x0 / PAGE_W, x1 / PAGE_W], [1 - y / PAGE_H] * 2, transform=self.fig.transFigure,
-            color=color, lw=lw))
-
-    # -- layout of runs
-    def layout(self, runs: Sequence[Run], width: float) -> list[tuple[str, Run, float]]:
-        """(line, run, height) for runs wrapped to width."""
-        out = []
-        for run in runs:
-            for line in self.m.wrap(run.text, run, width - (0.1 if run.pill else 0.0)):
-                out.append((line, run, _line_h(run) + (0.03 if run.pill else 0.0)))
-        return out
-
-    def draw_lines(self, x: float, y: float, lines: list[tuple[str, Run, float]]) -> float:
-        for line, run, h in lines:
-            if run.pill:
-                w = self.m.width(line, run) + 0.12
-                self.rect(x, y - 0.005, w, h - 0.02, run.pill[1], round_=True)
-                self.text(x + 0.06, y + 0.012, line, Run(line, run.size, "bold", run.pill[0]))
-            else:
-                self.text(x, y, line, run)
-            y += h
-        return y
-
-    # -- blocks
-    def heading(self, s: str, level: int = 1, badge: str = "") -> None:
-        size = {0: 17.0, 1: 13.5, 2: 11.0}[level]
-        run = Run(s, size, "bold")
-        lines = self.layout([run], CONTENT_W - (1.0 if badge else 0))
-        h = sum(x[2] for x in lines) + (0.28 if level <= 1 else 0.12)
-        self.need(h + 1.2)  # keep a heading with what follows
-        self.y += 0.14 if level == 1 else 0.06
-        self.y = self.draw_lines(MARGIN_X, self.y, lines)
-        if badge:
-            last_w = self.m.width(lines[-1][0], run)
-            fg, bg = C.STATUS_COLOURS.get(badge, (INK, PANEL))
-            pill = Run(badge, 7.5, "bold", fg, pill=(fg, bg))
-            self.draw_lines(MARGIN_X + last_w + 0.15, self.y - lines[-1][2] + 0.04,
-                            [(badge, pill, _line_h(pill))])
-        if level == 1:
-            self.hline(self.y + 0.04, color="#9ca3af", lw=0.9)
-            self.y += 0.12
-        self.y += 0.04
-
-    def para(self, s: str, size: float = 9.0, color: str = INK, *, box: str | None = None,
-             bar: str | None = None, family: str = FONT, style: str = "normal",
-             gap: float = 0.08) -> None:
-        pad = 0.1 if (box or bar) else 0.0
-        run = Run(s, size, color=color, family=family, style=style)
-        lines = self.layout([run], CONTENT_W - 2 * pad - (0.05 if bar else 0))
-        while lines:
-            # as many lines as fit on this page
-            self.need(lines[0][2] + 2 * pad + 0.02)
-            take, h = 0, 2 * pad
-            while take < len(lines) and h + lines[take][2] <= self.room:
-                h += lines[take][2]
-                take += 1
-            chunk, lines = lines[:take], lines[take:]
-            if box:
-                self.rect(MARGIN_X, self.y, CONTENT_W, h, box, round_=True)
-            if bar:
-                self.rect(MARGIN_X, self.y, 0.05, h, bar)
-            self.draw_lines(MARGIN_X + pad + (0.05 if bar else 0), self.y + pad, chunk)
-            self.y += h
-        self.y += gap
-
-    def table(self, header: list[str] | None, rows: list[list[Cell | str]],
-              widths: Sequence[float], *, size: float = 8.0, zebra: bool = False,
-              header_bg: str = PANEL, key_bold: bool = False,
-              spans: dict[int, Cell] | None = None) -> None:
-        """Wrapped-cell table; `spans[i]` adds a full-width note row under row i."""
-        total = sum(widths)
-        ws = [CONTENT_W * w / total for w in widths]
-        xs = [MARGIN_X + sum(ws[:i]) for i in range(len(ws))]
-        padx, pady = 0.05, 0.035
-
-        def cell(c: Cell | str, bold: bool = False, colour: str = INK) -> Cell:
-            if isinstance(c, Cell):
-                return c
-            return Cell([Run(str(c), size, "bold" if bold else "normal", colour)])
-
-        def lay(cells: list[Cell]) -> tuple[list[list], float]:
-            laid = [self.layout(c.runs, w - 2 * padx) for c, w in zip(cells, ws)]
-            h = max((sum(x[2] for x in lines) for lines in laid), default=0) + 2 * pady
-            return laid, h
-
-        head = None
-        if header:
-            head = lay([cell(h, True, "#374151") for h in header])
-
-        def draw_header() -> None:
-            if head is None:
-                return
-            laid, h = head
-            self.rect(MARGIN_X, self.y, CONTENT_W, h, header_bg)
-            for x, lines in zip(xs, laid):
-                self.draw_lines(x + padx, self.y + pady, lines)
-            self.y += h
-            self.hline(self.y, color="#9ca3af")
-
-        first_h = head[1] if head else 0
-        self.need(first_h + 0.4)
-        draw_header()
-        for i, row in enumerate(rows):
-            cells = [cell(c, key_bold and j == 0) for j, c in enumerate(row)]
-            laid, h = lay(cells)
-            span = (spans or {}).get(i)
-            span_laid = self.layout(span.runs, CONTENT_W - 2 * padx) if span else []
-            span_h = sum(x[2] for x in span_laid) + pady if span else 0.0
-            if h + span_h > self.room:
-                self.new_page()
-                draw_header()
-            if zebra and i % 2 == 1:
-                self.rect(MARGIN_X, self.y, CONTENT_W, h + span_h, "#fafafa")
-            for x, lines in zip(xs, laid):
-                self.draw_lines(x + padx, self.y + pady, lines)
-            self.y += h
-            if span:
-                self.draw_lines(MARGIN_X + padx, self.y - pady * 0.5, span_laid)
-                self.y += span_h
-            self.hline(self.y)
-        self.y += 0.12
-
-    def kv(self, facts: list[tuple[str, str]], size: float = 8.5,
-           widths: Sequence[float] = (1.0, 2.4)) -> None:
-        self.table(None, [[k, v] for k, v in facts], widths, size=size, key_bold=True)
-
-    def image(self, fig: RenderedFigure, caption: str) -> None:
-        w = min(CONTENT_W, fig.width_in)
-        h = w * fig.height_px / fig.width_px
-        cap = Run(caption, 7.8, color=MUTED)
-        cap_lines = self.layout([cap], CONTENT_W - 0.4)
-        cap_h = sum(x[2] for x in cap_lines)
-        fits = self.room - cap_h - 0.15
-        if self.fig is not None and h > fits >= 0.72 * h:
-            w, h = w * fits / h, fits  # shrink a little rather than leave half a page empty
-        self.need(h + cap_h + 0.15)
-        assert self.fig is not None
-        arr = mpimg.imread(io.BytesIO(fig.png), format="png")[..., :3]
-        x0 = MARGIN_X + (CONTENT_W - w) / 2
-        ax = self.fig.add_axes((x0 / PAGE_W, 1 - (self.y + h) / PAGE_H, w / PAGE_W,
-                                h / PAGE_H))
-        ax.imshow(arr, interpolation="none", aspect="auto")
-        ax.set_axis_off()
-        self.y += h + 0.05
-        self.y = self.draw_lines(MARGIN_X + 0.2, self.y, cap_lines) + 0.15
-
-
-# ----------------------------------------------------------------------------- content
-
-def _check_table(doc: _Doc, cert: Certificate) -> None:
+def _check_table(doc: PdfDocument, cert: Certificate) -> None:
     rows, spans = [], {}
     for i, r in enumerate(C.check_rows(cert)):
         fg, bg = C.STATUS_COLOURS.get(r.status, (INK, PANEL))
@@ -341,7 +42,7 @@ def _check_table(doc: _Doc, cert: Certificate) -> None:
               rows, [1.45, 0.9, 1.45, 1.45, 1.55], spans=spans)
 
 
-def _verdict(doc: _Doc, cert: Certificate) -> None:
+def _verdict(doc: PdfDocument, cert: Certificate) -> None:
     colour = C.VERDICT_COLOURS.get(cert.verdict, "#374151")
     big = Run(cert.verdict, 20, "bold", "white")
     summ = Run(C.verdict_summary(cert), 9.5, color="white")
@@ -357,7 +58,7 @@ def _verdict(doc: _Doc, cert: Certificate) -> None:
     doc.y += h + 0.18
 
 
-def _section(doc: _Doc, sec: S.Section, figures: list[RenderedFigure]) -> None:
+def _section(doc: PdfDocument, sec: S.Section, figures: list[RenderedFigure]) -> None:
     doc.heading(sec.title, 1, sec.status)
     if sec.message:
         tone = {"good": ("#f0fdf4", "#15803d"), "bad": ("#fef2f2", "#b91c1c"),
@@ -401,7 +102,7 @@ def render_pdf(cert: Certificate, figures: list[RenderedFigure] | None = None) -
             "Subject": cert.summary, "Creator": f"certify {cert.versions.get('certify', '')}",
             "CreationDate": None}
     with matplotlib.rc_context(RC), PdfPages(buf, metadata=meta) as pdf:
-        doc = _Doc(pdf, f"certify report \u00b7 {name} \u00b7 {cert.verdict}")
+        doc = PdfDocument(pdf, f"certify report \u00b7 {name} \u00b7 {cert.verdict}")
         doc.new_page()
         doc.para(f"certify report \u00b7 {name}", 16, INK, gap=0.0)
         if sy.get("description"):

@@ -15,7 +15,6 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify import intervals
 from certify.activations import get, names
 from certify.activations.base import Activation
 from certify.intervals import Interval
@@ -247,17 +246,6 @@ def test_unknown_activation_lists_the_supported_ones() -> None:
         get("mish")
     assert names() == sorted(NAMES)
     assert get("Swish") is get("silu") and get(" TANH ") is get("tanh")
-
-
-def test_intervals_reexports_tanh_rules() -> None:
-    a = Interval(torch.tensor([-0.5, 0.3]), torch.tensor([0.7, 0.9])).lo.to(F64)
-    iv = Interval(a, a + 0.4)
-    t = get("tanh")
-    for old, new in ((intervals.tanh_enclosure, t.enclose_f),
-                     (intervals.dtanh_enclosure, t.enclose_d1),
-                     (intervals.d2tanh_enclosure, t.enclose_d2)):
-        o, n = old(iv), new(iv)
-        assert torch.equal(o.lo, n.lo) and torch.equal(o.hi, n.hi)
 
 
 def test_nan_gives_nan_not_a_bound() -> None:

@@ -17,7 +17,8 @@ from certify.prover import prove_mpdi
 from certify.results import Status
 from certify.system import load_system
 from tests.planted import linear_system
-from training.cegis import CegisSettings, CertObjective, cegis, warm_start_network
+from training.cegis import CegisSettings, cegis, warm_start_network
+from training.cegis_objective import CertObjective
 from training.optim import Adam
 from training.presets import make_config
 

@@ -13,7 +13,8 @@ from certify.kernels import mpdi_lam_max
 from certify.problem import Problem
 from certify.results import Status
 from tests.planted import linear_system
-from training.cegis import CegisSettings, cegis, unproved_points, warm_start_network
+from training.cegis import CegisSettings, cegis, warm_start_network
+from training.cegis_search import unproved_points
 
 from .conftest import random_network
 

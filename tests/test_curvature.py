@@ -13,7 +13,8 @@ import torch
 from certify.errors import SettingsError
 from certify.network import GainNetwork
 from certify.system import load_system
-from training.cegis import CertObjective, warm_start_network
+from training.cegis import warm_start_network
+from training.cegis_objective import CertObjective
 from training.certified import cegis_settings
 from training.collocation import collocation_points
 from training.command import _config_from_args, add_train_arguments

@@ -22,8 +22,8 @@ from certify.problem import Problem
 from certify.system import load_system
 from training import losses
 from training.collocation import collocation_points
+from training.objective import Objective
 from training.presets import make_config
-from training.train import Objective
 
 from .cli_helpers import FAST_POLICY, run_cli
 

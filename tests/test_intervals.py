@@ -12,28 +12,22 @@ from hypothesis import strategies as st
 
 from certify import activations
 from certify import enclosures as E
+from certify.activations.tanh import d2tanh_enclosure, dtanh_enclosure
 from certify.errors import SpecError
 from certify.expr import DERIVED_FUNCTIONS, FUNCTIONS
-from certify.intervals import (
-    INTERVAL,
-    ROUNDING,
-    RULES,
-    Interval,
-    d2tanh_enclosure,
-    dtanh_enclosure,
-    enclose_function,
-    h_enclosure,
-    hessian_f_enclosure,
-    hessian_f_point,
-    ipow_int,
-    ipow_real,
-    jacobian_f_enclosure,
-    jacobian_h_enclosure,
-)
+from certify.interval_rules import INTERVAL, RULES, enclose_function
+from certify.intervals import ROUNDING, Interval, ipow_int, ipow_real
 from certify.kernels import gain_terms, mpdi_lam_max
 from certify.network import GainNetwork
 from certify.problem import Problem
 from certify.system import System, load_system
+from certify.system_enclosures import (
+    h_enclosure,
+    hessian_f_enclosure,
+    hessian_f_point,
+    jacobian_f_enclosure,
+    jacobian_h_enclosure,
+)
 
 SETTINGS = settings(max_examples=20, deadline=None)
 ACT_SETTINGS = settings(max_examples=4, deadline=None)  # per activation

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from certify.checks.metric import synthesize_metric
-from certify.checks.necessary import check_necessary, vertex_upper_bound
+from certify.checks.necessary import check_necessary
+from certify.checks.necessary_bound import vertex_upper_bound
 from certify.errors import SpecError
 from certify.results import NecessaryResult, Status, from_jsonable, to_jsonable
 from certify.system import System, load_system

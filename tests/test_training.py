@@ -18,9 +18,10 @@ from certify.system import load_system, parse_metric
 from training import losses
 from training.collocation import collocation_points
 from training.command import add_train_arguments, parse_hidden, run_train
+from training.objective import Objective
 from training.optim import LBFGS, Adam
 from training.presets import TrainConfig, make_config
-from training.train import Objective, _new_network, train
+from training.train import _new_network, train
 
 
 def _D(rows) -> torch.Tensor:

@@ -9,8 +9,9 @@ Public API:
 
 from training import losses
 from training.collocation import collocation_points
+from training.objective import Objective
 from training.presets import PRESETS, TrainConfig, make_config
-from training.train import Objective, TrainResult, train
+from training.train import TrainResult, train
 
 __all__ = ["PRESETS", "Objective", "TrainConfig", "TrainResult", "collocation_points",
            "losses", "make_config", "train"]

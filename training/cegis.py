@@ -1,25 +1,13 @@
-"""Counterexample-guided certified training: train -> falsify -> prove -> add points -> repeat.
+"""The CEGIS refinement loop: train -> falsify -> prove -> add points -> repeat.
 
-The objective (`CertObjective`) is the eigenvalue loss in the metric P with a margin,
-
-    L = mean_j relu(lam_max(D_j) + margin)  +  lip_weight * (mean_j ||dk/dy_j||_F^(2q))^(1/(2q))
-        + curv_weight * C
-
-with D = He{P (Jf + dk/dxhat)} + 2 (lam + rate_slack) P. The second term is a mild, sup-leaning
-(q > 1) penalty on the gain's sensitivity to y, the constant L that multiplies the noise in
-the error bound sqrt(kappa(P)) (eps_bar + L vbar) / (2 lam). C (`training.curvature`) is the
-verification-aware term: the variation of dk/dxhat over pairs of points at a small distance,
-which keeps the network cheap to prove (fresh seeded pairs each round). It reuses the fast float32
-forward-mode trunk of `training.train.Objective` with the y-columns added to the forward
-tangents, and autograd for the small loss head only.
-
-`cegis` runs rounds of: Adam on the collocation set; the verifier's falsifier
-(`certify.checks.mpdi.falsify_mpdi`: grid + adversarial ascent, float64); if nothing is above
--margin/2, the sound prover (`certify.prover.prove_mpdi`) with a box budget; then the
-counterexamples (with small seeded jitter) and the centres of the prover's unproved leaf
-boxes (full dimension, or lifted to the coordinates a projection drops by a small search)
-join the collocation set (any number of states and outputs). It stops at the first PROVED
-round or when the round/time budget is spent.
+`cegis` trains a gain network for D <= 0 over X x Y at rate lam in metric P. Each round:
+Adam on the collocation set with the objective of `training.cegis_objective`
+(`CertObjective`: eigenvalue loss with margin, ||dk/dy|| penalty, optional curvature term,
+fresh seeded curvature pairs each round); then the counterexample search of
+`training.cegis_search` (falsifier, then the sound prover with a box budget), whose
+counterexamples and unproved-leaf points join the collocation set (any number of states and
+outputs). It stops at the first PROVED round (or after `improve_rounds` more) or when the
+round/time budget is spent. This module holds the loop, its settings and its record.
 Nothing here is trusted for the certificate: `certify run` re-verifies the checkpoint.
 
 Seeded and deterministic as long as the in-loop proofs end on their box budget
@@ -37,21 +25,17 @@ from typing import Any
 import numpy as np
 import torch
 
-from certify.checks.mpdi import falsify_mpdi
-from certify.gain.buffered import ChunkBuffers
-from certify.kernels import mpdi_lam_max, sym
 from certify.network import GainNetwork
 from certify.parallel import torch_threads
 from certify.problem import Problem
-from certify.prover import ProofOutcome, prove_mpdi
+from certify.prover import ProofOutcome
 from certify.results import Status
-from certify.settings import VerifySettings
 from certify.system import System
-from training import losses
+from training.cegis_objective import CertObjective
+from training.cegis_search import falsifier_settings, search_round
 from training.collocation import collocation_points
 from training.curvature import CurvaturePenalty, CurvatureSettings
 from training.optim import Adam
-from training.train import LossValues, Objective
 
 Log = Callable[[str], None]
 
@@ -160,84 +144,6 @@ class CegisResult:
                 "proof_upper": None if self.proof is None else self.proof.upper}
 
 
-# ----- the objective ------------------------------------------------------------------------
-
-
-class CertObjective(Objective):
-    """Eigenvalue loss in the metric P with margin, plus the ||dk/dy|| penalty.
-
-    The trunk runs forward mode over all n + p input columns (the parent's buffers are
-    rebuilt for that); the head is differentiated by autograd on [N, n, n] matrices.
-    """
-
-    def __init__(self, system: System, net: GainNetwork, xhat: torch.Tensor, y: torch.Tensor,
-                 *, lam: float, P: torch.Tensor, margin: float, lip_weight: float = 0.0,
-                 lip_power: float = 1.0, mpdi_weight: float = 1.0, mu_bc: float = 1.0,
-                 workers: int = 2, curvature: CurvaturePenalty | None = None) -> None:
-        weights = losses.LossWeights(mu1=1.0, mu2=float(mu_bc), rho=(1.0,) * system.n)
-        super().__init__(system, net, xhat, y, lam=lam, P=P, weights=weights, loss="eigen",
-                         margin=margin, workers=workers, curvature=curvature)
-        self.lip_weight, self.lip_power = float(lip_weight), float(lip_power)
-        self.mpdi_weight = float(mpdi_weight)
-        n, p = system.n, system.p
-        dt = net.layers[0].weight.dtype
-        self.K_t = net.K.detach().to(dt)
-        self.r_all = (y.to(torch.float64) - system.h(xhat.to(torch.float64))).to(dt)
-        self.m = n + p  # forward tangents for every input column (xhat and y)
-        widths = [n + p, *[layer.weight.shape[0] for layer in net.layers]]
-        self.chunks = [ChunkBuffers(ch.Z, ch.C, widths, self.m, not self.structural)
-                       for ch in self.chunks]
-        self.last_lip = 0.0
-        self.last_lip_max = 0.0  # max ||dk/dy||_F over the collocation points
-
-    def _head(self, val: torch.Tensor, tan: torch.Tensor, k_bc: torch.Tensor | None,
-              grad: bool) -> tuple[float, float, list[torch.Tensor] | None]:
-        n, p, N = self.n, self.p, self.N
-        val_l = val.detach().requires_grad_(grad)
-        tan_l = tan.detach().requires_grad_(grad)
-        kbc_l = None if k_bc is None else k_bc.detach().requires_grad_(grad)
-        with torch.enable_grad():
-            if self.structural:
-                G = val_l.view(N, n, p)
-                dG = tan_l.view(self.m, N, n, p)  # [j, b, i, q] = dG_iq / dz_j
-                M = torch.einsum("jbiq,bq->bij", dG[:n], self.r)
-                if self.Hx is not None:
-                    M = M - G @ self.Hx
-                dky = torch.einsum("jbiq,bq->bij", dG[n:], self.r) + G + self.K_t
-            else:
-                M = tan_l[:n].permute(1, 2, 0)
-                dky = tan_l[n:].permute(1, 2, 0) + self.K_t
-            D = self.D0 + sym(M if self.P_is_identity else self.P @ M)
-            mpdi = losses.eigen_loss(D, self.margin, reduce="sum")
-            total = self.mpdi_weight * mpdi / N
-            lip = torch.zeros((), dtype=D.dtype)
-            if self.lip_weight > 0:
-                s = (dky * dky).sum(dim=(1, 2))  # ||dk/dy||_F^2 per point
-                q = self.lip_power
-                scale = s.detach().max().clamp_min(1e-30)  # for a stable power mean
-                lip = torch.sqrt(scale) * ((s / scale) ** q).mean() ** (1.0 / (2.0 * q))
-                total = total + self.lip_weight * lip
-            bc = torch.zeros((), dtype=D.dtype)
-            if kbc_l is not None:
-                bc = (kbc_l * kbc_l).sum()
-                total = total + self.weights.mu2 * bc / N
-            self.last_lip = float(lip.detach())
-            self.last_lip_max = float(torch.sqrt((dky * dky).sum(dim=(1, 2)).max()).detach())
-            if not grad:
-                return float(mpdi), float(bc), None
-            inputs = [val_l, tan_l] + ([kbc_l] if kbc_l is not None else [])
-            grads = torch.autograd.grad(total, inputs, allow_unused=True)
-        grads = [torch.zeros_like(x) if g is None else g for x, g in zip(inputs, grads)]
-        return float(mpdi), float(bc), grads
-
-    def evaluate(self, grad: bool = True) -> LossValues:
-        v = super().evaluate(grad)
-        w_curv = 0.0 if self.curvature is None else self.curvature.settings.weight
-        total = self.mpdi_weight * v.mpdi + self.weights.mu2 * v.bc \
-            + self.lip_weight * self.last_lip + w_curv * v.curv
-        return LossValues(total=total, mpdi=v.mpdi, bc=v.bc, curv=v.curv)
-
-
 # ----- networks -----------------------------------------------------------------------------
 
 
@@ -270,80 +176,6 @@ def _copy_net(net: GainNetwork, dtype: torch.dtype, K: torch.Tensor | None = Non
         with torch.no_grad():
             out.K.copy_(K.to(dtype))
     return out
-
-
-# ----- points from the verifier ---------------------------------------------------------
-
-
-def jittered(points: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, copies: int,
-             scale: float, generator: torch.Generator) -> torch.Tensor:
-    """`points` [m, d] and `copies` Gaussian perturbations of each (std scale * width),
-    clipped to the box -> [m (1 + copies), d]."""
-    if copies <= 0 or points.shape[0] == 0:
-        return points
-    w = (hi - lo) * scale
-    noise = torch.randn(copies, *points.shape, generator=generator, dtype=points.dtype) * w
-    extra = (points.unsqueeze(0) + noise).reshape(-1, points.shape[1])
-    extra = torch.minimum(torch.maximum(extra, lo), hi)
-    return torch.cat([points, extra])
-
-
-def leaf_boxes(boxes: dict[str, Any], d: int, statuses: tuple[str, ...] = ("unknown",
-                                                                          "violated")
-               ) -> tuple[torch.Tensor, torch.Tensor, list[int]]:
-    """The prover's leaves with a status in `statuses`: lo, hi [m, k] and the coordinates
-    of X x Y (d of them) they span.
-
-    Leaves come in full dimension (k = d) or projected: `boxes["dims"]` names the k
-    coordinates when present, else they are the first k (the prover's (0, 1) projection).
-    """
-    status = boxes.get("status", [])
-    keep = [i for i, s in enumerate(status) if s in statuses]
-    lo = torch.as_tensor(np.asarray(boxes.get("lo", []), dtype=np.float64).reshape(len(status),
-                                                                                  -1)[keep])
-    hi = torch.as_tensor(np.asarray(boxes.get("hi", []), dtype=np.float64).reshape(len(status),
-                                                                                  -1)[keep])
-    k = lo.shape[1] if lo.ndim == 2 else 0
-    dims = [int(i) for i in boxes.get("dims", range(k))]
-    if len(dims) != k or any(not 0 <= i < d for i in dims) or len(set(dims)) != k:
-        raise ValueError(f"prover leaves span {k} coordinates but name {dims} (of {d})")
-    return lo, hi, dims
-
-
-def unproved_points(problem: Problem, outcome: ProofOutcome, lam: float, *, limit: int,
-                    per_leaf: int = 16, generator: torch.Generator) -> torch.Tensor:
-    """Points of X x Y inside the prover's unproved leaves (status unknown/violated).
-
-    In each leaf (`leaf_boxes`: full dimension, or projected on some coordinates), `per_leaf`
-    seeded candidates: the leaf's centre and uniform points of the leaf on its coordinates,
-    uniform in X x Y on the others; the one with the largest lam_max(D) is kept. The `limit`
-    worst are returned, [m, n + p]. Any n and p.
-    """
-    s = problem.system
-    full = np.concatenate([s.X, s.Y], 0)
-    lo_all = torch.as_tensor(full[:, 0], dtype=torch.float64)
-    hi_all = torch.as_tensor(full[:, 1], dtype=torch.float64)
-    d = full.shape[0]
-    lo_l, hi_l, dims = leaf_boxes(outcome.boxes or {}, d)
-    m = lo_l.shape[0]
-    if m == 0 or limit <= 0:
-        return torch.empty(0, d, dtype=torch.float64)
-    pts = lo_all + (hi_all - lo_all) * torch.rand(m, per_leaf, d, generator=generator,
-                                                  dtype=torch.float64)
-    inner = lo_l[:, None] + (hi_l - lo_l)[:, None] * torch.rand(
-        m, per_leaf, len(dims), generator=generator, dtype=torch.float64)
-    inner[:, 0] = 0.5 * (lo_l + hi_l)  # the leaf's centre is always a candidate
-    pts[:, :, dims] = inner
-    flat = pts.reshape(-1, d)
-    n = problem.n
-    with torch.no_grad():
-        v = mpdi_lam_max(s, problem.network, problem.P_t, lam, flat[:, :n], flat[:, n:])
-    v = torch.nan_to_num(v, nan=math.inf).reshape(m, per_leaf)
-    best = torch.argmax(v, dim=1)
-    chosen = pts[torch.arange(m), best]
-    vals = v[torch.arange(m), best]
-    order = torch.argsort(vals, descending=True)[:limit]
-    return chosen[order]
 
 
 # ----- the loop ---------------------------------------------------------------------------
@@ -384,10 +216,7 @@ def _cegis(system: System, network: GainNetwork, P: np.ndarray, lam: float,
     lo = torch.as_tensor(box[:, 0], dtype=torch.float64)
     hi = torch.as_tensor(box[:, 1], dtype=torch.float64)
     n = system.n
-    fsettings = VerifySettings(grid_points=max(1, cs.grid_points),
-                               adversarial_starts=cs.adversarial_starts,
-                               adversarial_steps=cs.adversarial_steps, top_counterexamples=64,
-                               seed=cs.seed)
+    fsettings = falsifier_settings(cs)
     rounds: list[RoundRecord] = []
     notes: list[str] = []
     best: tuple[GainNetwork, ProofOutcome] | None = None  # the last PROVED network
@@ -414,53 +243,24 @@ def _cegis(system: System, network: GainNetwork, P: np.ndarray, lam: float,
         t_train = time.perf_counter() - t0
         net64 = _copy_net(net32, torch.float64, K64).eval().requires_grad_(False)
         problem = Problem(system, net64, lam, P)
-        # --- falsify ---
-        t0 = time.perf_counter()
-        search = falsify_mpdi(problem, fsettings)
-        t_fals = time.perf_counter() - t0
-        d = lo.numel()
-        top = torch.as_tensor(np.asarray(search.top_points, dtype=np.float64)).reshape(-1, d)
-        topv = torch.as_tensor(np.asarray(search.top_values, dtype=np.float64)).reshape(-1)
-        new: list[torch.Tensor] = []
-        proof: ProofOutcome | None = None
-        t_proof, vol, upper = 0.0, None, None
-        if search.nonfinite or search.best_value > -0.5 * cs.margin:
-            bad = top[topv > -0.5 * cs.margin] if topv.numel() else top
-            new.append(jittered(bad, lo, hi, cs.jitter, cs.jitter_scale, gen))
-            status = Status.VIOLATED if search.best_value > 0 else Status.UNKNOWN
-            rstatus = "VIOLATED" if search.best_value > 0 else "FALSIFIED"
-        else:
-            t0 = time.perf_counter()
-            remaining = cs.budget_seconds - (time.perf_counter() - t_start)
-            proof = prove_mpdi(problem, seconds=max(1.0, min(cs.proof_seconds, remaining)),
-                               max_boxes=cs.proof_boxes, seeds=top)
-            t_proof = time.perf_counter() - t0
-            if proof is not None:
-                status, vol = proof.status, proof.stats.proved_volume_fraction
-                rstatus, upper = proof.status.value, proof.upper
-            if proof is not None and proof.status is Status.VIOLATED \
-                    and proof.counterexample is not None:
-                c = proof.counterexample
-                pt = torch.tensor([c.xhat + c.y], dtype=torch.float64)
-                new.append(jittered(pt, lo, hi, cs.jitter, cs.jitter_scale, gen))
-            elif proof is not None and proof.status is Status.UNKNOWN:
-                new.append(unproved_points(problem, proof, lam, limit=cs.add_per_round,
-                                           generator=gen))
-        added = torch.cat(new)[: cs.add_per_round] if new else torch.empty(0, d)
+        found = search_round(problem, cs, fsettings, lo, hi, gen,
+                             deadline=t_start + cs.budget_seconds)
+        status, proof, added = found.status, found.proof, found.added
         if added.shape[0]:
             xhat = torch.cat([xhat, added[:, :n]])
             y = torch.cat([y, added[:, n:]])
         rec = RoundRecord(round=rnd, loss=values.total, mpdi=values.mpdi, lip=lip,
-                          lip_max=lip_max, max_lam_found=float(search.best_value),
-                          status=rstatus, proved_volume=vol, points=int(obj.N),
-                          added=int(added.shape[0]), train_seconds=t_train,
-                          falsify_seconds=t_fals, proof_seconds=t_proof, proof_upper=upper,
+                          lip_max=lip_max, max_lam_found=found.best_value,
+                          status=found.label, proved_volume=found.proved_volume,
+                          points=int(obj.N), added=int(added.shape[0]), train_seconds=t_train,
+                          falsify_seconds=found.falsify_seconds,
+                          proof_seconds=found.proof_seconds, proof_upper=found.proof_upper,
                           curv=values.curv)
         rounds.append(rec)
         say(rec.line())
         last_net, last_proof, last_status = net64, proof, status
         if status is Status.PROVED and proof is not None:
-            slow = t_proof > cs.improve_proof_seconds
+            slow = found.proof_seconds > cs.improve_proof_seconds
             if best is None or not slow:
                 best = (net64, proof)
             proved_rounds += 1
@@ -469,7 +269,8 @@ def _cegis(system: System, network: GainNetwork, P: np.ndarray, lam: float,
             if slow:
                 keep = "it" if best[0] is net64 else "the previous PROVED network"
                 notes.append(f"stopped improving after round {rnd}: its proof took "
-                             f"{t_proof:.1f} s > {cs.improve_proof_seconds:g} s; keeping {keep}")
+                             f"{found.proof_seconds:.1f} s > {cs.improve_proof_seconds:g} s; "
+                             f"keeping {keep}")
                 say(notes[-1])
                 break
         if time.perf_counter() - t_start > cs.budget_seconds:

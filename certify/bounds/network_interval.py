@@ -9,6 +9,12 @@ products with point weight matrices in midpoint-radius form with Higham's gamma_
 and its derivatives by its own sound enclosures (`certify.activations`: `enclose_f`,
 `enclose_d1`, `enclose_d2`, widened libm rules; for ELU, whose f'' jumps at 0, `enclose_d2`
 holds both one-sided values, which is what the mean-value forms built on it need).
+
+The gain k is the network composed with the injection by `certify.gain.compose` (value and
+first derivatives) and `compose_second` (d2k / dxhat dz) in the same arithmetic: interval
+products summed with `isum` (gamma_k sum|x| for the summation), K and the identity block of
+dk/dy as exact point intervals; h, Jh, Jf and the second derivatives of f and h come from
+`certify.system_enclosures`.
 """
 
 from __future__ import annotations
@@ -17,21 +23,21 @@ from dataclasses import dataclass
 
 import torch
 
-from certify.bounds.interval_ops import iadd, intersect, isum, point
+from certify.bounds.interval_ops import intersect, isum
 from certify.gain.interval import IntervalArithmetic
-from certify.gain.propagate import propagate
-from certify.intervals import (
-    Interval,
+from certify.gain.propagate import NetOutput, compose, compose_second, propagate
+from certify.intervals import Interval, imul, up
+from certify.network import GainNetwork
+from certify.system import System
+from certify.system_enclosures import (
     h_enclosure,
     hessian_f_enclosure,
     hessian_h_enclosure,
-    imul,
     jacobian_f_enclosure,
     jacobian_h_enclosure,
-    up,
+    pad_y,
+    residual_jacobian,
 )
-from certify.network import GainNetwork
-from certify.system import System
 
 
 # ----- MLP enclosure -------------------------------------------------------------------
@@ -91,79 +97,30 @@ class GainEnclosure:
 def gain_enclosure(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
                    order: int = 1, center_pre: list[Interval] | None = None
                    ) -> tuple[GainEnclosure, NetEnclosure]:
-    """What `certify.kernels.gain_terms` computes, enclosed over boxes z in [lo, hi]."""
+    """What `certify.kernels.gain_terms` computes, enclosed over boxes z in [lo, hi]: the
+    network's enclosure (`network_enclosure`) composed with the injection by
+    `certify.gain.compose` (and `compose_second`) in `IntervalArithmetic`, plus Jf."""
     n, p = system.n, system.p
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
-    B, d = lo.shape
+    spec = net.spec(torch.float64, detach=True)
     ne = network_enclosure(net, lo, hi, order=order, second_cols=n, center_pre=center_pre)
     xl, xh = lo[:, :n], hi[:, :n]
-    yI = Interval(lo[:, n:], hi[:, n:])
-    K = net.K.to(torch.float64)
-    has_K = bool(torch.any(K != 0))
-    structural = net.structure == "structural"
     jf = Interval(*jacobian_f_enclosure(system, xl, xh))
     djf = None
     if order >= 2:
-        hf = Interval(*hessian_f_enclosure(system, xl, xh))  # [B, n, n, n]
-        zpad = torch.zeros(B, n, n, p, dtype=torch.float64)
-        djf = Interval(torch.cat([hf.lo, zpad], -1), torch.cat([hf.hi, zpad], -1))
-    need_h = structural or has_K
-    if need_h:
-        hI = Interval(*h_enclosure(system, xl, xh))
-        r = yI - hI  # [B, p]
+        djf = pad_y(Interval(*hessian_f_enclosure(system, xl, xh)), p)  # [B, n, n, d]
+    r = Hx = dr = d2r = None
+    if spec.needs_h:
+        r = Interval(lo[:, n:], hi[:, n:]) - Interval(*h_enclosure(system, xl, xh))  # [B, p]
         Hx = Interval(*jacobian_h_enclosure(system, xl, xh))  # [B, p, n]
-        # dr/dz [B, p, d]: (-Hx | I)
-        eye = torch.eye(p, dtype=torch.float64).expand(B, p, p)
-        dr = Interval(torch.cat([-Hx.hi, eye], -1), torch.cat([-Hx.lo, eye], -1))
-        d2r = None
         if order >= 2:
+            dr = residual_jacobian(Hx)  # [B, p, d]
             hh = Interval(*hessian_h_enclosure(system, xl, xh))  # [B, p, n, n]
-            zpad = torch.zeros(B, p, n, p, dtype=torch.float64)
-            d2r = Interval(torch.cat([-hh.hi, zpad], -1), torch.cat([-hh.lo, zpad], -1))
-    if not structural:
-        k = ne.value
-        dk = ne.d1  # [B, n, d]
-        d2k = ne.d2  # [B, n, n, d]
-    else:
-        G = Interval(ne.value.lo.reshape(B, n, p), ne.value.hi.reshape(B, n, p))
-        dG = Interval(ne.d1.lo.reshape(B, n, p, d), ne.d1.hi.reshape(B, n, p, d))
-        rI = Interval(r.lo[:, None, :], r.hi[:, None, :])
-        k = isum(imul(G, rI), 2)
-        # dk_i/dz_j = sum_l dG_ilj r_l + G_il dr_lj
-        t1 = isum(imul(dG, Interval(r.lo[:, None, :, None], r.hi[:, None, :, None])), 2)
-        t2 = isum(imul(Interval(G.lo[..., None], G.hi[..., None]),
-                       Interval(dr.lo[:, None], dr.hi[:, None])), 2)
-        dk = iadd(t1, t2)
-        d2k = None
-        if order >= 2:
-            d2G = Interval(ne.d2.lo.reshape(B, n, p, n, d), ne.d2.hi.reshape(B, n, p, n, d))
-            rr = Interval(r.lo[:, None, :, None, None], r.hi[:, None, :, None, None])
-            a1 = imul(d2G, rr)  # sum_l d2G_iljm r_l
-            drj = Interval(dr.lo[:, None, :, :n, None], dr.hi[:, None, :, :n, None])
-            drm = Interval(dr.lo[:, None, :, None, :], dr.hi[:, None, :, None, :])
-            dGj = Interval(dG.lo[:, :, :, :n, None], dG.hi[:, :, :, :n, None])
-            dGm = Interval(dG.lo[:, :, :, None, :], dG.hi[:, :, :, None, :])
-            a2 = imul(dGj, drm)
-            a3 = imul(dGm, drj)
-            Ge = Interval(G.lo[..., None, None], G.hi[..., None, None])
-            a4 = imul(Ge, Interval(d2r.lo[:, None, :, :n, :], d2r.hi[:, None, :, :n, :]))
-            d2k = isum(iadd(iadd(a1, a2), iadd(a3, a4)), 2)
-    if has_K:
-        Kp = point(K)
-        k = iadd(k, isum(imul(Interval(K.expand(B, n, p), K.expand(B, n, p)),
-                              Interval(r.lo[:, None, :], r.hi[:, None, :])), 2))
-        Kdr = isum(imul(Interval(K[None, :, :, None].expand(B, n, p, d),
-                                 K[None, :, :, None].expand(B, n, p, d)),
-                        Interval(dr.lo[:, None], dr.hi[:, None])), 2)  # [B, n, d]
-        dk = iadd(dk, Kdr)
-        if order >= 2:
-            Kd2 = isum(imul(Interval(K[None, :, :, None, None].expand(B, n, p, n, d),
-                                     K[None, :, :, None, None].expand(B, n, p, n, d)),
-                            Interval(d2r.lo[:, None, :, :n, :], d2r.hi[:, None, :, :n, :])), 2)
-            d2k = iadd(d2k, Kd2)
-        del Kp
-    dk_dx = dk[:, :, :n]
-    dk_dy = dk[:, :, n:]
-    return GainEnclosure(k=k, dk_dx=dk_dx, dk_dy=dk_dy, d2k=d2k, jf=jf, djf=djf), ne
+            d2r = pad_y(Interval(-hh.hi, -hh.lo), p)  # [B, p, n, d]
+    arith = IntervalArithmetic(None, None)  # compose needs no box
+    out = NetOutput(ne.value, ne.d1, ne.d2)
+    g = compose(spec, arith, out, r, Hx)
+    d2k = compose_second(spec, arith, out, r, dr, d2r) if order >= 2 else None
+    return GainEnclosure(k=g.k, dk_dx=g.dk_dx, dk_dy=g.dk_dy, d2k=d2k, jf=jf, djf=djf), ne
 

@@ -36,14 +36,8 @@ import torch
 
 from certify.activations import Activation
 from certify.activations.base import LinearBounds  # one type for every relaxation
-from certify.intervals import (
-    Interval,
-    down,
-    dtanh_enclosure,
-    imul,
-    tanh_enclosure,
-    up,
-)
+from certify.activations.tanh import d2tanh_enclosure, dtanh_enclosure, tanh_enclosure
+from certify.intervals import Interval, down, imul, up
 
 _C_D1 = math.atanh(1.0 / math.sqrt(3.0))  # inflection points of tanh' (zeros of tanh''')
 _GAP = 1e-9
@@ -53,8 +47,6 @@ def _f_and_df(kind: str, x: Interval) -> tuple[Interval, Interval]:
     """Enclosures of f and f' over x (kind 'tanh' or 'dtanh')."""
     if kind == "tanh":
         return tanh_enclosure(x), dtanh_enclosure(x)
-    from certify.intervals import d2tanh_enclosure
-
     return dtanh_enclosure(x), d2tanh_enclosure(x)
 
 

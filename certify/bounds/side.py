@@ -10,18 +10,10 @@ import torch
 from certify.bounds.eigen import lam_max_upper_interval
 from certify.bounds.interval_ops import const_lam, iadd, intersect, isum, isym, point
 from certify.bounds.network_interval import gain_enclosure
-from certify.intervals import (
-    Interval,
-    gamma,
-    h_enclosure,
-    imatmul,
-    imul,
-    jacobian_f_enclosure,
-    jacobian_h_enclosure,
-    up,
-)
+from certify.intervals import Interval, gamma, imatmul, imul, up
 from certify.network import GainNetwork
 from certify.system import System
+from certify.system_enclosures import h_enclosure, jacobian_f_enclosure, jacobian_h_enclosure
 
 
 def manifold_enclosure(system: System, lo: torch.Tensor, hi: torch.Tensor, P: torch.Tensor,

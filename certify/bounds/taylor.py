@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from certify.activations import Activation
+from certify.activations.tanh import d2tanh_enclosure
 from certify.bounds.eigen import (
     MAX_VERTEX_DIM,
     _vertices,
@@ -28,22 +29,19 @@ from certify.bounds.eigen import (
 )
 from certify.bounds.interval_ops import const_lam
 from certify.bounds.preconditioner import Preconditioner
-from certify.intervals import (
-    TINY,
-    Interval,
-    d2tanh_enclosure,
-    down,
-    gamma,
+from certify.gain.propagate import GainValues
+from certify.intervals import TINY, Interval, down, gamma, imul, up
+from certify.network import GainNetwork
+from certify.system import System
+from certify.system_enclosures import (
     h_enclosure,
     hessian_f_enclosure,
     hessian_h_enclosure,
-    imul,
     jacobian_f_enclosure,
     jacobian_h_enclosure,
-    up,
+    pad_y,
+    residual_jacobian,
 )
-from certify.network import GainNetwork
-from certify.system import System
 
 U = 2.0**-53
 
@@ -216,85 +214,71 @@ def tm_index(t: TM, idx: tuple) -> TM:
 
 def network_taylor(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor
                    ) -> tuple[TM, TM, torch.Tensor]:
-    """First-order TMs over boxes of N(z) [B, out] and dN/dz [B, out, d]; returns radii r."""
+    """First-order TMs over boxes of N(z) [B, out] and dN/dz [B, out, d]; returns radii r.
+
+    `certify.gain.propagate` in `certify.gain.taylor.TaylorArithmetic` (the one propagation
+    of the gain)."""
+    from certify.gain.propagate import propagate  # certify.gain.taylor imports this module
+    from certify.gain.taylor import TaylorArithmetic
+
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
-    B, d = lo.shape
     zc = 0.5 * (lo + hi)
     r = up(torch.maximum(hi - zc, zc - lo))
-    weights = [(W.to(torch.float64), b.to(torch.float64)) for W, b in net.weights()]
-    act = net.act
-    W0, b0 = weights[0]
-    eye = torch.eye(d, dtype=torch.float64).expand(B, d, d)
-    ztm = TM(zc, eye, torch.zeros_like(zc))
-    val = tm_linear(ztm, W0.T, b0, r)  # [B, h]
-    h0 = W0.shape[0]
-    T = TM(W0.T.expand(B, d, h0), torch.zeros(B, d, h0, d, dtype=torch.float64),
-           torch.zeros(B, d, h0, dtype=torch.float64))
-    for W, b in weights[1:]:
-        a, s = tm_activation(act, val, r)
-        s_b = TM(s.c.unsqueeze(1), s.g.unsqueeze(1), s.e.unsqueeze(1))
-        Tn = tm_mul(s_b, T, r)  # [B, d, h]
-        val = tm_linear(a, W.T, b, r)
-        T = tm_linear(Tn, W.T, None, r)
-    d1 = TM(T.c.transpose(1, 2), T.g.transpose(1, 2), T.e.transpose(1, 2))  # [B, out, d]
-    return val, d1, r
+    out = propagate(net.spec(torch.float64, detach=True), TaylorArithmetic(zc, r), None,
+                    lo.shape[1])
+    return out.value, out.jac, r
+
+
+def gain_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
+                net_tms: tuple[TM, TM, torch.Tensor] | None = None, with_k: bool = True,
+                with_dy: bool = True) -> GainValues:
+    """TMs over z-boxes of k [B, n], dk/dxhat [B, n, n] and (with_dy) dk/dy [B, n, p].
+
+    `certify.gain.compose` in `TaylorArithmetic` on the network's models and the models of
+    r = y - h(xhat) and dh/dxhat (mean-value forms from the centre values and the box
+    enclosures of their derivatives). net_tms: (value [B, out], Jacobian [B, out, d], radii)
+    of the network from elsewhere (e.g. tightened by linear bound propagation); default
+    `network_taylor`."""
+    from certify.gain.propagate import NetOutput, compose  # certify.gain.taylor imports us
+    from certify.gain.taylor import TaylorArithmetic
+
+    n, p = system.n, system.p
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    val, d1, r = network_taylor(net, lo, hi) if net_tms is None else net_tms
+    spec = net.spec(torch.float64, detach=True)
+    zc = 0.5 * (lo + hi)
+    xc, xl, xh = zc[:, :n], lo[:, :n], hi[:, :n]
+    rt = Jh = None
+    if spec.needs_h:
+        Jh = tm_from_intervals(Interval(*jacobian_h_enclosure(system, xc, xc)),
+                               pad_y(Interval(*hessian_h_enclosure(system, xl, xh)), p),
+                               r)  # [B, p, n]
+    if spec.structural or (spec.has_K and with_k):  # what compose reads r for
+        hc = Interval(*h_enclosure(system, xc, xc))
+        jhb = Interval(*jacobian_h_enclosure(system, xl, xh))
+        dr_box = residual_jacobian(jhb)
+        yc = Interval(zc[:, n:], zc[:, n:])
+        rt = tm_from_intervals(yc - hc, dr_box, r)  # r = y - h(x) [B, p]
+    return compose(spec, TaylorArithmetic(zc, r), NetOutput(val, d1), rt, Jh,
+                   with_dy=with_dy, with_k=with_k)
 
 
 def jcl_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
                net_tms: tuple[TM, TM, torch.Tensor] | None = None) -> TM:
-    """TM of the closed-loop Jacobian Jf(xhat) + dk/dxhat(xhat, y) over z-boxes -> [B, n, n].
-
-    net_tms: (value [B, out], Jacobian [B, out, d], radii) of the network from elsewhere
-    (e.g. tightened by linear bound propagation); default `network_taylor`."""
-    n, p = system.n, system.p
+    """TM of the closed-loop Jacobian Jf(xhat) + dk/dxhat(xhat, y) over z-boxes -> [B, n, n]
+    (dk/dxhat from `gain_taylor`; net_tms as there)."""
+    n = system.n
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
-    B, d = lo.shape
-    val, d1, r = network_taylor(net, lo, hi) if net_tms is None else net_tms
-    zc = 0.5 * (lo + hi)
-    xc = zc[:, :n]
-    xl, xh = lo[:, :n], hi[:, :n]
-    rx = r[:, :n]
-    zpad = torch.zeros(B, n, n, p, dtype=torch.float64)
-
-    def pad(iv: Interval) -> Interval:  # derivative w.r.t. x only -> pad y columns with 0
-        z = torch.zeros(*iv.lo.shape[:-1], p, dtype=torch.float64)
-        return Interval(torch.cat([iv.lo, z], -1), torch.cat([iv.hi, z], -1))
-
+    net_tms = network_taylor(net, lo, hi) if net_tms is None else net_tms
+    r = net_tms[2]
+    dkdx = gain_taylor(system, net, lo, hi, net_tms, with_k=False, with_dy=False).dk_dx
+    xc = (0.5 * (lo + hi))[:, :n]
     jf = tm_from_intervals(Interval(*jacobian_f_enclosure(system, xc, xc)),
-                           pad(Interval(*hessian_f_enclosure(system, xl, xh))), r)
-    del zpad, rx
-    K = net.K.to(torch.float64)
-    has_K = bool(torch.any(K != 0))
-    structural = net.structure == "structural"
-    if structural or has_K:
-        Jh = tm_from_intervals(Interval(*jacobian_h_enclosure(system, xc, xc)),
-                               pad(Interval(*hessian_h_enclosure(system, xl, xh))), r)  # [B,p,n]
-    if not structural:
-        dkdx = tm_index(d1, (slice(None), slice(None), slice(0, n)))
-    else:
-        hc = Interval(*h_enclosure(system, xc, xc))
-        jhb = Interval(*jacobian_h_enclosure(system, xl, xh))
-        eye_p = torch.eye(p, dtype=torch.float64).expand(B, p, p)
-        dr_box = Interval(torch.cat([-jhb.hi, eye_p], -1), torch.cat([-jhb.lo, eye_p], -1))
-        yc = Interval(zc[:, n:], zc[:, n:])
-        rt = tm_from_intervals(yc - hc, dr_box, r)  # r = y - h(x) [B, p]
-        G = TM(val.c.reshape(B, n, p), val.g.reshape(B, n, p, d), val.e.reshape(B, n, p))
-        dG = TM(d1.c.reshape(B, n, p, d)[..., :n], d1.g.reshape(B, n, p, d, d)[..., :n, :],
-                d1.e.reshape(B, n, p, d)[..., :n])  # [B, n, p, n]
-        # dk_i/dx_j = sum_l dG_ilj r_l - G_il Jh_lj
-        r_b = TM(rt.c[:, None, :, None], rt.g[:, None, :, None, :], rt.e[:, None, :, None])
-        t1 = tm_sum(tm_mul(dG, r_b, r), 2, r)
-        G_b = TM(G.c[..., None], G.g[:, :, :, None, :], G.e[..., None])
-        Jh_b = TM(Jh.c[:, None], Jh.g[:, None], Jh.e[:, None])
-        t2 = tm_sum(tm_mul(G_b, Jh_b, r), 2, r)
-        dkdx = tm_add(t1, TM(-t2.c, -t2.g, t2.e), r)
-    if has_K:
-        # - K Jh: point matrix K [n, p] times the TM Jh [B, p, n]
-        KJ = TM(K @ Jh.c, torch.einsum("ip,bpjd->bijd", K, Jh.g), K.abs() @ Jh.e)
-        KJ = tm_absorb(KJ.c, KJ.g, up(KJ.e * (1 + 2 * gamma(p + 1))), r, p + 2)
-        dkdx = tm_add(dkdx, TM(-KJ.c, -KJ.g, KJ.e), r)
+                           pad_y(Interval(*hessian_f_enclosure(system, lo[:, :n], hi[:, :n])),
+                                  system.p), r)
     return tm_add(jf, dkdx, r)
 
 

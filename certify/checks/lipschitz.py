@@ -66,7 +66,7 @@ def structural_local_naive(problem: Problem) -> float | None:
     |b_out| ||_2 (c = sup |f|: 1 for tanh; None for an unbounded activation) and ||r|| from
     the interval enclosure of h over X.
     """
-    from certify.intervals import h_enclosure
+    from certify.system_enclosures import h_enclosure
 
     net, system = problem.network, problem.system
     Ws, Wo = mlp_in_y(net, system.n)

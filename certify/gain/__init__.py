@@ -4,55 +4,59 @@
   structure (direct / structural) and the linear term K. `GainNetwork.spec()` gives it.
 - `propagate` (propagate.py): N(z) and its input derivatives (first order, optionally second)
   layer by layer against an arithmetic; `compose` adds the injection (G r, K r) and returns
-  k, dk/dxhat, dk/dy.
-- Arithmetics (arithmetic.py, buffered.py): `RowArithmetic` (points in rows, autograd-safe),
-  `ColumnArithmetic` (feature-major, dense grids), `ChunkArithmetic` (training buffers); all
-  point float32/float64. `gain_at_points` / `gain_value` (point.py) are the point entry points.
+  k, dk/dxhat, dk/dy; `compose_second` the second derivatives d2k / dxhat dz.
+- Arithmetics, each implementing the `Arithmetic` protocol (arithmetic.py) over its own
+  number kind:
+  * points, float32/float64: `RowArithmetic` (points in rows, autograd-safe),
+    `ColumnArithmetic` (feature-major, dense grids), `ChunkArithmetic` (buffered.py,
+    training buffers); `gain_at_points` / `gain_value` (point.py) are the point entry points;
+  * intervals: `IntervalArithmetic` (interval.py), outward-rounded;
+  * first-order Taylor models: `TaylorArithmetic` (taylor.py), over
+    `certify.bounds.taylor.TM`, whose `tm_activation` is its `activate`.
 
-Adding an activation touches one file in `certify/activations/`; every evaluation of the gain
-(kernels, grid kernel, simulation, training, CEGIS) goes through `propagate`.
+Adding an activation touches one file in `certify/activations/`. Through `propagate` and
+`compose` run: the point kernels (`certify.kernels`, `certify.gridkernel`,
+`certify.integrate`), training's forward passes (`training.train`, CEGIS, the curvature
+term), and the prover's enclosures: `network_enclosure` and `gain_enclosure`
+(`certify.bounds.network_interval`: `propagate`, `compose`, `compose_second` in
+`IntervalArithmetic`), `network_taylor`, `gain_taylor` and `jcl_taylor`
+(`certify.bounds.taylor`, in `TaylorArithmetic`). The ports were bit-identical to the code
+they replaced (frozen in tests/test_gain_interval.py and tests/test_gain_compose.py), except
+dk/dy of the interval gain, which `compose` forms as dN/dy r + G + K with exact constants
+where the old code summed G_il * 1 and K_il * 1 with product and summation rounding: the new
+enclosure lies inside the old one.
 
-How `certify/enclosures.py` ports to this interface (the prover's interval, Taylor-model and
-relaxation arithmetics implement the `Arithmetic` protocol of arithmetic.py):
-
-1. `IntervalArithmetic(zc, zr)` over `certify.intervals.Interval` values in the row layout
-   [B, rows, width]: `input_layer` = `matmul_point_right(zc, zr, W.T)` + b, T = point(W[:, :m]);
-   `zero_second` = a zero Interval [B, J m, h]; `activate(act, pre, i, order)` =
-   (act.enclose_f(pre), act.enclose_d1(pre), act.enclose_d2(pre) if order 2); `scale` =
-   imul(s[:, None], T); `second` = iadd(imul(s2, imul(T_j, T_m)), imul(s, S)) (the block now in
-   `network_enclosure`); `affine` = rows.midrad() -> `matmul_point_right(rc, rr, W.T)`, + b on
-   row 0; `output` = the transposes `network_enclosure` ends with. The mean-value tightening
-   with `center_pre` becomes `pre_hook(i, pre, T)`: intersect(pre, center_pre[i] +
-   isum(imul(T, z - c), 1)), recording `pre` for `NetEnclosure.pre`. Then
-   `network_enclosure(net, lo, hi, order, second_cols, center_pre)` =
-   `propagate(net.spec(torch.float64, detach=True), IntervalArithmetic(zc, zr), None, d,
-   order, second_cols, hook)`.
-2. Its compose primitives: cols = Interval slicing, matvec/contract = imul + `isum`, matmul =
-   `imatmul`, add/sub = `iadd` / negation, const_matvec/const_matmul = `matmul_point_right`
-   with zero radius handling of K, add_const = + point(K). `gain_enclosure` is then
-   `compose(spec, IA, net, r=Interval(y) - h_enclosure(x), Hx=jacobian_h_enclosure(x))`
-   plus its Jf / djf terms (which are about f, not the gain).
-3. The Taylor models (`network_taylor`): `activate` returns the TMs of f(q) and f'(q) that
-   `tm_tanh_and_dtanh` builds, with `torch.tanh` -> `act.f`, 1 - t^2 -> `act.d1`,
-   `d2tanh_enclosure` -> `act.enclose_d2` and the constant max|tanh'''| = 2 ->
-   `act.d3_bound` (math.inf for ELU, whose f'' jumps: use the first-order remainder with
-   `act.enclose_d2` there); `scale` = `tm_mul`; `affine` = `tm_linear`.
-4. Linear relaxations: `act.relax(lo, hi)` and `act.relax_d1(lo, hi)` give sound lines for
-   f and f' on each neuron's pre-activation interval.
-Item 1 is done: `IntervalArithmetic` (interval.py) and `network_enclosure` is a call to
-`propagate` (bit-identical to the old layer walk, tests/test_gain_interval.py). The prover
-reads the activation (`net.act`) at the sites of items 3 and 4
-(`certify.bounds.taylor.tm_activation`, `certify.bounds.relax.relax_value` / `relax_slope`;
-tanh keeps its own tighter rules). Item 2, `gain_enclosure` through `compose`, is not done.
+Not (yet) written once:
+- The linear-relaxation arithmetic. `certify.bounds.crown.forward_bounds` repeats the Taylor
+  forward pass of `TaylorArithmetic` (tm_linear / tm_activation / tm_mul per layer) and an
+  interval pass of value and tangents, interleaved with their intersections and CROWN
+  queries; it could be `propagate` over a paired interval + Taylor arithmetic whose
+  `pre_hook` intersects (and adds the composed first layer's slack at layer 0). Its backward
+  pass, the adjoint of the chain rule with `act.relax` / `act.relax_d1` lines, is separate
+  by nature. `certify.bounds.side.dk_dy_box_upper_crown` adds K to crown's dN/dy model by
+  hand (`TaylorArithmetic.add_const`).
+- Training's loss heads (`training.train.Objective`, CEGIS' `CertObjective._head`) form
+  dk/dxhat = dG r - G Hx and dk/dy = dG_y r + G + K by hand in the chunk layout
+  [m, N, out] (`compose` with chunk-layout primitives would do it), and the gradient with
+  respect to the weights is a hand-written reverse pass over the chunk buffers.
+- tanh keeps its own tighter rules beside the generic ones (`tm_tanh_and_dtanh`,
+  `certify.bounds.relax`).
 """
 
 from __future__ import annotations
 
 from certify.gain.arithmetic import COLUMNS, ROWS, Arithmetic, ColumnArithmetic, RowArithmetic
 from certify.gain.point import gain_at_points, gain_value
-from certify.gain.propagate import GainValues, NetOutput, columns_needed, compose, propagate
+from certify.gain.propagate import (
+    GainValues,
+    NetOutput,
+    columns_needed,
+    compose,
+    compose_second,
+    propagate,
+)
 from certify.gain.spec import STRUCTURES, GainSpec
 
 __all__ = ["Arithmetic", "COLUMNS", "ColumnArithmetic", "GainSpec", "GainValues", "NetOutput",
-           "ROWS", "RowArithmetic", "STRUCTURES", "columns_needed", "compose", "gain_at_points",
-           "gain_value", "propagate"]
+           "ROWS", "RowArithmetic", "STRUCTURES", "columns_needed", "compose", "compose_second",
+           "gain_at_points", "gain_value", "propagate"]

@@ -9,9 +9,9 @@ and the input decide):
 - `ColumnArithmetic`: points in columns (feature-major [width, B] and [width, m, B]): every
   layer is one large product with contiguous elementwise passes; for dense no-grad grids.
 
-`certify.gain.buffered.ChunkArithmetic` writes into a training chunk's preallocated buffers.
-Interval / Taylor-model / relaxation arithmetics implement the same protocol over their own
-value types (see the package docstring for how `certify/enclosures.py` ports to it).
+`certify.gain.buffered.ChunkArithmetic` writes into a training chunk's preallocated buffers;
+`certify.gain.interval.IntervalArithmetic` and `certify.gain.taylor.TaylorArithmetic`
+implement the same protocol over intervals and first-order Taylor models.
 """
 
 from __future__ import annotations
@@ -68,6 +68,19 @@ class Arithmetic(Protocol):
     def const_matmul(self, K: torch.Tensor, A: Any) -> Any: ...
     def add_const(self, a: Any, K: torch.Tensor) -> Any: ...
 
+    # --- second derivatives of the composition (see `compose_second`) ---
+    def reshape(self, x: Any, shape: tuple[int, ...]) -> Any:
+        """x [B, ...] viewed as [B, *shape]."""
+
+    def index(self, x: Any, idx: tuple) -> Any:
+        """x[idx] (slices and new axes; the batch dimension first)."""
+
+    def mul(self, a: Any, b: Any) -> Any:
+        """Elementwise product, broadcasting."""
+
+    def sum(self, x: Any, dim: int) -> Any:
+        """Sum over dimension `dim`."""
+
 
 class PointCompose:
     """`compose` primitives on point tensors in the row layout."""
@@ -104,6 +117,18 @@ class PointCompose:
 
     def add_const(self, a: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
         return a + K
+
+    def reshape(self, x: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
+        return x.reshape(x.shape[0], *shape)
+
+    def index(self, x: torch.Tensor, idx: tuple) -> torch.Tensor:
+        return x[idx]
+
+    def mul(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return a * b
+
+    def sum(self, x: torch.Tensor, dim: int) -> torch.Tensor:
+        return x.sum(dim)
 
 
 class RowArithmetic(PointCompose):

@@ -8,6 +8,10 @@ Higham's gamma_k bound added (`certify.intervals.matmul_point_right`), interval 
 sums outward by one ulp (`imul`, `iadd`), the activation and its derivatives by the
 activation's own sound enclosures (`enclose_f`, `enclose_d1`, `enclose_d2`). The input box
 enters as centre and outward-rounded radius (zc, zr).
+
+The composition with the injection (`compose`, `compose_second`) contracts by elementwise
+interval products summed with `isum` (its gamma_k sum|x| term covers the summation error);
+constants (K, the identity blocks of dk/dy) enter as point intervals, exactly.
 """
 
 from __future__ import annotations
@@ -15,13 +19,17 @@ from __future__ import annotations
 import torch
 
 from certify.activations import Activation
-from certify.bounds.interval_ops import iadd, point
+from certify.bounds.interval_ops import iadd, isum, point
 from certify.gain.propagate import NetOutput
 from certify.intervals import Interval, imul, matmul_point_right, midrad_to_interval
 
 
 def _view(x: Interval, *shape: int) -> Interval:
     return Interval(x.lo.reshape(*shape), x.hi.reshape(*shape))
+
+
+def _neg(x: Interval) -> Interval:
+    return Interval(-x.hi, -x.lo)
 
 
 class IntervalArithmetic:
@@ -87,3 +95,52 @@ class IntervalArithmetic:
             hess = Interval(S.lo.reshape(B, J, m, out).permute(0, 3, 1, 2),
                             S.hi.reshape(B, J, m, out).permute(0, 3, 1, 2))
         return NetOutput(pre, jac, hess)
+
+    # --- compose primitives: products of intervals summed with `isum` ---
+    def cols(self, x: Interval, start: int, stop: int) -> Interval:
+        return x[..., start:stop]
+
+    def reshape_out(self, out: Interval, n: int, p: int) -> Interval:
+        return _view(out, out.lo.shape[0], n, p)
+
+    def reshape_jac(self, jac: Interval, n: int, p: int) -> Interval:
+        return _view(jac, jac.lo.shape[0], n, p, jac.lo.shape[-1])
+
+    def matvec(self, A: Interval, v: Interval) -> Interval:
+        """sum_l A_il v_l: A [B, n, p], v [B, p]."""
+        return isum(imul(A, v[:, None, :]), 2)
+
+    def contract(self, dA: Interval, v: Interval) -> Interval:
+        """sum_l dA_ilm v_l: dA [B, n, p, m], v [B, p]."""
+        return isum(imul(dA, v[:, None, :, None]), 2)
+
+    def matmul(self, A: Interval, B: Interval) -> Interval:
+        """sum_l A_il B_lm: A [B, n, p], B [B, p, m]."""
+        return isum(imul(A[..., None], B[:, None]), 2)
+
+    def add(self, a: Interval, b: Interval) -> Interval:
+        return iadd(a, b)
+
+    def sub(self, a: Interval, b: Interval) -> Interval:
+        return iadd(a, _neg(b))
+
+    def const_matvec(self, K: torch.Tensor, v: Interval) -> Interval:
+        return isum(imul(point(K[None]), v[:, None, :]), 2)
+
+    def const_matmul(self, K: torch.Tensor, A: Interval) -> Interval:
+        return isum(imul(point(K[None, :, :, None]), A[:, None]), 2)
+
+    def add_const(self, a: Interval, K: torch.Tensor) -> Interval:
+        return iadd(a, point(K[None]))
+
+    def reshape(self, x: Interval, shape: tuple[int, ...]) -> Interval:
+        return _view(x, x.lo.shape[0], *shape)
+
+    def index(self, x: Interval, idx: tuple) -> Interval:
+        return x[idx]
+
+    def mul(self, a: Interval, b: Interval) -> Interval:
+        return imul(a, b)
+
+    def sum(self, x: Interval, dim: int) -> Interval:
+        return isum(x, dim)

@@ -13,7 +13,8 @@ starting from pre = W_0 z + b_0, T = W_0[:, :m] (arith.input_layer), and an opti
 `pre_hook(layer, pre, T)` that may tighten each pre-activation (the interval arithmetic's
 mean-value intersection). `compose` then builds k, dk/dxhat, dk/dy from N, dN/dz and
 r = y - h(xhat), dh/dxhat, for the direct or structural injection plus K r, with the
-arithmetic's contraction primitives.
+arithmetic's contraction primitives; `compose_second` the second derivatives
+d2k_i / dxhat_j dz_m from d2N and dr/dz, d2r/dxhat dz (the prover's curvature term).
 """
 
 from __future__ import annotations
@@ -104,3 +105,34 @@ def compose(spec: GainSpec, arith: Any, net: NetOutput, r: Any, Hx: Any,
         if dk_dy is not None:
             dk_dy = arith.add_const(dk_dy, K)
     return GainValues(k=k, dk_dx=dk_dx, dk_dy=dk_dy)
+
+
+def compose_second(spec: GainSpec, arith: Any, net: NetOutput, r: Any, dr: Any, d2r: Any
+                   ) -> Any:
+    """d2k_i / dxhat_j dz_m [B, n, n, d] from N, dN/dz, d2N (`propagate` with order 2, all
+    d columns, second_cols = n) and, where `spec.needs_h`, r = y - h(xhat) [B, p],
+    dr/dz = (-dh/dxhat | I) [B, p, d], d2r / dxhat_j dz_m = (-d2h/dxhat_j dxhat_m | 0)
+    [B, p, n, d] (else None). Structural, with G = N as [n, p]:
+
+        d2k_i/dx_j dz_m = sum_l d2G_iljm r_l + dG_ilj dr_lm + dG_ilm dr_lj + G_il d2r_ljm,
+
+    the four products summed per l before the sum over l; K adds sum_l K_il d2r_ljm."""
+    n, p, d = spec.n, spec.p, spec.n + spec.p
+    if not spec.structural:
+        d2k = net.hess
+    else:
+        G = arith.reshape_out(net.value, n, p)  # [B, n, p]
+        dG = arith.reshape_jac(net.jac, n, p)  # [B, n, p, d]
+        d2G = arith.reshape(net.hess, (n, p, n, d))
+        a1 = arith.mul(d2G, arith.index(r, (slice(None), None, slice(None), None, None)))
+        a2 = arith.mul(arith.index(dG, (Ellipsis, slice(0, n), None)),
+                       arith.index(dr, (slice(None), None, slice(None), None, slice(None))))
+        a3 = arith.mul(arith.index(dG, (slice(None),) * 3 + (None, slice(None))),
+                       arith.index(dr, (slice(None), None, slice(None), slice(0, n), None)))
+        a4 = arith.mul(arith.index(G, (Ellipsis, None, None)),
+                       arith.index(d2r, (slice(None), None)))
+        d2k = arith.sum(arith.add(arith.add(a1, a2), arith.add(a3, a4)), 2)
+    if spec.has_K:
+        Kd2 = arith.const_matmul(spec.K, arith.reshape(d2r, (p, n * d)))  # [B, n, n d]
+        d2k = arith.add(d2k, arith.reshape(Kd2, (n, n, d)))
+    return d2k

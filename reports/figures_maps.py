@@ -1,0 +1,98 @@
+"""The map figures of the report: a check's quantity as a heatmap over the state box.
+
+`fig_mpdi_map` (max over y of lam_max(D), zero contour, worst point, counterexamples),
+`fig_necessary_map` (q(xhat) on the output manifold, witness) and `fig_residual_map`
+(||k(x, h(x))||, worst point). Each is pure: it reads the certificate's typed map
+(`reports.figure_data`) and the check's result, draws with `reports.figure_kit`, and returns
+a `Figure`, or None when its data is missing (every figure is optional).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from certify.certificate import Certificate
+from reports.content import fmt
+from reports.figure_data import check_result, grid_map, state_names
+from reports.figure_kit import heatmap, legend_below, mark, new_figure, point_marker
+
+
+def fig_mpdi_map(cert: Certificate) -> Figure | None:
+    """Heatmap of max over y of lam_max(D) over the xhat box, zero contour, counterexamples."""
+    g = grid_map(cert, "mpdi_map")
+    if g is None:
+        return None
+    x, y, v, axes = g
+    fig = new_figure(4.3)
+    ax = fig.add_subplot()
+    heatmap(fig, ax, x, y, v, label="max over y of \u03bb_max(D)", diverging=True)
+    r = check_result(cert, "mpdi")
+    if r is not None:
+        if r.worst is not None and len(r.worst.xhat) >= 2:
+            point_marker(fig, ax, r.worst.xhat, "worst point", marker="*", s=150, c="#fde047",
+                   edgecolors="black", linewidths=0.8, zorder=6,
+                   label=f"worst point ({fmt(r.worst.value, 4, signed=True)})")
+        pts = np.array([c.xhat[:2] for c in r.counterexamples if len(c.xhat) >= 2])
+        if len(pts):  # above the star: a counterexample on the worst point stays visible
+            ax.scatter(pts[:, 0], pts[:, 1], marker="x", s=40, c="#111827", linewidths=1.5,
+                       label=f"counterexamples ({len(pts)})", zorder=7, clip_on=False)
+            mark(fig, "counterexamples", len(pts))
+    ax.set_xlabel(axes[0])
+    ax.set_ylabel(axes[1] if len(axes) > 1 else "")
+    n = len(state_names(cert))
+    extra = " (other states at their box centre)" if n > 2 else ""
+    if n > 2:
+        mark(fig, "slice")
+    ax.set_title("MPDI map: max over y of \u03bb_max(D(x\u0302, y))" + extra)
+    legend_below(ax)
+    return fig
+
+
+def fig_necessary_map(cert: Certificate) -> Figure | None:
+    """q(xhat) over X with its zero contour and witness; blank where h(xhat) is not in Y."""
+    g = grid_map(cert, "necessary_map")
+    if g is None:
+        return None
+    x, y, v, axes = g
+    fig = new_figure(3.9)
+    ax = fig.add_subplot()
+    heatmap(fig, ax, x, y, v, label="q(x\u0302)", diverging=True)
+    r = check_result(cert, "necessary")
+    if r is not None and r.witness is not None and len(r.witness) >= 2:
+        point_marker(fig, ax, r.witness, "witness", marker="*", s=150, c="#fde047",
+               edgecolors="black", linewidths=0.8, zorder=6,
+               label=f"witness (q = {fmt(r.q_max, 4, signed=True)})")
+    if np.isnan(v).any():
+        ax.scatter([], [], marker="s", s=40, c="#d1d5db", label="h(x\u0302) \u2209 Y")
+    ax.set_xlabel(axes[0])
+    ax.set_ylabel(axes[1] if len(axes) > 1 else "")
+    ax.set_title("Necessary condition: q(x\u0302) on the output manifold (> 0: impossible)")
+    legend_below(ax)
+    return fig
+
+
+def fig_residual_map(cert: Certificate) -> Figure | None:
+    """||k(x, h(x))|| over X."""
+    g = grid_map(cert, "residual_map")
+    if g is None:
+        return None
+    x, y, v, axes = g
+    r = check_result(cert, "residual")
+    if r is not None and r.structural and np.all(v[np.isfinite(v)] == 0):
+        return None  # zero by construction: the section says so, a blank map adds nothing
+    fig = new_figure(3.9)
+    ax = fig.add_subplot()
+    heatmap(fig, ax, x, y, v, label="\u2016k(x, h(x))\u2016", diverging=False,
+             cmap="viridis")
+    if r is not None and r.worst is not None and len(r.worst) >= 2:
+        point_marker(fig, ax, r.worst, "worst point", marker="*", s=150, c="#f472b6",
+               edgecolors="black", linewidths=0.8, zorder=6, label=f"worst ({fmt(r.sampled)})")
+    ax.set_xlabel(axes[0])
+    ax.set_ylabel(axes[1] if len(axes) > 1 else "")
+    title = "Boundary residual \u2016k(x, h(x))\u2016 over X"
+    if r is not None and r.structural:
+        title += " (zero by construction)"
+    ax.set_title(title)
+    legend_below(ax)
+    return fig

@@ -1,0 +1,104 @@
+"""The objective of counterexample-guided training (`CertObjective`).
+
+It is the eigenvalue loss in the metric P with a margin,
+
+    L = mean_j relu(lam_max(D_j) + margin)  +  lip_weight * (mean_j ||dk/dy_j||_F^(2q))^(1/(2q))
+        + curv_weight * C
+
+with D = He{P (Jf + dk/dxhat)} + 2 (lam + rate_slack) P. The second term is a mild, sup-leaning
+(q > 1) penalty on the gain's sensitivity to y, the constant L that multiplies the noise in
+the error bound sqrt(kappa(P)) (eps_bar + L vbar) / (2 lam). C (`training.curvature`) is the
+verification-aware term: the variation of dk/dxhat over pairs of points at a small distance,
+which keeps the network cheap to prove. It reuses the fast float32 forward-mode trunk of
+`training.objective.Objective` (the one propagation `certify.gain.propagate` over chunk
+buffers) with the y-columns added to the forward tangents, and autograd for the small loss
+head only. Kept apart from the loop (`training.cegis`) because it is the part that is
+differentiated: tests compare its gradient with autograd.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from certify.gain.buffered import ChunkBuffers
+from certify.kernels import sym
+from certify.network import GainNetwork
+from certify.system import System
+from training import losses
+from training.curvature import CurvaturePenalty
+from training.objective import LossValues, Objective
+
+
+class CertObjective(Objective):
+    """Eigenvalue loss in the metric P with margin, plus the ||dk/dy|| penalty.
+
+    The trunk runs forward mode over all n + p input columns (the parent's buffers are
+    rebuilt for that); the head is differentiated by autograd on [N, n, n] matrices.
+    """
+
+    def __init__(self, system: System, net: GainNetwork, xhat: torch.Tensor, y: torch.Tensor,
+                 *, lam: float, P: torch.Tensor, margin: float, lip_weight: float = 0.0,
+                 lip_power: float = 1.0, mpdi_weight: float = 1.0, mu_bc: float = 1.0,
+                 workers: int = 2, curvature: CurvaturePenalty | None = None) -> None:
+        weights = losses.LossWeights(mu1=1.0, mu2=float(mu_bc), rho=(1.0,) * system.n)
+        super().__init__(system, net, xhat, y, lam=lam, P=P, weights=weights, loss="eigen",
+                         margin=margin, workers=workers, curvature=curvature)
+        self.lip_weight, self.lip_power = float(lip_weight), float(lip_power)
+        self.mpdi_weight = float(mpdi_weight)
+        n, p = system.n, system.p
+        dt = net.layers[0].weight.dtype
+        self.K_t = net.K.detach().to(dt)
+        self.r_all = (y.to(torch.float64) - system.h(xhat.to(torch.float64))).to(dt)
+        self.m = n + p  # forward tangents for every input column (xhat and y)
+        widths = [n + p, *[layer.weight.shape[0] for layer in net.layers]]
+        self.chunks = [ChunkBuffers(ch.Z, ch.C, widths, self.m, not self.structural)
+                       for ch in self.chunks]
+        self.last_lip = 0.0
+        self.last_lip_max = 0.0  # max ||dk/dy||_F over the collocation points
+
+    def _head(self, val: torch.Tensor, tan: torch.Tensor, k_bc: torch.Tensor | None,
+              grad: bool) -> tuple[float, float, list[torch.Tensor] | None]:
+        n, p, N = self.n, self.p, self.N
+        val_l = val.detach().requires_grad_(grad)
+        tan_l = tan.detach().requires_grad_(grad)
+        kbc_l = None if k_bc is None else k_bc.detach().requires_grad_(grad)
+        with torch.enable_grad():
+            if self.structural:
+                G = val_l.view(N, n, p)
+                dG = tan_l.view(self.m, N, n, p)  # [j, b, i, q] = dG_iq / dz_j
+                M = torch.einsum("jbiq,bq->bij", dG[:n], self.r)
+                if self.Hx is not None:
+                    M = M - G @ self.Hx
+                dky = torch.einsum("jbiq,bq->bij", dG[n:], self.r) + G + self.K_t
+            else:
+                M = tan_l[:n].permute(1, 2, 0)
+                dky = tan_l[n:].permute(1, 2, 0) + self.K_t
+            D = self.D0 + sym(M if self.P_is_identity else self.P @ M)
+            mpdi = losses.eigen_loss(D, self.margin, reduce="sum")
+            total = self.mpdi_weight * mpdi / N
+            lip = torch.zeros((), dtype=D.dtype)
+            if self.lip_weight > 0:
+                s = (dky * dky).sum(dim=(1, 2))  # ||dk/dy||_F^2 per point
+                q = self.lip_power
+                scale = s.detach().max().clamp_min(1e-30)  # for a stable power mean
+                lip = torch.sqrt(scale) * ((s / scale) ** q).mean() ** (1.0 / (2.0 * q))
+                total = total + self.lip_weight * lip
+            bc = torch.zeros((), dtype=D.dtype)
+            if kbc_l is not None:
+                bc = (kbc_l * kbc_l).sum()
+                total = total + self.weights.mu2 * bc / N
+            self.last_lip = float(lip.detach())
+            self.last_lip_max = float(torch.sqrt((dky * dky).sum(dim=(1, 2)).max()).detach())
+            if not grad:
+                return float(mpdi), float(bc), None
+            inputs = [val_l, tan_l] + ([kbc_l] if kbc_l is not None else [])
+            grads = torch.autograd.grad(total, inputs, allow_unused=True)
+        grads = [torch.zeros_like(x) if g is None else g for x, g in zip(inputs, grads)]
+        return float(mpdi), float(bc), grads
+
+    def evaluate(self, grad: bool = True) -> LossValues:
+        v = super().evaluate(grad)
+        w_curv = 0.0 if self.curvature is None else self.curvature.settings.weight
+        total = self.mpdi_weight * v.mpdi + self.weights.mu2 * v.bc \
+            + self.lip_weight * self.last_lip + w_curv * v.curv
+        return LossValues(total=total, mpdi=v.mpdi, bc=v.bc, curv=v.curv)
