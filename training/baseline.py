@@ -80,7 +80,7 @@ def _varying_entries(system: System) -> tuple[np.ndarray, np.ndarray]:
     its outward rounding, and entries whose enclosure has lo != hi at all (the coupling
     constants of vdp2/vdp3 differ by one rounding, which doubles the vertices per entry)."""
     from certify.checks.metric import sub_boxes
-    from certify.intervals import jacobian_f_enclosure
+    from certify.system_enclosures import jacobian_f_enclosure
 
     lo, hi = sub_boxes(system, 1, manifold=False)
     Jlo, Jhi = (t[0].numpy() for t in jacobian_f_enclosure(system, lo, hi))
