@@ -17,7 +17,7 @@ Parts (`--part`, default all but `six`):
       T(W) = t_driver + t_eval / W + o_rt + W o_task,   E(W) = (t_driver + t_eval) / (W T(W))
   (the arithmetic is printed in each line).
 - `six`: `certify train vdp3 --preset certified` then `certify run` (10 minute cap, memory
-  capped at --mem-gb), timed, with the exit codes.
+  capped at --mem-gb), timed, with the exit codes (`--systems lorenz,vdp2,vdp3` for more).
 
 Run: python bench/scale.py [--part n,workers,six] [--repeats 3] [--boxes 600000]
 [--checkpoint PATH]. Wall-clock on this shared machine; compare lines of one run only.
@@ -246,11 +246,19 @@ def _limit_memory(gb: float):
 
 
 def part_six(args: argparse.Namespace, folder: Path) -> None:
-    ckpt = folder / "vdp3_certified.ckpt"
+    for name in args.systems.split(","):
+        train_and_run(args, folder, name.strip())
+
+
+def train_and_run(args: argparse.Namespace, folder: Path, name: str) -> None:
+    """`certify train NAME --preset certified` then `certify run`, timed, with exit codes."""
+    from certify.system import load_system
+
+    ckpt = folder / f"{name}_certified.ckpt"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     t0 = time.perf_counter()
     steps = []
-    for argv in (["train", "vdp3", "--preset", "certified", "-o", str(ckpt)],
+    for argv in (["train", name, "--preset", "certified", "-o", str(ckpt)],
                  ["run", str(ckpt), "--quiet", "--no-config"]):
         left = args.six_seconds - (time.perf_counter() - t0)
         if left <= 0 or (argv[0] == "run" and not ckpt.exists()):
@@ -266,7 +274,7 @@ def part_six(args: argparse.Namespace, folder: Path) -> None:
             code, tail = "timeout", ""
         steps.append({"step": argv[0], "exit": code, "seconds": round(time.perf_counter()
                                                                       - s0, 1), "tail": tail})
-    emit({"bench": "scale_six", "system": "vdp3", "n": 6, "steps": steps,
+    emit({"bench": "scale_six", "system": name, "n": load_system(name).n, "steps": steps,
           "total_seconds": round(time.perf_counter() - t0, 1),
           "certified": bool(steps and steps[-1].get("exit") == 0)})
 
@@ -280,6 +288,7 @@ def main() -> None:
     ap.add_argument("--boxes", type=int, default=600_000, help="box budget of the workers part")
     ap.add_argument("--checkpoint", help="checkpoint of the workers part (default: vdp2 LMI)")
     ap.add_argument("--six-seconds", type=float, default=600.0)
+    ap.add_argument("--systems", default="vdp3", help="built-ins of the six part")
     ap.add_argument("--mem-gb", type=float, default=6.0)
     ap.add_argument("--folder", default=None, help="where built checkpoints are kept")
     args = ap.parse_args()
