@@ -165,7 +165,7 @@ def part_workers(args: argparse.Namespace, folder: Path) -> None:
     the whole time, so load changes hit all three alike), then the paper arithmetic."""
     from certify.executor import BOXES_PER_WORKER, DaskExecutor, SerialExecutor
 
-    path = args.checkpoint or lmi_checkpoint(*WORKERS_PROOF, folder=folder)
+    path = args.checkpoint or lmi_checkpoint(WORKERS_PROOF[0], folder, WORKERS_PROOF[1])
     problem = checkpoint.load(path).problem
     runs: dict[str, list[dict]] = {"serial": [], "1": [], "2": []}
     with torch_threads(1), DaskExecutor(workers=1) as one, DaskExecutor(workers=2) as two:
@@ -204,7 +204,7 @@ def part_workers(args: argparse.Namespace, folder: Path) -> None:
 def part_paper(args: argparse.Namespace, problem, over: dict, per_worker: int) -> None:
     """Efficiency at W = 16, 32, 64 workers on paper, from measured costs.
 
-    A round on W workers splits b_W = W * per_worker / 2 boxes (`certify.executor.
+    A round on W > 2 workers splits b_W = W * per_worker / 2 boxes (`certify.executor.
     round_batch`), so every worker evaluates `per_worker` children per round. Its time is
         T(W) = t_driver(b_W) + t_eval(b_W) / W + o_rt + W o_task
     with t_eval, t_driver the evaluation and driver seconds per round of the SERIAL proof at

@@ -336,20 +336,25 @@ def worker_cache(key: str, build: Callable[[], Any]) -> Any:
     return value
 
 
-#: children (evaluated boxes) each worker gets per branch-and-bound round, at least: the
-#: default batch of 1024 split boxes (2048 children) is this for 2 workers, so runs on up to
-#: 2 workers keep the serial rounds; more workers get proportionally larger rounds, so that
-#: per-task overhead and the driver's share of a round stay small (bench/scale.py, scale_paper)
-BOXES_PER_WORKER = 1024
+#: children (evaluated boxes) each worker gets per branch-and-bound round from 3 workers on:
+#: enough that the per-task overhead and the driver's share of a round stay small at 64
+#: workers (bench/scale.py, scale_paper: E(64) from measured costs)
+BOXES_PER_WORKER = 2048
+
+#: up to this many workers the rounds are the serial ones (the default batch), so a run on
+#: this 2-core machine is identical to the default serial run, not only to one with its batch
+SERIAL_ROUNDS_UP_TO = 2
 
 
 def round_batch(executor: Any, batch: int) -> int:
-    """Boxes split per branch-and-bound round on `executor`: `batch`, raised to
-    `workers * BOXES_PER_WORKER / 2` for a remote executor (each split gives 2 children).
-    The verdict and bounds are those of a serial run with this batch and box budget."""
-    if not getattr(executor, "remote", False):
+    """Boxes split per branch-and-bound round on `executor`: `batch` for a serial executor
+    and for up to SERIAL_ROUNDS_UP_TO workers; beyond, raised to `workers *
+    BOXES_PER_WORKER / 2` (each split gives 2 children). The verdict and bounds are those of
+    a serial run with the returned batch and the same box budget."""
+    workers = int(getattr(executor, "workers", 1))
+    if not getattr(executor, "remote", False) or workers <= SERIAL_ROUNDS_UP_TO:
         return batch
-    return max(batch, -(-int(executor.workers) * BOXES_PER_WORKER // 2))
+    return max(batch, -(-workers * BOXES_PER_WORKER // 2))
 
 
 def chunk_ranges(total: int, pieces: int, align: int = 1) -> list[tuple[int, int]]:

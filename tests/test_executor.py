@@ -301,5 +301,6 @@ def test_round_batch_fills_the_workers_and_keeps_small_runs_serial():
 
     assert round_batch(SerialExecutor(), 1024) == 1024
     assert round_batch(Remote(1), 1024) == round_batch(Remote(2), 1024) == 1024
+    assert round_batch(Remote(3), 1024) * 2 >= 3 * BOXES_PER_WORKER
     assert round_batch(Remote(64), 1024) * 2 == 64 * BOXES_PER_WORKER
     assert round_batch(Remote(64), 10**6) == 10**6  # never smaller than asked
