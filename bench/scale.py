@@ -12,10 +12,11 @@ Parts (`--part`, default all but `six`):
   with 1 and 2 workers, interleaved in each repeat with both clusters up (same verdict,
   bounds and boxes asserted: `identical_to_serial`); the speed-ups; Dask's measured cost per
   task (round trip; driver CPU per task). Then `scale_paper`: the efficiency at 16-64
-  workers from those costs and the serial proof's measured evaluation/driver seconds per
-  round at the batch those workers get (`certify.executor.round_batch`):
-      T(W) = t_driver + t_eval / W + o_rt + W o_task,   E(W) = (t_driver + t_eval) / (W T(W))
-  (the arithmetic is printed in each line).
+  workers from those costs, the serial proof's evaluation and driver seconds per box, and
+  the driver's seconds per round at the batch those workers get (`round_batch`):
+      T(W) = t_driver(b_W) + per_worker c_eval + o_rt + W o_task
+      E(W) = per_worker (c_eval + c_driver) / T(W)
+  (the arithmetic is printed in each line; see `part_paper`).
 - `six`: `certify train vdp3 --preset certified` then `certify run` (10 minute cap, memory
   capped at --mem-gb), timed, with the exit codes (`--systems lorenz,vdp2,vdp3` for more).
 
@@ -198,44 +199,53 @@ def part_workers(args: argparse.Namespace, folder: Path) -> None:
           "speedup_2_vs_serial": round(med["serial"] / med["2"], 3),
           "serial_seconds_median": round(med["serial"], 3), "load_1min_end": load,
           "checkpoint": Path(path).name, "box_budget": args.boxes, **over})
-    part_paper(args, problem, over, BOXES_PER_WORKER)
+    serial = min(runs["serial"], key=lambda r: abs(r["seconds"] - med["serial"]))
+    part_paper(args, problem, serial, over, BOXES_PER_WORKER)
 
 
-def part_paper(args: argparse.Namespace, problem, over: dict, per_worker: int) -> None:
+def part_paper(args: argparse.Namespace, problem, serial: dict, over: dict,
+               per_worker: int) -> None:
     """Efficiency at W = 16, 32, 64 workers on paper, from measured costs.
 
     A round on W > 2 workers splits b_W = W * per_worker / 2 boxes (`certify.executor.
-    round_batch`), so every worker evaluates `per_worker` children per round. Its time is
-        T(W) = t_driver(b_W) + t_eval(b_W) / W + o_rt + W o_task
-    with t_eval, t_driver the evaluation and driver seconds per round of the SERIAL proof at
-    batch b_64 (measured here, same box budget; scaled linearly in the batch for 16 and
-    32), o_rt the round trip of one task and o_task the driver's CPU seconds per task
-    (client + scheduler, measured on the 2-worker cluster). The serial proof with the same
-    batch evaluates the same boxes (results identical), so the efficiency is
-        E(W) = (t_driver + t_eval) / (W T(W)).
+    round_batch`): each worker evaluates one chunk of `per_worker` children. Its time is
+        T(W) = t_driver(b_W) + per_worker * c_eval + o_rt + W o_task
+    with c_eval, c_driver the evaluation and driver seconds per box of the serial proof
+    (default batch: its rounds evaluate 2048 children, one worker's chunk), t_driver(b_W)
+    the driver seconds per round of the serial proof run at batch b_64 (same box budget;
+    per box for 16 and 32), o_rt the round trip of one task and o_task the driver's CPU
+    seconds per task (client + scheduler, measured on the 2-worker cluster). The same boxes
+    take (c_eval + c_driver) per box serially, so
+        E(W) = per_worker (c_eval + c_driver) / T(W).
+    (Per box, evaluation in one process is slower at batch b_64 than in 2048-box chunks:
+    the chunk cost is taken from the default-batch run.)
     """
     big = 64 * per_worker // 2
     with torch_threads(1):
         r = timed_proof(problem, args.boxes, batch=big)
-    rounds = r["rounds"]
-    t_eval64 = r["eval_seconds"] / rounds
-    t_drv64 = (r["seconds"] - r["eval_seconds"]) / rounds
+    boxes = serial["outcome"].stats.boxes_processed
+    c_eval = serial["eval_seconds"] / boxes
+    c_drv = (serial["seconds"] - serial["eval_seconds"]) / boxes
+    drv_per_child = (r["seconds"] - r["eval_seconds"]) / r["outcome"].stats.boxes_processed
     o_rt, o_task = over["round_trip_s"], over["driver_cpu_per_task_s"]
     for workers in (16, 32, 64):
-        scale = workers / 64
-        t_eval, t_drv = t_eval64 * scale, t_drv64 * scale
-        t_round = t_drv + t_eval / workers + o_rt + workers * o_task
-        eff = (t_drv + t_eval) / (workers * t_round)
+        t_drv = drv_per_child * workers * per_worker
+        t_chunk = per_worker * c_eval
+        t_round = t_drv + t_chunk + o_rt + workers * o_task
+        eff = per_worker * (c_eval + c_drv) / t_round
         emit({"bench": "scale_paper", "workers": workers, "batch": workers * per_worker // 2,
-              "children_per_worker": per_worker, "t_eval_per_round": round(t_eval, 4),
+              "children_per_worker": per_worker, "c_eval_per_box": round(c_eval, 8),
+              "c_driver_per_box_serial": round(c_drv, 8), "t_chunk": round(t_chunk, 4),
               "t_driver_per_round": round(t_drv, 4), "overhead_round_trip": o_rt,
               "overhead_driver_per_task": o_task,
-              "arithmetic": f"T = {t_drv:.4f} + {t_eval:.4f}/{workers} + {o_rt:.4f} + "
-                            f"{workers}*{o_task:.5f} = {t_round:.4f} s; E = "
-                            f"({t_drv:.4f} + {t_eval:.4f}) / ({workers}*{t_round:.4f})",
-              "efficiency": round(eff, 3), "serial_rounds_at_b64": rounds,
-              "serial_seconds_at_b64": round(r["seconds"], 2),
-              "boxes_at_b64": r["outcome"].stats.boxes_processed})
+              "arithmetic": f"T = {t_drv:.4f} + {t_chunk:.4f} + {o_rt:.4f} + {workers}*"
+                            f"{o_task:.5f} = {t_round:.4f} s; E = {per_worker}*({c_eval:.3e}"
+                            f" + {c_drv:.3e}) / {t_round:.4f}",
+              "efficiency": round(eff, 3), "serial_at_b64": {
+                  "rounds": r["rounds"], "seconds": round(r["seconds"], 2),
+                  "boxes": r["outcome"].stats.boxes_processed,
+                  "driver_s_per_round": round((r["seconds"] - r["eval_seconds"])
+                                              / r["rounds"], 4)}})
 
 
 def _limit_memory(gb: float):
