@@ -212,17 +212,17 @@ def part_paper(args: argparse.Namespace, problem, serial: dict, over: dict,
         T(W) = t_driver(b_W) + per_worker * c_eval + o_rt + W o_task
     with c_eval, c_driver the evaluation and driver seconds per box of the serial proof
     (default batch: its rounds evaluate 2048 children, one worker's chunk), t_driver(b_W)
-    the driver seconds per round of the serial proof run at batch b_64 (same box budget;
-    per box for 16 and 32), o_rt the round trip of one task and o_task the driver's CPU
-    seconds per task (client + scheduler, measured on the 2-worker cluster). The same boxes
-    take (c_eval + c_driver) per box serially, so
+    the driver seconds per round of the serial proof run at batch b_64 (--paper-boxes: the
+    initial grid and one round; per box for 16 and 32), o_rt the round trip of one task and
+    o_task the driver's CPU seconds per task (client + scheduler, measured on the 2-worker
+    cluster). The same boxes take (c_eval + c_driver) per box serially, so
         E(W) = per_worker (c_eval + c_driver) / T(W).
     (Per box, evaluation in one process is slower at batch b_64 than in 2048-box chunks:
     the chunk cost is taken from the default-batch run.)
     """
     big = 64 * per_worker // 2
     with torch_threads(1):
-        r = timed_proof(problem, args.boxes, batch=big)
+        r = timed_proof(problem, min(args.paper_boxes, args.boxes), batch=big)
     boxes = serial["outcome"].stats.boxes_processed
     c_eval = serial["eval_seconds"] / boxes
     c_drv = (serial["seconds"] - serial["eval_seconds"]) / boxes
@@ -296,6 +296,8 @@ def main() -> None:
     ap.add_argument("--proof-seconds", type=float, default=300.0)
     ap.add_argument("--max-boxes", type=int, default=2_000_000)
     ap.add_argument("--boxes", type=int, default=600_000, help="box budget of the workers part")
+    ap.add_argument("--paper-boxes", type=int, default=200_000,
+                    help="box budget of the serial run at the 64-worker batch (scale_paper)")
     ap.add_argument("--checkpoint", help="checkpoint of the workers part (default: vdp2 LMI)")
     ap.add_argument("--six-seconds", type=float, default=600.0)
     ap.add_argument("--systems", default="vdp3", help="built-ins of the six part")
