@@ -15,7 +15,12 @@ import numpy as np
 import torch
 
 from certify.bnb import Box, BoxEval, branch_and_bound
-from certify.bounds.mpdi import CROWN_GAIN, estimate_crown_gain
+from certify.bounds.mpdi import (
+    CROWN_GAIN,
+    choose_preconditioner,
+    direct_mixed,
+    estimate_crown_gain,
+)
 from certify.enclosures import (
     Preconditioner,
     dk_dy_box_upper,
@@ -87,7 +92,7 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
     P = problem.P_t
     gain = CROWN_GAIN
     rlo, rhi = _root(problem)
-    if crown and taylor is True:
+    if crown and taylor is True and not direct_mixed(problem, pc):
         gain = estimate_crown_gain(problem.network, rlo, rhi)
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
@@ -103,6 +108,14 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
     return evaluate
 
 
+def _mpdi_preconditioner(problem: Problem, lam: float, taylor: bool | str) -> Preconditioner:
+    """The congruence for the MPDI proof: probed (`choose_preconditioner`) for the default
+    prover, M ~ L^-1 for the plain-interval and "interval" comparison provers."""
+    if taylor is True:
+        return choose_preconditioner(problem, lam)
+    return make_preconditioner(problem.P_t)
+
+
 def mpdi_box_chunk(payload: dict, lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
     """Executor task (module level, picklable): the MPDI box evaluation of one chunk; the
     evaluator is rebuilt from plain data once per worker process (`certify.remote`)."""
@@ -114,7 +127,8 @@ def mpdi_box_chunk(payload: dict, lo: torch.Tensor, hi: torch.Tensor) -> BoxEval
         base = {k: payload[k] for k in ("spec", "name", "architecture", "state", "lam", "P")}
         problem = problem_from_payload(base)
         return _mpdi_evaluator(problem, payload["prove_lam"],
-                               make_preconditioner(problem.P_t), payload["taylor"],
+                               _mpdi_preconditioner(problem, payload["prove_lam"],
+                                                    payload["taylor"]), payload["taylor"],
                                payload["crown"])
 
     evaluate = worker_cache("mpdi-boxes:" + payload["key"], build)
@@ -156,7 +170,7 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
 
     progress = progress or NullProgress()
     lam = float(problem.lam if lam is None else lam)
-    pc = make_preconditioner(problem.P_t)
+    pc = _mpdi_preconditioner(problem, lam, taylor)
     lo, hi = _root(problem)
     n = problem.n
     executor = current_executor() if executor is None else executor

@@ -8,6 +8,8 @@ fresh seeded curvature pairs each round); then the counterexample search of
 counterexamples and unproved-leaf points join the collocation set (any number of states and
 outputs). It stops at the first PROVED round (or after `improve_rounds` more) or when the
 round/time budget is spent. This module holds the loop, its settings and its record.
+A non-finite loss term, weight or gradient stops the loop at once with one line naming the
+round, the step and the term (`training.objective.check_finite`); nothing is returned.
 Nothing here is trusted for the certificate: `certify run` re-verifies the checkpoint.
 
 Seeded and deterministic as long as the in-loop proofs end on their box budget
@@ -35,6 +37,7 @@ from training.cegis_objective import CertObjective
 from training.cegis_search import falsifier_settings, search_round
 from training.collocation import collocation_points
 from training.curvature import CurvaturePenalty, CurvatureSettings
+from training.objective import check_finite
 from training.optim import Adam
 
 Log = Callable[[str], None]
@@ -233,10 +236,14 @@ def _cegis(system: System, network: GainNetwork, P: np.ndarray, lam: float,
                             lip_power=cs.lip_power, mpdi_weight=cs.mpdi_weight,
                             curvature=curvature)
         try:
-            for _ in range(cs.iters_per_round):
-                obj.evaluate(grad=True)
+            for step in range(cs.iters_per_round):
+                values = obj.evaluate(grad=True)
+                check_finite({**values.as_dict(), "lip": obj.last_lip}, params,
+                             f"CEGIS round {rnd}, Adam step {step}")
                 opt.step()
             values = obj.evaluate(grad=False)
+            check_finite({**values.as_dict(), "lip": obj.last_lip}, params,
+                         f"the end of CEGIS round {rnd}", grad=False)
             lip, lip_max = obj.last_lip, obj.last_lip_max
         finally:
             obj.close()

@@ -11,9 +11,11 @@ the error bound sqrt(kappa(P)) (eps_bar + L vbar) / (2 lam). C (`training.curvat
 verification-aware term: the variation of dk/dxhat over pairs of points at a small distance,
 which keeps the network cheap to prove. It reuses the fast float32 forward-mode trunk of
 `training.objective.Objective` (the one propagation `certify.gain.propagate` over chunk
-buffers) with the y-columns added to the forward tangents, and autograd for the small loss
-head only. Kept apart from the loop (`training.cegis`) because it is the part that is
-differentiated: tests compare its gradient with autograd.
+buffers) with the y-columns added to the forward tangents; the head forms dk/dxhat and dk/dy
+by `certify.gain.compose` (as the parent does) and autograd differentiates the small head
+only. The penalty's gradient at the zero field dk/dy = 0 is 0 (`power_mean_norm`). Kept apart
+from the loop (`training.cegis`) because it is the part that is differentiated: tests
+compare its gradient with autograd.
 """
 
 from __future__ import annotations
@@ -27,6 +29,27 @@ from certify.system import System
 from training import losses
 from training.curvature import CurvaturePenalty
 from training.objective import LossValues, Objective
+
+
+def power_mean_norm(s: torch.Tensor, q: float) -> torch.Tensor:
+    """(mean_j s_j^q)^(1/(2q)) for s_j = ||dk/dy_j||_F^2 >= 0, q >= 1: the penalty's power
+    mean of the norms ||dk/dy_j||_F, computed as sqrt(m) (mean_j (s_j/m)^q)^(1/(2q)) with
+    m = max_j s_j so that s^q cannot overflow for large q.
+
+    It is a norm of the field dk/dy (an L^(2q) mean of Frobenius norms: convex and
+    1-homogeneous), differentiable except where every dk/dy_j is zero (the zero warm start,
+    K = 0 and the MLP's last layer zero). There its value is its minimum, 0, and the formula's
+    gradient would be 0 * inf = NaN; the gradient given there is 0, which is a subgradient of
+    a norm at its minimum (the subdifferential at 0 is the dual unit ball). A smoothed form
+    (e.g. sqrt(x + eps^2) - eps) would also be finite, but would change the penalty's value
+    everywhere and its meaning (the constant L of the error bound, as recorded per round);
+    this keeps both exact. For q >= 1 the points with s_j = 0 among nonzero ones have a
+    finite derivative (d s^q / ds = q s^(q-1) is 0 or 1 at s = 0).
+    """
+    scale = s.detach().max()
+    if not bool(scale > 0):  # every dk/dy is zero (or s is not finite: NaN/inf propagate)
+        return s.sum() * 0.0
+    return torch.sqrt(scale) * ((s / scale) ** q).mean() ** (1.0 / (2.0 * q))
 
 
 class CertObjective(Objective):
@@ -44,11 +67,10 @@ class CertObjective(Objective):
         super().__init__(system, net, xhat, y, lam=lam, P=P, weights=weights, loss="eigen",
                          margin=margin, workers=workers, curvature=curvature)
         self.lip_weight, self.lip_power = float(lip_weight), float(lip_power)
+        if not self.lip_power >= 1:
+            raise ValueError(f"lip_power must be >= 1; got {lip_power!r}")
         self.mpdi_weight = float(mpdi_weight)
         n, p = system.n, system.p
-        dt = net.layers[0].weight.dtype
-        self.K_t = net.K.detach().to(dt)
-        self.r_all = (y.to(torch.float64) - system.h(xhat.to(torch.float64))).to(dt)
         self.m = n + p  # forward tangents for every input column (xhat and y)
         widths = [n + p, *[layer.weight.shape[0] for layer in net.layers]]
         self.chunks = [ChunkBuffers(ch.Z, ch.C, widths, self.m, not self.structural)
@@ -58,30 +80,19 @@ class CertObjective(Objective):
 
     def _head(self, val: torch.Tensor, tan: torch.Tensor, k_bc: torch.Tensor | None,
               grad: bool) -> tuple[float, float, list[torch.Tensor] | None]:
-        n, p, N = self.n, self.p, self.N
+        N = self.N
         val_l = val.detach().requires_grad_(grad)
         tan_l = tan.detach().requires_grad_(grad)
         kbc_l = None if k_bc is None else k_bc.detach().requires_grad_(grad)
         with torch.enable_grad():
-            if self.structural:
-                G = val_l.view(N, n, p)
-                dG = tan_l.view(self.m, N, n, p)  # [j, b, i, q] = dG_iq / dz_j
-                M = torch.einsum("jbiq,bq->bij", dG[:n], self.r)
-                if self.Hx is not None:
-                    M = M - G @ self.Hx
-                dky = torch.einsum("jbiq,bq->bij", dG[n:], self.r) + G + self.K_t
-            else:
-                M = tan_l[:n].permute(1, 2, 0)
-                dky = tan_l[n:].permute(1, 2, 0) + self.K_t
+            gain = self._compose(val_l, tan_l, with_dy=True)  # dk/dxhat less -K Hx (in D0)
+            M, dky = gain.dk_dx, gain.dk_dy
             D = self.D0 + sym(M if self.P_is_identity else self.P @ M)
             mpdi = losses.eigen_loss(D, self.margin, reduce="sum")
             total = self.mpdi_weight * mpdi / N
             lip = torch.zeros((), dtype=D.dtype)
             if self.lip_weight > 0:
-                s = (dky * dky).sum(dim=(1, 2))  # ||dk/dy||_F^2 per point
-                q = self.lip_power
-                scale = s.detach().max().clamp_min(1e-30)  # for a stable power mean
-                lip = torch.sqrt(scale) * ((s / scale) ** q).mean() ** (1.0 / (2.0 * q))
+                lip = power_mean_norm((dky * dky).sum(dim=(1, 2)), self.lip_power)
                 total = total + self.lip_weight * lip
             bc = torch.zeros((), dtype=D.dtype)
             if kbc_l is not None:

@@ -8,23 +8,37 @@ instead evaluates the MLP trunk by hand:
 - forward mode for the n Jacobian columns by the one propagation of the gain
   (`certify.gain.propagate` with `certify.gain.buffered.ChunkArithmetic`): value and tangent
   rows stacked in one buffer so each layer is one matrix product (no Python loop over points);
-- a hand-written reverse pass through that forward-mode computation; the activation's own
-  reverse rule (`Activation.chain_pre`) brings in f'' (for tanh, f'' = -2 f f': one fused
-  multiply-add);
-- preallocated buffers, float32 (the checkpoint and the verifier stay float64);
-- autograd only for the small loss head on [B, n, n] matrices, so any n, p, either structure,
-  the linear injection K and every loss kind share one code path.
+- the loss head forms dk/dxhat (CEGIS: and dk/dy) from the trunk's outputs by the one
+  composition `certify.gain.compose`, over the chunk layout [m, N, out]
+  (`certify.gain.buffered.ChunkCompose`), leaving out the weight-free -K dh/dxhat
+  (`with_K_dx=False`): that term is folded, in float64, into the constant part D0 of D;
+- the head's gradient: d(loss)/dD in closed form (minors, n <= 2) or by autograd on the
+  small [N, n, n] matrices, then autograd back through `compose` to d(loss)/d(N, dN/dz);
+  no hand-written adjoint of the head, so the head's chain rule is written once;
+- the trunk's reverse pass, `ChunkArithmetic.reverse`, is hand-written: the adjoint of the
+  forward-mode propagation over the chunk buffers (the activation's own reverse rule
+  `Activation.chain_pre` brings in f''; for tanh f'' = -2 f f', one fused multiply-add). It
+  cannot be derived from `propagate`'s structure: `propagate` runs forward mode against an
+  arithmetic and records nothing, and its reverse is the adjoint of each step in the
+  opposite order (the tangent recurrence T <- f'(pre) T included). Autograd would derive
+  it, at the cost above; a generic `reverse` in the arithmetic protocol would be needed by
+  this one arithmetic only. So the adjoint is written once, beside the forward whose
+  buffers it reads (`certify.gain.buffered`), and checked against autograd here;
+- preallocated buffers, float32 (the checkpoint and the verifier stay float64).
 
 Everything that does not depend on the weights (Jf at the points, the constant part of D,
 h and dh/dx for the structural gain) is computed once, in float64, before training.
-`tests/test_training.py` checks the hand-written gradient against autograd through
-`GainNetwork.forward_with_jacobian` and `certify.kernels.gain_terms`. The training run that
-optimises it (Adam, then L-BFGS) is `training.train`; the CEGIS loop extends it
-(`training.cegis_objective`).
+`tests/test_training.py` checks the gradient against autograd through
+`GainNetwork.forward_with_jacobian` and `certify.kernels.gain_terms`, and
+`tests/test_training_heads.py` the heads against frozen copies of the hand-composed ones
+they replaced (the same bits). `check_finite` stops a training loop whose loss, weights or
+gradient went non-finite. The training run that optimises it (Adam, then L-BFGS) is
+`training.train`; the CEGIS loop extends it (`training.cegis_objective`).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -32,8 +46,9 @@ from typing import Any
 
 import torch
 
-from certify.gain import propagate
-from certify.gain.buffered import ChunkArithmetic, ChunkBuffers
+from certify.errors import SettingsError
+from certify.gain import GainValues, NetOutput, compose, propagate
+from certify.gain.buffered import CHUNK_COMPOSE, ChunkArithmetic, ChunkBuffers
 from certify.kernels import sym
 from certify.network import GainNetwork
 from certify.system import System
@@ -60,6 +75,64 @@ class LossValues:
 
     def as_dict(self) -> dict[str, float]:
         return {"total": self.total, "mpdi": self.mpdi, "bc": self.bc, "curv": self.curv}
+
+
+class TrainingDiverged(SettingsError):
+    """A loss term or a weight became non-finite (or the gradient overflowed) in training.
+
+    The objective is finite and differentiable for finite weights, so this is float32
+    overflow of the problem as set up (lam, the metric's scale, the system's scales, the
+    learning rate): the user's settings, exit 2 with one line, no checkpoint."""
+
+
+class NonFiniteGradient(RuntimeError):
+    """The weight gradient is NaN at finite loss terms and finite weights: the objective's
+    derivative is undefined where it must not be, a defect of this code, not of the
+    settings (the command line's internal error, exit 4)."""
+
+
+def _param_name(k: int) -> str:
+    return f"layer {k // 2} {'weight' if k % 2 == 0 else 'bias'}"
+
+
+def check_finite(terms: dict[str, float], params: list[torch.Tensor], where: str,
+                 grad: bool = True) -> None:
+    """Stop training when something went non-finite at `where` (e.g. "adam iteration 12").
+
+    Checks the loss terms (the parts before `total`), then the weights, then (with `grad`)
+    their gradients; raises `TrainingDiverged` naming the first bad one, or
+    `NonFiniteGradient` for a NaN gradient when everything else is finite."""
+    for name in sorted(terms, key=lambda t: t == "total"):
+        v = terms[name]
+        if not math.isfinite(v):
+            raise TrainingDiverged(
+                f"training diverged at {where}: the loss term {name} is {v} (overflow:"
+                f" lower lam, the metric's scale or the learning rate); nothing was written")
+    with torch.no_grad():
+        tensors = [t.reshape(-1) for prm in params
+                   for t in ((prm, prm.grad) if grad and prm.grad is not None else (prm,))]
+        if not tensors or bool(torch.isfinite(torch.cat(tensors)).all()):
+            return  # one pass over everything (cheap); name the culprit only when needed
+        for k, prm in enumerate(params):
+            if not bool(torch.isfinite(prm).all()):
+                raise TrainingDiverged(
+                    f"training diverged at {where}: the {_param_name(k)} has a non-finite "
+                    f"entry (lower lam, the metric's scale or the learning rate); nothing "
+                    f"was written")
+        if not grad:
+            return
+        for k, prm in enumerate(params):
+            g = prm.grad
+            if g is None or bool(torch.isfinite(g).all()):
+                continue
+            if bool(torch.isnan(g).any()):
+                raise NonFiniteGradient(
+                    f"training stopped at {where}: the gradient of the {_param_name(k)} is NaN "
+                    f"at finite loss terms and weights; nothing was written")
+            raise TrainingDiverged(
+                f"training diverged at {where}: the gradient of the {_param_name(k)} "
+                f"overflowed (lower lam, the metric's scale or the learning rate); nothing "
+                f"was written")
 
 
 class Objective:
@@ -144,62 +217,35 @@ class Objective:
 
     @torch.no_grad()
     def _backward(self, ch: ChunkBuffers, g_val: torch.Tensor, g_tan: torch.Tensor) -> None:
-        """Reverse pass through `_forward`: this chunk's weight gradient into `ch.grads`."""
-        Ws = self.params[0::2]
-        act = self.spec.activation
-        grads = ch.grads
-        R, C, m = ch.R, ch.C, self.m
-        L = len(Ws) - 1
-        G = ch.G[L]
-        G[:R].copy_(g_val)
-        G[R:].copy_(g_tan.reshape(m * C, -1))
-        for i in range(L, 0, -1):
-            X, S, G = ch.X[i], ch.S[i], ch.G[i]
-            torch.mm(G.T, X, out=grads[2 * i])
-            torch.mv(G[:R].T, ch.ones, out=grads[2 * i + 1])
-            GX = ch.GX[i]
-            torch.mm(G, Ws[i], out=GX)
-            gt, gA = GX[:R], GX[R:].view(m, C, -1)
-            gs = ch.gs[i]
-            if i == 1:
-                w0t = Ws[0][:, :m].T
-                torch.mul(gA[0], w0t[0], out=gs)
-                for j in range(1, m):
-                    gs.addcmul_(gA[j], w0t[j])
-                w0_tangent_grad = (gA * S[:C].unsqueeze(0)).sum(1).T
-            else:
-                U = ch.pre[i - 1][R:].view(m, C, -1)
-                torch.mul(gA[0], U[0], out=gs)
-                for j in range(1, m):
-                    gs.addcmul_(gA[j], U[j])
-                torch.mul(gA, S[:C].unsqueeze(0), out=ch.G[i - 1][R:].view(m, C, -1))
-            # through a = f(pre), s = f'(pre): d/dpre = gt f' + gs f'' (tangent rows only)
-            act.chain_pre(gt, gs, ch.pre[i - 1][:R], X[:R], S, ch.G[i - 1][:R])
-        G0 = ch.G[0]
-        torch.mm(G0.T, ch.Z, out=grads[0])
-        grads[0][:, :m].add_(w0_tangent_grad)
-        torch.mv(G0.T, ch.ones, out=grads[1])
+        """Reverse pass through `_forward`: this chunk's weight gradient into `ch.grads`
+        (`ChunkArithmetic.reverse`, beside the forward whose buffers it reads)."""
+        ChunkArithmetic(ch).reverse(self.spec, g_val, g_tan)
 
     # ----- loss head: D from the trunk's outputs, the loss, and its gradient ----------
+    def _compose(self, val: torch.Tensor, tan: torch.Tensor, with_dy: bool) -> GainValues:
+        """dk/dxhat (and, `with_dy`, dk/dy) at the collocation points from the trunk's value
+        val [N, out] and tangents tan [m, N, out] (chunk layout), by `certify.gain.compose`.
+        dk/dxhat leaves out -K dh/dxhat: that term is weight-free and sits in the float64
+        constant D0 (`with_K_dx=False`)."""
+        return compose(self.spec, CHUNK_COMPOSE, NetOutput(val, tan), self.r, self.Hx,
+                       with_dy=with_dy, with_k=False, with_K_dx=False)
+
     def _head(self, val: torch.Tensor, tan: torch.Tensor, k_bc: torch.Tensor | None,
               grad: bool) -> tuple[float, float, list[torch.Tensor] | None]:
         """MPDI and BC sums over all points; with `grad`, d(total)/d(val, tan, k_bc).
 
         val [N, out] and tan [m, N, out] are the trunk's value and xhat-tangents at the
         collocation points, k_bc [N, n] its value at (x, h(x)) (None if structural). D is
-        linear in (val, tan), so only d(loss)/dD needs differentiating (closed form for the
-        minor loss with n <= 2, autograd otherwise); the rest is mapped back by hand.
+        linear in dk/dxhat, so only d(loss)/dD needs differentiating (closed form for the
+        minor loss with n <= 2, autograd otherwise); autograd through `compose` maps it back
+        to (val, tan).
         """
-        n, p, N = self.n, self.p, self.N
-        if self.structural:
-            G = val.view(N, n, p)
-            dG = tan.view(self.m, N, n, p)  # [j, b, i, q] = dG_iq/dxhat_j
-            M = torch.einsum("jbiq,bq->bij", dG, self.r)
-            if self.Hx is not None:
-                M = M - G @ self.Hx
-        else:
-            M = tan.permute(1, 2, 0)  # [b, i, j] = dk_i/dxhat_j
-        D = self.D0 + sym(M if self.P_is_identity else self.P @ M)
+        N = self.N
+        val_l = val.detach().requires_grad_(grad)
+        tan_l = tan.detach().requires_grad_(grad)
+        with torch.set_grad_enabled(grad):
+            M = self._compose(val_l, tan_l, with_dy=False).dk_dx  # [b, i, j] = dk_i/dxhat_j
+        D = self.D0 + sym(M.detach() if self.P_is_identity else self.P @ M.detach())
         bc = 0.0 if k_bc is None else float((k_bc * k_bc).sum())
         if self.loss == "minors":
             if grad:
@@ -218,18 +264,16 @@ class Objective:
         mpdi = float(mpdi_t)
         if not grad:
             return mpdi, bc, None
-        scale = self.weights.mu1 / N
-        gM = sym(gD) * scale
+        gM = sym(gD) * (self.weights.mu1 / N)
         if not self.P_is_identity:
             gM = self.P.T @ gM
+        g_val, g_tan = torch.autograd.grad(M, [val_l, tan_l], grad_outputs=gM,
+                                           allow_unused=True)
+        g_val = torch.zeros_like(val) if g_val is None else g_val
         if self.structural:
-            g_tan = torch.einsum("bij,bq->jbiq", gM, self.r).reshape(self.m, N, n * p)
-            g_val = torch.zeros_like(val) if self.Hx is None else \
-                (-(gM @ self.Hx.transpose(1, 2))).reshape(N, n * p)
             return mpdi, bc, [g_val, g_tan]
-        g_tan = gM.permute(2, 0, 1)
         g_bc = k_bc * (2.0 * self.weights.mu2 / N)
-        return mpdi, bc, [torch.zeros_like(val), g_tan, g_bc]
+        return mpdi, bc, [g_val, g_tan, g_bc]
 
     def evaluate(self, grad: bool = True) -> LossValues:
         """Loss terms at the current weights; with `grad`, d(total)/d(weights) into `.grad`.

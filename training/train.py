@@ -4,6 +4,10 @@ Builds the network (seeded, or a given warm start) and the collocation points, t
 Adam and L-BFGS (`training.optim`) on the objective of `training.objective` (forward mode
 through `certify.gain.propagate`, a hand-written reverse pass, float32), records the loss
 history and timings, and returns the trained network in float64 with its loss there.
+Every evaluation is checked (`training.objective.check_finite`): a non-finite loss term,
+weight or gradient stops the run with one line naming the phase, the iteration and the term
+(`TrainingDiverged`: exit 2; a NaN gradient at a finite loss, `NonFiniteGradient`: exit 4),
+before any checkpoint is written.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from certify.system import System
 from training import losses
 from training.collocation import collocation_points
 from training.curvature import CurvaturePenalty, CurvatureSettings
-from training.objective import LossValues, Objective
+from training.objective import LossValues, Objective, check_finite
 from training.optim import PhaseStats, run_adam, run_lbfgs
 from training.presets import TrainConfig, check_for_system, make_config
 
@@ -121,6 +125,7 @@ def _train(system: System, config: TrainConfig | None, *, progress: Progress | N
         cols = history.setdefault(phase, {"iteration": [], **{k: [] for k in TERMS}})
 
         def record(values: LossValues, iteration: int) -> None:
+            check_finite(values.as_dict(), objective.params, f"{phase} iteration {iteration}")
             cols["iteration"].append(iteration)
             for key, v in values.as_dict().items():
                 cols[key].append(v)
@@ -129,6 +134,7 @@ def _train(system: System, config: TrainConfig | None, *, progress: Progress | N
     stats: dict[str, PhaseStats] = {}
     try:
         _optimise(objective, config, stats, timings, recorder, progress)
+        check_finite({}, objective.params, "the end of training", grad=False)
     finally:
         objective.close()
     t0 = time.perf_counter()
@@ -141,6 +147,7 @@ def _train(system: System, config: TrainConfig | None, *, progress: Progress | N
                           loss=config.loss, margin=config.margin, workers=1,
                           curvature=final_curv)
     final = final_obj.evaluate(grad=False).as_dict()
+    check_finite(final, [], "the final float64 evaluation", grad=False)
     timings["final_eval"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     counts = {"adam_iterations": stats["adam"].iterations if "adam" in stats else 0,

@@ -12,11 +12,18 @@ import torch
 from certify.bounds.eigen import lam_max_upper_interval, taylor_upper
 from certify.bounds.interval_ops import bcast, const_lam, iadd, nan_min
 from certify.bounds.network_interval import gain_enclosure
-from certify.bounds.preconditioner import Preconditioner, _congruence, make_preconditioner
+from certify.bounds.preconditioner import (
+    Preconditioner,
+    _congruence,
+    candidate_preconditioners,
+    make_preconditioner,
+)
+from certify.bounds.split import split_score
 from certify.bounds.taylor import jcl_taylor, tm_congruence, tm_lam_upper
 from certify.intervals import Interval, imul, up
 from certify.problem import Problem
 
+DIRECT_MIXED = True  # with M = I and a direct network: skip the Taylor stage (see below)
 CROWN_GAIN = 100.0  # remainder reduction assumed when choosing boxes for the linear bounds
 
 #: boxes per stage since import (diagnostics for bench/prove_suite.py; never read by proofs)
@@ -38,7 +45,8 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
                     pc: Preconditioner | None = None, taylor: bool | str = True,
                     crown: bool = True, screen: float | None = None,
                     crown_gain: float | CrownGain = CROWN_GAIN,
-                    root_width: torch.Tensor | None = None) -> BoxBounds:
+                    root_width: torch.Tensor | None = None,
+                    split_rule: str = "sensitivity") -> BoxBounds:
     """Sound upper bounds of max over each box of lam_max(M D M^T), D with rate lam.
 
     taylor: True (first-order Taylor models through the network, the default), "interval"
@@ -47,7 +55,11 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     backward linear bound propagation (`certify.bounds.crown`). screen: boxes whose plain
     interval bound is already <= screen skip the Taylor / linear-relaxation work; the linear
     bounds are tried where a remainder `crown_gain` times smaller would pass (see
-    `estimate_crown_gain`)."""
+    `estimate_crown_gain`). With the congruence M = I (pc.kind "none", chosen by
+    `choose_preconditioner`) and a direct network, the boxes the plain bound leaves go straight
+    to the linear bounds of P dN/dx with mixed rows (`certify.bounds.mixed`), which contain
+    the Taylor models entry by entry. split_rule: how the split score is formed
+    (`certify.bounds.split.split_score`)."""
     system, net = problem.system, problem.network
     if pc is None:
         pc = make_preconditioner(problem.P_t)
@@ -81,6 +93,18 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     score = wscore.clone()
     if bool(work.any()):
         wl, wh, wr = lo[work], hi[work], zr[work]
+        if crown and direct_mixed(problem, pc):
+            # the mixed-row linear bounds contain the Taylor models entry by entry: no
+            # Taylor stage first (measured on the 2x10 4-state chain: fewer boxes per CPU
+            # second than screening with the Taylor models)
+            from certify.bounds.mixed import contraction_tm_mixed
+
+            STAGE_COUNTS["crown"] += int(work.sum())
+            t_w, s_w = tm_lam_upper(contraction_tm_mixed(problem, pc, wl, wh, wr, lam), wr)
+            STAGE_COUNTS["crown_closed"] += int((t_w <= (0.0 if screen is None else screen)).sum())
+            tay[work] = t_w
+            score[work] = split_score(split_rule, s_w, wr, root_width, net)
+            return BoxBounds(nan_min(plain, tay), plain, tay, score)
         STAGE_COUNTS["taylor"] += int(work.sum())
         Jt = jcl_taylor(system, net, wl, wh)
         t_w, s_w, lv = tm_lam_upper(tm_congruence(pc, Jt, lam, wr), wr, parts=True)
@@ -101,10 +125,16 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
                 from certify.bounds.crown import network_crown_tms
 
                 al, ah, ar = wl[again], wh[again], wr[again]
-                net_tms = network_crown_tms(net, al, ah, list(range(problem.n)),
-                                            value=problem.structural)
-                Jc = jcl_taylor(system, net, al, ah, net_tms=net_tms)
-                t_c, s_c = tm_lam_upper(tm_congruence(pc, Jc, lam, ar), ar)
+                if pc.kind == "none" and net.structure == "direct":
+                    from certify.bounds.mixed import contraction_tm_mixed
+
+                    Ac = contraction_tm_mixed(problem, pc, al, ah, ar, lam)
+                else:
+                    net_tms = network_crown_tms(net, al, ah, list(range(problem.n)),
+                                                value=problem.structural)
+                    Jc = jcl_taylor(system, net, al, ah, net_tms=net_tms)
+                    Ac = tm_congruence(pc, Jc, lam, ar)
+                t_c, s_c = tm_lam_upper(Ac, ar)
                 STAGE_COUNTS["crown"] += int(again.sum())
                 STAGE_COUNTS["crown_closed"] += int((t_c <= level).sum())
                 better = torch.nan_to_num(t_c, nan=float("inf")) < t_w[again]
@@ -112,8 +142,14 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
                 t_w[idx] = t_c[better]
                 s_w[idx] = s_c[better]
         tay[work] = t_w
-        score[work] = s_w
+        score[work] = split_score(split_rule, s_w, wr, root_width, net)
     return BoxBounds(nan_min(plain, tay), plain, tay, score)
+
+
+def direct_mixed(problem: Problem, pc: Preconditioner) -> bool:
+    """Whether `mpdi_box_bounds` (with crown) sends the boxes the plain bound leaves straight
+    to the mixed-row linear bounds: M = I (P != I) and a direct network."""
+    return DIRECT_MIXED and pc.kind == "none" and problem.network.structure == "direct"
 
 
 @dataclass
@@ -158,3 +194,35 @@ def estimate_crown_gain(net, root_lo: torch.Tensor, root_hi: torch.Tensor,
         gains.append(float(ratio.median().clamp(2.0, 1e6)) if len(ratio) else CROWN_GAIN)
     return CrownGain(torch.tensor(scales, dtype=torch.float64),
                      torch.tensor(gains, dtype=torch.float64))
+
+
+def choose_preconditioner(problem: Problem, lam: float, probes: int = 24,
+                          scales: tuple[float, ...] = (1 / 16, 1 / 32)) -> Preconditioner:
+    """The congruence M (`candidate_preconditioners`) under which the box bounds close the most
+    of `probes` deterministic boxes per relative radius in `scales` (ties: the earlier
+    candidate, M ~ L^-1 first). Only tightness depends on the choice, never soundness; it is
+    deterministic in the problem, so every worker of a distributed proof chooses alike."""
+    cands = candidate_preconditioners(problem.P_t)
+    if len(cands) == 1:
+        return cands[0]
+    s = problem.system
+    import numpy as np
+
+    root = torch.as_tensor(np.concatenate([s.X, s.Y], 0), dtype=torch.float64)
+    rlo, rhi = root[:, 0], root[:, 1]
+    w = rhi - rlo
+    g = torch.Generator().manual_seed(4321)
+    u = torch.rand(probes, len(w), generator=g, dtype=torch.float64)
+    los, his = [], []
+    for sc in scales:
+        c = rlo + w * (sc + (1 - 2 * sc) * u)
+        los.append(c - w * sc)
+        his.append(c + w * sc)
+    lo, hi = torch.cat(los), torch.cat(his)
+    best, best_closed = cands[0], -1
+    for pc in cands:
+        bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, screen=None)
+        closed = int((bb.upper <= 0).sum())
+        if closed > best_closed:
+            best, best_closed = pc, closed
+    return best

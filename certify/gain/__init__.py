@@ -9,19 +9,23 @@
   number kind:
   * points, float32/float64: `RowArithmetic` (points in rows, autograd-safe),
     `ColumnArithmetic` (feature-major, dense grids), `ChunkArithmetic` (buffered.py,
-    training buffers); `gain_at_points` / `gain_value` (point.py) are the point entry points;
+    training buffers, with its hand-written adjoint `reverse` and the chunk-layout `compose`
+    primitives `ChunkCompose`); `gain_at_points` / `gain_value` (point.py) are the point
+    entry points;
   * intervals: `IntervalArithmetic` (interval.py), outward-rounded;
   * first-order Taylor models: `TaylorArithmetic` (taylor.py), over
     `certify.bounds.taylor.TM`, whose `tm_activation` is its `activate`.
 
 Adding an activation touches one file in `certify/activations/`. Through `propagate` and
 `compose` run: the point kernels (`certify.kernels`, `certify.gridkernel`,
-`certify.integrate`), training's forward passes (`training.train`, CEGIS, the curvature
-term), and the prover's enclosures: `network_enclosure` and `gain_enclosure`
+`certify.integrate`), training's forward passes and loss heads (`training.objective`,
+CEGIS' `training.cegis_objective`, the curvature term), and the prover's enclosures:
+`network_enclosure` and `gain_enclosure`
 (`certify.bounds.network_interval`: `propagate`, `compose`, `compose_second` in
 `IntervalArithmetic`), `network_taylor`, `gain_taylor` and `jcl_taylor`
 (`certify.bounds.taylor`, in `TaylorArithmetic`). The ports were bit-identical to the code
-they replaced (frozen in tests/test_gain_interval.py and tests/test_gain_compose.py), except
+they replaced (frozen in tests/test_gain_interval.py, tests/test_gain_compose.py and, for
+the training heads, tests/test_training_heads.py), except
 dk/dy of the interval gain, which `compose` forms as dN/dy r + G + K with exact constants
 where the old code summed G_il * 1 and K_il * 1 with product and summation rounding: the new
 enclosure lies inside the old one.
@@ -35,10 +39,12 @@ Not (yet) written once:
   pass, the adjoint of the chain rule with `act.relax` / `act.relax_d1` lines, is separate
   by nature. `certify.bounds.side.dk_dy_box_upper_crown` adds K to crown's dN/dy model by
   hand (`TaylorArithmetic.add_const`).
-- Training's loss heads (`training.train.Objective`, CEGIS' `CertObjective._head`) form
-  dk/dxhat = dG r - G Hx and dk/dy = dG_y r + G + K by hand in the chunk layout
-  [m, N, out] (`compose` with chunk-layout primitives would do it), and the gradient with
-  respect to the weights is a hand-written reverse pass over the chunk buffers.
+- The reverse pass of training (`ChunkArithmetic.reverse`, the weight gradient) is the
+  hand-written adjoint of `propagate` over the chunk buffers, not derived from it:
+  `propagate` is forward mode and records nothing to reverse; autograd through it costs
+  several times more (see `training.objective`). The training heads call `compose` (with
+  `with_K_dx=False`: they fold -K Hx into their float64 constant) and autograd maps the
+  head's gradient back through it.
 - tanh keeps its own tighter rules beside the generic ones (`tm_tanh_and_dtanh`,
   `certify.bounds.relax`).
 """

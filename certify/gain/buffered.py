@@ -5,7 +5,15 @@ direct structure, the value at C boundary points (x, h(x))) thousands of times. 
 buffer X [R + m C, width] holds the activations of the R value rows followed by the m tangent
 blocks of the first C rows, so `affine` is a single `torch.mm(..., out=)` for value and
 tangents; `activate` writes f and f' in place. The buffers stay filled after `propagate`
-for the hand-written reverse pass in `training.train`.
+for the hand-written reverse pass, `ChunkArithmetic.reverse` (the adjoint of that forward
+pass, kept beside it because it reads exactly the buffers the forward writes; training's
+`training.objective.Objective` calls both).
+
+`compose` runs on the chunk layout too (the training loss heads): the tangents dN/dz of all
+points are [m, N, out], derivative first. `cols` hands `compose` a standard-layout view
+[N, ..., k] of the columns it asks for (no copy), and `contract` turns that view back into
+the derivative-first one before its einsum, so the heads' arithmetic is the one they always
+did, operation for operation (tests/test_training_heads.py freezes the old heads).
 """
 
 from __future__ import annotations
@@ -13,7 +21,9 @@ from __future__ import annotations
 import torch
 
 from certify.activations import Activation
+from certify.gain.arithmetic import PointCompose
 from certify.gain.propagate import NetOutput
+from certify.gain.spec import GainSpec
 
 
 class ChunkBuffers:
@@ -43,9 +53,28 @@ class ChunkBuffers:
                       for a, b in zip(widths[:-1], widths[1:]) for k in (0, 1)]
 
 
-class ChunkArithmetic:
+class ChunkCompose(PointCompose):
+    """`compose` primitives for N [B, out] and dN/dz in the chunk layout [m, B, out]."""
+
+    def cols(self, x: torch.Tensor, start: int, stop: int) -> torch.Tensor:
+        """Derivative columns start:stop of x [m, B, ...] as a view [B, ..., stop - start]."""
+        return x[start:stop].movedim(0, -1)
+
+    def reshape_jac(self, jac: torch.Tensor, n: int, p: int) -> torch.Tensor:
+        return jac.view(jac.shape[0], jac.shape[1], n, p)  # [m, B, n, p], chunk layout
+
+    def contract(self, dA: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """sum_q dA[b, i, q, j] v[b, q], on the derivative-first view `cols` came from."""
+        return torch.einsum("jbiq,bq->bij", dA.movedim(-1, 0), v)
+
+
+CHUNK_COMPOSE = ChunkCompose()
+
+
+class ChunkArithmetic(ChunkCompose):
     """First-order point arithmetic writing into `ChunkBuffers` (layout: value rows [R, w],
-    tangents [m, C, w]); `output` returns that layout, not the standard one."""
+    tangents [m, C, w]); `output` returns that layout, not the standard one, and the
+    `compose` primitives (`ChunkCompose`) read it."""
 
     def __init__(self, chunk: ChunkBuffers) -> None:
         self.ch = chunk
@@ -82,3 +111,46 @@ class ChunkArithmetic:
 
     def output(self, pre: torch.Tensor, T: torch.Tensor | None, S: None) -> NetOutput:
         return NetOutput(pre, T)
+
+    @torch.no_grad()
+    def reverse(self, spec: GainSpec, g_val: torch.Tensor, g_tan: torch.Tensor) -> None:
+        """The adjoint of `propagate` over these buffers (first order): given d(loss)/dN at
+        the value rows g_val [R, out] and at the tangents g_tan [m, C, out], write
+        d(loss)/d(W_i, b_i) into `ch.grads` (W0, b0, W1, b1, ...). Reads the activations,
+        derivatives and tangents the forward pass left in the buffers; the activation's own
+        rule `chain_pre` brings in f''. `spec` must be the one the forward pass ran."""
+        ch = self.ch
+        Ws = [W for W, _ in spec.layers]
+        act = spec.activation
+        grads = ch.grads
+        R, C, m = ch.R, ch.C, ch.m
+        L = len(Ws) - 1
+        G = ch.G[L]
+        G[:R].copy_(g_val)
+        G[R:].copy_(g_tan.reshape(m * C, -1))
+        for i in range(L, 0, -1):
+            X, S, G = ch.X[i], ch.S[i], ch.G[i]
+            torch.mm(G.T, X, out=grads[2 * i])
+            torch.mv(G[:R].T, ch.ones, out=grads[2 * i + 1])
+            GX = ch.GX[i]
+            torch.mm(G, Ws[i], out=GX)
+            gt, gA = GX[:R], GX[R:].view(m, C, -1)
+            gs = ch.gs[i]
+            if i == 1:
+                w0t = Ws[0][:, :m].T
+                torch.mul(gA[0], w0t[0], out=gs)
+                for j in range(1, m):
+                    gs.addcmul_(gA[j], w0t[j])
+                w0_tangent_grad = (gA * S[:C].unsqueeze(0)).sum(1).T
+            else:
+                U = ch.pre[i - 1][R:].view(m, C, -1)
+                torch.mul(gA[0], U[0], out=gs)
+                for j in range(1, m):
+                    gs.addcmul_(gA[j], U[j])
+                torch.mul(gA, S[:C].unsqueeze(0), out=ch.G[i - 1][R:].view(m, C, -1))
+            # through a = f(pre), s = f'(pre): d/dpre = gt f' + gs f'' (tangent rows only)
+            act.chain_pre(gt, gs, ch.pre[i - 1][:R], X[:R], S, ch.G[i - 1][:R])
+        G0 = ch.G[0]
+        torch.mm(G0.T, ch.Z, out=grads[0])
+        grads[0][:, :m].add_(w0_tangent_grad)
+        torch.mv(G0.T, ch.ones, out=grads[1])

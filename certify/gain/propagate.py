@@ -76,10 +76,14 @@ def columns_needed(spec: GainSpec, with_dy: bool) -> int:
 
 
 def compose(spec: GainSpec, arith: Any, net: NetOutput, r: Any, Hx: Any,
-            with_dy: bool = True, with_k: bool = True) -> GainValues:
+            with_dy: bool = True, with_k: bool = True, with_K_dx: bool = True) -> GainValues:
     """k and its Jacobians from N, dN/dz (columns per `columns_needed`; None for k alone)
     and, where `spec.needs_h`, r = y - h(xhat) [B, p] and Hx = dh/dxhat [B, p, n] (else
-    None; r may be None when `with_k` is False and the structure is direct)."""
+    None; r may be None when `with_k` is False and the structure is direct).
+
+    `with_K_dx=False` leaves the weight-free term -K Hx out of dk/dxhat, for a caller that
+    folds it into a constant of its own (training adds it to the float64 part of D once); Hx
+    may then be None for the direct structure."""
     n, p = spec.n, spec.p
     out, J = net.value, net.jac
     k = dk_dx = dk_dy = None
@@ -100,7 +104,7 @@ def compose(spec: GainSpec, arith: Any, net: NetOutput, r: Any, Hx: Any,
         K = spec.K
         if with_k:
             k = arith.add(k, arith.const_matvec(K, r))
-        if dk_dx is not None:
+        if dk_dx is not None and with_K_dx:
             dk_dx = arith.sub(dk_dx, arith.const_matmul(K, Hx))
         if dk_dy is not None:
             dk_dy = arith.add_const(dk_dy, K)

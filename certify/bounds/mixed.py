@@ -1,0 +1,103 @@
+"""Linear bound propagation for mixed Jacobian rows R dN/dz and the contraction matrix built
+from them (issue 9): with the congruence M = I (`certify.bounds.preconditioner`), A = He{P J}
++ 2 lam P, and bounding P dN/dx directly keeps the cancellations between the outputs that P
+mixes (measured on the 4-state chain: the spectral radius of the remainder 1.27x smaller than
+|P| times the entrywise remainders of dN/dx).
+
+Rounding: R W_H and R times the forward Taylor model are float products whose errors are
+bounded with gamma_k |.| and added outward (each function says how); the rest is
+`certify.bounds.crown`'s and `certify.bounds.taylor`'s.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from certify.bounds.crown import (
+    ForwardBounds,
+    LinearEnclosure,
+    _backward,
+    _queries,
+    forward_bounds,
+    tm_tighter,
+    to_tm,
+)
+from certify.bounds.taylor import TM, jcl_taylor, tm_absorb, tm_add, tm_congruence
+from certify.intervals import TINY, down, gamma, up
+from certify.network import GainNetwork
+
+U = 2.0**-53
+
+
+def mixed_jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
+                         cols: list[int], rows: torch.Tensor, fb: ForwardBounds
+                         ) -> LinearEnclosure:
+    """Linear lower/upper bounds of (R dN/dz)_{ij} over each box, R = `rows` [m, out] a point
+    matrix, j in cols -> [B, m, J]: the backward passes start from the rows of R W_H, so
+    the cancellations between the outputs that R mixes are kept (bounding dN/dz and then
+    multiplying by |R| loses them). R W_H is a float product: its error, at most
+    gamma_{out+2} |R| |W_H| entrywise, times |Q_{H-1}^j| (forward magnitudes), widens both
+    lines, rounded up."""
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    B, d = lo.shape
+    WH = net.weights()[-1][0].to(torch.float64)
+    R = rows.to(torch.float64)
+    m, out = R.shape
+    RW = R @ WH
+    delta = up(gamma(out + 2) * (R.abs() @ WH.abs()) * (1.0 + 4 * U))  # [m, h]
+    colt = torch.as_tensor(cols, dtype=torch.long)
+    J = len(cols)
+    LQ = _queries(RW, J, B)
+    Lz, cl, cu = _backward(fb.layers, len(fb.layers), None, LQ,
+                           torch.zeros(B, m, J, dtype=torch.float64), colt, lo, hi)
+    qm = fb.layers[-1].qmag(colt)  # [B, h, J]
+    h = qm.shape[1]
+    slack = up(torch.einsum("mh,bhj->bmj", delta, qm) * (1.0 + gamma(h + 2)) + TINY)
+    return LinearEnclosure(gl=Lz, cl=down(cl - slack), gu=Lz, cu=up(cu + slack))
+
+
+def network_crown_mixed_jacobian(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
+                                 cols: list[int], rows: torch.Tensor) -> TM:
+    """TM of R dN/dz[:, cols] over each box [B, m, J] (R = `rows` [m, out]), entry by entry
+    the tighter of the linear bounds with the mixed rows (`mixed_jacobian_crown`) and R times
+    the forward Taylor model (R c, R g exactly as computed; |R| e plus the float error of the
+    products, gamma_{out+2} (|R| |c| + |R| |g| . r), in the remainder, rounded up)."""
+    fb = forward_bounds(net, lo, hi, cols=cols, crown=True)
+    jt = to_tm(mixed_jacobian_crown(net, lo, hi, cols, rows, fb), fb.r)
+    colt = torch.as_tensor(cols, dtype=torch.long)
+    base = fb.jac_tm
+    R = rows.to(torch.float64)
+    out = R.shape[1]
+    c = torch.einsum("mo,boj->bmj", R, base.c[..., colt])
+    g = torch.einsum("mo,bojd->bmjd", R, base.g[..., colt, :])
+    Ra = R.abs()
+    rr = fb.r[:, None, None, :]
+    gr = up((base.g[..., colt, :].abs() * rr).sum(-1) * (1.0 + gamma(fb.r.shape[1] + 2)))
+    mag = up(base.c[..., colt].abs() + gr)
+    e = torch.einsum("mo,boj->bmj", Ra, base.e[..., colt]) \
+        + gamma(out + 2) * torch.einsum("mo,boj->bmj", Ra, mag)
+    e = up(e * (1.0 + 2 * gamma(out + 2)) + TINY)
+    return tm_tighter(TM(c, g, e), jt)
+
+
+def contraction_tm_mixed(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: torch.Tensor,
+                         lam: float) -> TM:
+    """TM of A = He{P J} + 2 lam P over each box for the congruence M = I (pc.kind "none")
+    and a direct network: He{P (Jf - K dh/dx)} + 2 lam P from the Taylor models
+    (`jcl_taylor` with the network's Jacobian left out, then `tm_congruence`, whose Q = I P
+    encloses P), plus He{P dN/dx} from `network_crown_mixed_jacobian` with R = P exactly."""
+    system, net = problem.system, problem.network
+    n = problem.n
+    B, d = lo.shape
+    z = torch.zeros(B, n, dtype=torch.float64)
+    val = TM(z, torch.zeros(B, n, d, dtype=torch.float64), z)
+    jac0 = TM(torch.zeros(B, n, d, dtype=torch.float64),
+              torch.zeros(B, n, d, d, dtype=torch.float64),
+              torch.zeros(B, n, d, dtype=torch.float64))
+    rest = tm_congruence(pc, jcl_taylor(system, net, lo, hi, net_tms=(val, jac0, r)), lam, r)
+    Nt = network_crown_mixed_jacobian(net, lo, hi, list(range(n)), problem.P_t)  # [B, n, n]
+    c = 0.5 * (Nt.c + Nt.c.transpose(1, 2))
+    g = 0.5 * (Nt.g + Nt.g.transpose(1, 2))
+    e = 0.5 * up(Nt.e + Nt.e.transpose(1, 2))
+    return tm_add(rest, tm_absorb(c, g, up(e), r, 2), r)
