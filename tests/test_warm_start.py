@@ -48,22 +48,37 @@ def test_six_state_lmi_is_memory_bounded_and_really_certifies():
     assert float(values.detach().max()) <= -margin * (1 - 1e-9)
 
 
-def test_round0_raises_the_margin_until_the_warm_start_proves(monkeypatch):
-    """vdp3 at margin 0.5 does not prove within the box budget (lam_max(D) is flat just below
-    -0.5); round 0 then solves the LMI at margin 4, whose warm start proves."""
+def test_round0_tries_the_next_margin_until_the_warm_start_proves(monkeypatch):
+    """When the warm start's round-0 proof ends without PROVED (here the first one is made to
+    end UNKNOWN, as a budget-ended proof does), the LMI is solved at the next margin and that
+    observer is proved for real; the network CEGIS starts from has the same gain."""
+    import certify.prover
+
     vdp3 = load_system("vdp3")
     config = make_config(vdp3, "certified")
-    cs = certified.cegis_settings(config, proof_boxes=20_000)
-    monkeypatch.setattr(certified, "WARM_MARGINS", (0.5, 4.0))
+    cs = certified.cegis_settings(config, proof_boxes=200_000)
+    monkeypatch.setattr(certified, "WARM_MARGINS", (0.25, 0.5))
     monkeypatch.setattr(certified, "WARM_PROOF_SECONDS", 1e9)  # deterministic: boxes only
+    real = certify.prover.prove_mpdi
+    calls: list[float] = []
+
+    def first_ends_unknown(problem, **kw):
+        calls.append(kw["max_boxes"])
+        out = real(problem, **kw)
+        if len(calls) == 1:
+            return dataclasses.replace(out, status=Status.UNKNOWN)
+        return out
+
+    monkeypatch.setattr(certify.prover, "prove_mpdi", first_ends_unknown)
     lines: list[str] = []
     net, P, info, proved = certified.proved_lmi_start(vdp3, vdp3.lam, config, cs,
                                                       lines.append)
+    assert calls == [200_000, 200_000]
     assert [r["status"] for r in info["round0"]] == ["UNKNOWN", "PROVED"]
-    assert info["margin"] == 4.0 and proved is not None
+    assert info["margin"] == 0.5 and proved is not None
     observer, proof = proved
     assert proof.status is Status.PROVED and proof.upper <= 0
-    assert len(lines) == 2 and "margin 4" in lines[1]
+    assert len(lines) == 2 and "margin 0.5" in lines[1]
     z = _box_points(vdp3, 200, seed=2)
     r = z[:, 6:] - vdp3.h(z[:, :6])
     for gain in (net, observer):  # CEGIS's warm start and the proved observer: K (y - h)
