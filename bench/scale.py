@@ -4,22 +4,23 @@ Parts (`--part`, default all but `six`):
 
 - `n`: the MPDI proof against the state dimension n = 2, 3, 4, 6 on the certified designs:
   vdp's shipped `--preset certified` checkpoint, and the certified joint-LMI observer (P, K)
-  of lorenz (n=3), vdp2 (n=4) and vdp3 (n=6) in checkpoint form (what the certified preset
-  starts from); proof seconds, sub-boxes, boxes per second, verdict.
-- `workers`: one proof with a fixed box budget, serial vs Dask LocalCluster with 1 and 2
-  workers (same verdict, bound and boxes asserted), the measured per-task overhead of Dask
-  (round trip of one task; scheduler cost per task from a burst of no-op tasks), and the
-  paper arithmetic for 16-64 workers:
-      t_round(W) = t_client + t_eval / W + o_rt + W k o_s        (k chunks per worker)
-      efficiency(W) = (t_client + t_eval) / (W t_round(W))
-  with t_eval, t_client the measured per-round evaluation and driver times of the serial run;
-      E(W) >= 1/2  <=>  t_eval >= (W - 2) t_client + W (o_rt + W k o_s)
-  (the batch factor printed is how much larger a round's batch must be for that, if the
-  driver's time per round did not grow with the batch).
+  of lorenz (n=3), vdp2 (n=4) and vdp3 (n=6) in checkpoint form at the margin the certified
+  preset's round 0 settles on (`DESIGN_MARGIN`); proof seconds, sub-boxes, boxes per
+  second, verdict.
+- `workers`: one MPDI proof with a fixed box budget (default: vdp3's LMI observer at margin
+  2 and 600000 boxes, >= 60 s serially on a quiet 2-core machine), serial vs Dask LocalCluster
+  with 1 and 2 workers, interleaved in each repeat with both clusters up (same verdict,
+  bounds and boxes asserted: `identical_to_serial`); the speed-ups; Dask's measured cost per
+  task (round trip; driver CPU per task). Then `scale_paper`: the efficiency at 16-64
+  workers from those costs, the serial proof's evaluation and driver seconds per box, and
+  the driver's seconds per round at the batch those workers get (`round_batch`):
+      T(W) = t_driver(b_W) + per_worker c_eval + o_rt + W o_task
+      E(W) = per_worker (c_eval + c_driver) / T(W)
+  (the arithmetic is printed in each line; see `part_paper`).
 - `six`: `certify train vdp3 --preset certified` then `certify run` (10 minute cap, memory
-  capped at --mem-gb), timed, with the exit codes.
+  capped at --mem-gb), timed, with the exit codes (`--systems lorenz,vdp2,vdp3` for more).
 
-Run: python bench/scale.py [--part n,workers,six] [--repeats 3] [--boxes 60000]
+Run: python bench/scale.py [--part n,workers,six] [--repeats 3] [--boxes 600000]
 [--checkpoint PATH]. Wall-clock on this shared machine; compare lines of one run only.
 """
 
@@ -49,25 +50,34 @@ def emit(record: dict) -> None:
     print(json.dumps(record), flush=True)
 
 
-def lmi_checkpoint(name: str, folder: Path) -> str:
-    """The certified joint-LMI observer of a built-in as a checkpoint (margin 0.5; one
-    sub-box of X for n = 6, where the default subdivision makes the SDP too large)."""
+def lmi_checkpoint(name: str, folder: Path, margin: float = 0.5) -> str:
+    """The certified joint-LMI observer of a built-in as a checkpoint (||P K|| <= 1e4; for
+    n = 6 the memory-bounded LMI, `training.baseline.bounded_observer_lmi`)."""
     from certify.system import load_system
     from training.baseline import save_lmi_baseline
 
     system = load_system(name)
-    path = folder / f"{name}_lmi.ckpt"
+    path = folder / f"{name}_lmi_m{margin:g}.ckpt"
     if not path.exists():
-        save_lmi_baseline(path, system, system.lam, margin=0.5, gain_max=1e4,
-                          subdivisions=1 if system.n >= 6 else None)
+        save_lmi_baseline(path, system, system.lam, margin=margin, gain_max=1e4)
     return str(path)
+
+
+#: LMI margin of each built-in's certified design: the first of the certified preset's
+#: WARM_MARGINS whose warm start proves in round 0 (vdp2: 0.5 does not within 30 s)
+DESIGN_MARGIN = {"lorenz": 0.5, "vdp2": 2.0, "vdp3": 0.5}
+
+#: the workers part's proof: vdp3's LMI observer at margin 2, which does not close in
+#: minutes (run on a box budget), so rounds are many and evaluation-heavy
+WORKERS_PROOF = ("vdp3", 2.0)
 
 
 def part_n(args: argparse.Namespace, folder: Path) -> None:
     from certify.prover import prove_mpdi
 
     cases = [("vdp", str(ROOT / "examples" / "vdp_certified.ckpt"), "certified preset")]
-    cases += [(name, lmi_checkpoint(name, folder), "joint-LMI observer")
+    cases += [(name, lmi_checkpoint(name, folder, DESIGN_MARGIN[name]),
+               f"joint-LMI observer, margin {DESIGN_MARGIN[name]:g}")
               for name in ("lorenz", "vdp2", "vdp3")]
     for name, path, design in cases:
         problem = checkpoint.load(path).problem
@@ -91,105 +101,151 @@ def _noop(x: int) -> int:
 
 
 def dask_overheads(executor, tasks: int = 400) -> dict:
-    """Round trip of one task (median of 20) and scheduler cost per task (burst of `tasks`)."""
+    """Dask's cost per task on this cluster, measured with no-op tasks:
+
+    - `round_trip_s`: wall time of one task, submitted and gathered alone (median of 20);
+      a round pays it once (its tasks run in parallel);
+    - `per_task_s`: wall time per task in a burst of `tasks` (throughput of the whole
+      cluster on this machine: client, scheduler and workers share its cores);
+    - `driver_cpu_per_task_s`: CPU seconds of this process (client and, for a
+      LocalCluster, the scheduler) per task in the burst: the part of a task's cost that
+      does not run on the workers, so is paid once per task per round whatever W is.
+    """
     executor.map(_noop, list(range(8)))  # warm
     rt = []
     for i in range(20):
         t0 = time.perf_counter()
         executor.map(_noop, [i])
         rt.append(time.perf_counter() - t0)
-    bursts = []
+    bursts, cpus = [], []
     for _ in range(3):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         executor.map(_noop, list(range(tasks)))
         bursts.append((time.perf_counter() - t0) / tasks)
-    return {"round_trip_s": statistics.median(rt), "per_task_s": statistics.median(bursts)}
+        cpus.append((time.process_time() - c0) / tasks)
+    return {"round_trip_s": round(statistics.median(rt), 5),
+            "per_task_s": round(statistics.median(bursts), 5),
+            "driver_cpu_per_task_s": round(statistics.median(cpus), 5)}
 
 
-def timed_serial(problem, max_boxes: int) -> dict:
-    """The serial proof with its evaluation time split from the driver's (per round)."""
-    import certify.prover as prover
+def timed_proof(problem, max_boxes: int, batch: int = 1024, executor=None) -> dict:
+    """One MPDI proof with a box budget; its rounds' evaluation time split from the rest
+    (the driver: selection, splitting, bookkeeping, and for Dask the waiting on workers is
+    in the evaluation)."""
+    import certify.bnb as bnb
+    from certify.prover import prove_mpdi
 
     calls = {"n": 0, "t": 0.0}
-    original = prover._mpdi_evaluator
+    original = bnb._evaluate_round
 
     def counting(*a, **k):
-        inner = original(*a, **k)
+        t0 = time.perf_counter()
+        out = original(*a, **k)
+        calls["t"] += time.perf_counter() - t0
+        calls["n"] += 1
+        return out
 
-        def evaluate(lo, hi):
-            t0 = time.perf_counter()
-            out = inner(lo, hi)
-            calls["t"] += time.perf_counter() - t0
-            calls["n"] += 1
-            return out
-
-        return evaluate
-
-    prover._mpdi_evaluator = counting
+    bnb._evaluate_round = counting
     try:
         t0 = time.perf_counter()
-        out = prover.prove_mpdi(problem, seconds=1e9, max_boxes=max_boxes)
+        out = prove_mpdi(problem, seconds=1e9, max_boxes=max_boxes, batch=batch,
+                         executor=executor)
         total = time.perf_counter() - t0
     finally:
-        prover._mpdi_evaluator = original
+        bnb._evaluate_round = original
     return {"outcome": out, "seconds": total, "rounds": calls["n"], "eval_seconds": calls["t"]}
 
 
+def _same(a, b) -> bool:
+    return (a.status == b.status and a.upper == b.upper and a.lower == b.lower
+            and a.stats.boxes_processed == b.stats.boxes_processed)
+
+
 def part_workers(args: argparse.Namespace, folder: Path) -> None:
-    from certify.executor import DaskExecutor, using
-    from certify.prover import prove_mpdi
+    """Serial, 1 and 2 Dask workers side by side (interleaved per repeat, both clusters up
+    the whole time, so load changes hit all three alike), then the paper arithmetic."""
+    from certify.executor import BOXES_PER_WORKER, DaskExecutor, SerialExecutor
 
-    path = args.checkpoint or lmi_checkpoint("vdp2", folder)
+    path = args.checkpoint or lmi_checkpoint(WORKERS_PROOF[0], folder, WORKERS_PROOF[1])
     problem = checkpoint.load(path).problem
-    with torch_threads(1):
-        serial = [timed_serial(problem, args.boxes) for _ in range(args.repeats)]
-    t_serial = statistics.median(s["seconds"] for s in serial)
-    ref = serial[0]
-    rounds = ref["rounds"]
-    t_eval = statistics.median(s["eval_seconds"] for s in serial) / rounds
-    t_client = t_serial / rounds - t_eval
-    emit({"bench": "scale_workers", "checkpoint": Path(path).name, "workers": 0,
-          "executor": "serial", "seconds_median": round(t_serial, 3),
-          "boxes": ref["outcome"].stats.boxes_processed, "rounds": rounds,
-          "eval_s_per_round": t_eval, "driver_s_per_round": t_client,
-          "status": ref["outcome"].status.value, "upper": ref["outcome"].upper})
-    measured = {}
-    for workers in (1, 2):
-        with DaskExecutor(workers=workers) as ex, using(ex):
-            prove_mpdi(problem, seconds=1e9, max_boxes=3000)  # workers import and build
-            times, outs = [], []
-            for _ in range(args.repeats):
-                t0 = time.perf_counter()
-                outs.append(prove_mpdi(problem, seconds=1e9, max_boxes=args.boxes))
-                times.append(time.perf_counter() - t0)
-            over = dask_overheads(ex)
-        same = all(o.upper == ref["outcome"].upper and o.status == ref["outcome"].status
-                   and o.stats.boxes_processed == ref["outcome"].stats.boxes_processed
-                   for o in outs)
-        t = statistics.median(times)
-        measured[workers] = (t, over)
-        emit({"bench": "scale_workers", "workers": workers, "executor": "dask LocalCluster",
-              "seconds_median": round(t, 3), "speedup_vs_serial": round(t_serial / t, 3),
-              "identical_to_serial": same, **over})
-    if 1 in measured and 2 in measured:
-        emit({"bench": "scale_workers", "speedup_2_vs_1": round(measured[1][0] / measured[2][0],
-                                                                 3)})
-    over = measured[2][1] if 2 in measured else measured[1][1]
-    from certify.bnb import CHUNKS_PER_WORKER
+    runs: dict[str, list[dict]] = {"serial": [], "1": [], "2": []}
+    with torch_threads(1), DaskExecutor(workers=1) as one, DaskExecutor(workers=2) as two:
+        executors = {"serial": SerialExecutor(), "1": one, "2": two}
+        for ex in (one, two):  # workers import certify and build the evaluator once
+            timed_proof(problem, 3000, executor=ex)
+        for _ in range(args.repeats):
+            for name, ex in executors.items():
+                runs[name].append(timed_proof(problem, args.boxes, executor=ex))
+        over = dask_overheads(two)
+    load = os.getloadavg()[0]
+    ref = runs["serial"][0]["outcome"]
+    med = {k: statistics.median(r["seconds"] for r in v) for k, v in runs.items()}
+    for name, rs in runs.items():
+        rounds = rs[0]["rounds"]
+        t_eval = statistics.median(r["eval_seconds"] for r in rs) / rounds
+        rec = {"bench": "scale_workers", "workers": 0 if name == "serial" else int(name),
+               "executor": "serial" if name == "serial" else "dask LocalCluster",
+               "seconds_median": round(med[name], 3),
+               "seconds": [round(r["seconds"], 2) for r in rs],
+               "boxes": rs[0]["outcome"].stats.boxes_processed, "rounds": rounds,
+               "eval_s_per_round": round(t_eval, 4),
+               "driver_s_per_round": round(med[name] / rounds - t_eval, 4),
+               "status": rs[0]["outcome"].status.value, "upper": rs[0]["outcome"].upper,
+               "identical_to_serial": all(_same(r["outcome"], ref) for r in rs)}
+        if name != "serial":
+            rec["speedup_vs_serial"] = round(med["serial"] / med[name], 3)
+        emit(rec)
+    emit({"bench": "scale_workers", "speedup_2_vs_1": round(med["1"] / med["2"], 3),
+          "speedup_2_vs_serial": round(med["serial"] / med["2"], 3),
+          "serial_seconds_median": round(med["serial"], 3), "load_1min_end": load,
+          "checkpoint": Path(path).name, "box_budget": args.boxes, **over})
+    serial = min(runs["serial"], key=lambda r: abs(r["seconds"] - med["serial"]))
+    part_paper(args, problem, serial, over, BOXES_PER_WORKER)
 
-    k = CHUNKS_PER_WORKER  # chunks per worker per round
+
+def part_paper(args: argparse.Namespace, problem, serial: dict, over: dict,
+               per_worker: int) -> None:
+    """Efficiency at W = 16, 32, 64 workers on paper, from measured costs.
+
+    A round on W > 2 workers splits b_W = W * per_worker / 2 boxes (`certify.executor.
+    round_batch`): each worker evaluates one chunk of `per_worker` children. Its time is
+        T(W) = t_driver(b_W) + per_worker * c_eval + o_rt + W o_task
+    with c_eval, c_driver the evaluation and driver seconds per box of the serial proof
+    (default batch: its rounds evaluate 2048 children, one worker's chunk), t_driver(b_W)
+    the driver seconds per round of the serial proof run at batch b_64 (--paper-boxes: the
+    initial grid and one round; per box for 16 and 32), o_rt the round trip of one task and
+    o_task the driver's CPU seconds per task (client + scheduler, measured on the 2-worker
+    cluster). The same boxes take (c_eval + c_driver) per box serially, so
+        E(W) = per_worker (c_eval + c_driver) / T(W).
+    (Per box, evaluation in one process is slower at batch b_64 than in 2048-box chunks:
+    the chunk cost is taken from the default-batch run.)
+    """
+    big = 64 * per_worker // 2
+    with torch_threads(1):
+        r = timed_proof(problem, min(args.paper_boxes, args.boxes), batch=big)
+    boxes = serial["outcome"].stats.boxes_processed
+    c_eval = serial["eval_seconds"] / boxes
+    c_drv = (serial["seconds"] - serial["eval_seconds"]) / boxes
+    drv_per_child = (r["seconds"] - r["eval_seconds"]) / r["outcome"].stats.boxes_processed
+    o_rt, o_task = over["round_trip_s"], over["driver_cpu_per_task_s"]
     for workers in (16, 32, 64):
-        t_round = t_client + t_eval / workers + over["round_trip_s"] \
-            + workers * k * over["per_task_s"]
-        eff = (t_client + t_eval) / (workers * t_round)
-        # E(W) = 1/2  <=>  t_eval = (W - 2) t_client + W (o_rt + W k o_s)
-        need = (workers - 2) * t_client + workers * (over["round_trip_s"]
-                                                     + workers * k * over["per_task_s"])
-        emit({"bench": "scale_paper", "workers": workers, "t_eval_per_round": t_eval,
-              "t_driver_per_round": t_client, "overhead_round_trip": over["round_trip_s"],
-              "overhead_per_task": over["per_task_s"], "efficiency": round(eff, 3),
-              "t_eval_per_round_for_50pct": round(max(need, 0.0), 4),
-              "batch_factor_for_50pct": round(max(need, 0.0) / t_eval, 1) if t_eval else None})
+        t_drv = drv_per_child * workers * per_worker
+        t_chunk = per_worker * c_eval
+        t_round = t_drv + t_chunk + o_rt + workers * o_task
+        eff = per_worker * (c_eval + c_drv) / t_round
+        emit({"bench": "scale_paper", "workers": workers, "batch": workers * per_worker // 2,
+              "children_per_worker": per_worker, "c_eval_per_box": round(c_eval, 8),
+              "c_driver_per_box_serial": round(c_drv, 8), "t_chunk": round(t_chunk, 4),
+              "t_driver_per_round": round(t_drv, 4), "overhead_round_trip": o_rt,
+              "overhead_driver_per_task": o_task,
+              "arithmetic": f"T = {t_drv:.4f} + {t_chunk:.4f} + {o_rt:.4f} + {workers}*"
+                            f"{o_task:.5f} = {t_round:.4f} s; E = {per_worker}*({c_eval:.3e}"
+                            f" + {c_drv:.3e}) / {t_round:.4f}",
+              "efficiency": round(eff, 3), "serial_at_b64": {
+                  "rounds": r["rounds"], "seconds": round(r["seconds"], 2),
+                  "boxes": r["outcome"].stats.boxes_processed,
+                  "driver_s_per_round": round((r["seconds"] - r["eval_seconds"])
+                                              / r["rounds"], 4)}})
 
 
 def _limit_memory(gb: float):
@@ -200,11 +256,19 @@ def _limit_memory(gb: float):
 
 
 def part_six(args: argparse.Namespace, folder: Path) -> None:
-    ckpt = folder / "vdp3_certified.ckpt"
+    for name in args.systems.split(","):
+        train_and_run(args, folder, name.strip())
+
+
+def train_and_run(args: argparse.Namespace, folder: Path, name: str) -> None:
+    """`certify train NAME --preset certified` then `certify run`, timed, with exit codes."""
+    from certify.system import load_system
+
+    ckpt = folder / f"{name}_certified.ckpt"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     t0 = time.perf_counter()
     steps = []
-    for argv in (["train", "vdp3", "--preset", "certified", "-o", str(ckpt)],
+    for argv in (["train", name, "--preset", "certified", "-o", str(ckpt)],
                  ["run", str(ckpt), "--quiet", "--no-config"]):
         left = args.six_seconds - (time.perf_counter() - t0)
         if left <= 0 or (argv[0] == "run" and not ckpt.exists()):
@@ -220,7 +284,7 @@ def part_six(args: argparse.Namespace, folder: Path) -> None:
             code, tail = "timeout", ""
         steps.append({"step": argv[0], "exit": code, "seconds": round(time.perf_counter()
                                                                       - s0, 1), "tail": tail})
-    emit({"bench": "scale_six", "system": "vdp3", "n": 6, "steps": steps,
+    emit({"bench": "scale_six", "system": name, "n": load_system(name).n, "steps": steps,
           "total_seconds": round(time.perf_counter() - t0, 1),
           "certified": bool(steps and steps[-1].get("exit") == 0)})
 
@@ -231,9 +295,12 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--proof-seconds", type=float, default=300.0)
     ap.add_argument("--max-boxes", type=int, default=2_000_000)
-    ap.add_argument("--boxes", type=int, default=60_000, help="box budget of the workers part")
+    ap.add_argument("--boxes", type=int, default=600_000, help="box budget of the workers part")
+    ap.add_argument("--paper-boxes", type=int, default=200_000,
+                    help="box budget of the serial run at the 64-worker batch (scale_paper)")
     ap.add_argument("--checkpoint", help="checkpoint of the workers part (default: vdp2 LMI)")
     ap.add_argument("--six-seconds", type=float, default=600.0)
+    ap.add_argument("--systems", default="vdp3", help="built-ins of the six part")
     ap.add_argument("--mem-gb", type=float, default=6.0)
     ap.add_argument("--folder", default=None, help="where built checkpoints are kept")
     args = ap.parse_args()

@@ -16,7 +16,8 @@ In decision mode half of each batch is instead the open boxes nearest to the thr
 rest the worst), so a run cut short by its budget has closed what was nearly closed.
 With an `executor` of more than one worker and a picklable `remote = (chunk_fn, payload)`
 (`chunk_fn(payload, lo, hi) -> BoxEval`, module level), the children are cut into
-`executor.workers * CHUNKS_PER_WORKER` contiguous chunks evaluated with
+`executor.workers * CHUNKS_PER_WORKER` contiguous chunks (the batch raised to fill the workers,
+`certify.executor.round_batch`; unchanged up to 2 workers) evaluated with
 `executor.map_chunks` and concatenated in order, so the boxes, bounds and verdict are those
 of the serial run for the same box budget (up to the last bits of BLAS products whose
 blocking depends on the chunk size; bounds stay sound either way).
@@ -107,7 +108,7 @@ def _take(a: Box, idx: torch.Tensor) -> Box:
     return Box(a.lo[idx], a.hi[idx], a.depth[idx])
 
 
-CHUNKS_PER_WORKER = 2
+CHUNKS_PER_WORKER = 1  # one task per worker per round: fewest round trips
 
 
 def _evaluate_round(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval],
@@ -173,6 +174,10 @@ def branch_and_bound(
     """
     progress = progress or NullProgress()
     t0 = time.perf_counter()
+    if remote is not None and executor is not None:
+        from certify.executor import round_batch
+
+        batch = round_batch(executor, batch)  # rounds sized to the workers
     root_lo = root_lo.to(torch.float64)
     root_hi = root_hi.to(torch.float64)
     d = root_lo.shape[0]

@@ -75,8 +75,62 @@ class SerialExecutor:
 
 
 def _call_with_payload(fn: Callable[..., Any], payload: Any, item: tuple) -> Any:
-    """Task body of `DaskExecutor.map_chunks` (module level: picklable)."""
-    return fn(payload, *item)
+    """Task body of `DaskExecutor.map_chunks` (module level: picklable): arguments and
+    result cross the wire as numpy arrays (`to_wire`)."""
+    return to_wire(fn(payload, *from_wire(item)))
+
+
+class WireArray:
+    """A torch tensor in transit: its values as a contiguous numpy array of its own.
+
+    Pickling a torch tensor that is a slice (a chunk of a round's boxes) writes the whole
+    storage it views, so W chunks would carry W copies of the round; torch's own pickling is
+    also slower than numpy's, which Dask sends as out-of-band buffers without copying."""
+
+    __slots__ = ("array",)
+
+    def __init__(self, array: Any) -> None:
+        self.array = array
+
+    def __reduce__(self) -> tuple:
+        return (WireArray, (self.array,))
+
+
+def to_wire(obj: Any) -> Any:
+    """`obj` with every CPU/GPU torch tensor (also inside tuples, lists, dicts and
+    dataclasses) replaced by a `WireArray`; `from_wire` undoes it exactly (dtype, values)."""
+    import dataclasses
+
+    import torch
+
+    if isinstance(obj, torch.Tensor):
+        return WireArray(obj.detach().cpu().numpy().copy())
+    if type(obj) in (tuple, list):
+        return type(obj)(to_wire(v) for v in obj)
+    if isinstance(obj, dict):
+        return {k: to_wire(v) for k, v in obj.items()}
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.replace(obj, **{f.name: to_wire(getattr(obj, f.name))
+                                           for f in dataclasses.fields(obj) if f.init})
+    return obj
+
+
+def from_wire(obj: Any) -> Any:
+    """Inverse of `to_wire`: `WireArray`s back to (CPU) torch tensors."""
+    import dataclasses
+
+    import torch
+
+    if isinstance(obj, WireArray):
+        return torch.from_numpy(obj.array)
+    if type(obj) in (tuple, list):
+        return type(obj)(from_wire(v) for v in obj)
+    if isinstance(obj, dict):
+        return {k: from_wire(v) for k, v in obj.items()}
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.replace(obj, **{f.name: from_wire(getattr(obj, f.name))
+                                           for f in dataclasses.fields(obj) if f.init})
+    return obj
 
 
 class DaskExecutor:
@@ -136,8 +190,9 @@ class DaskExecutor:
             try:
                 shared = self._shared(payload)
                 futures = self.client.map(_call_with_payload, [fn] * len(items),
-                                          [shared] * len(items), list(items), pure=False)
-                return self.client.gather(futures)
+                                          [shared] * len(items),
+                                          [to_wire(tuple(it)) for it in items], pure=False)
+                return from_wire(self.client.gather(futures))
             except _lost_work_errors() as exc:
                 # A worker died while the payload was being scattered (the scheduler's
                 # replicate step then raises KeyError for its address) or every copy of the
@@ -279,6 +334,27 @@ def worker_cache(key: str, build: Callable[[], Any]) -> Any:
     while len(_cache) > CACHE_SIZE:
         _cache.popitem(last=False)
     return value
+
+
+#: children (evaluated boxes) each worker gets per branch-and-bound round from 3 workers on:
+#: enough that the per-task overhead and the driver's share of a round stay small at 64
+#: workers (bench/scale.py, scale_paper: E(64) from measured costs)
+BOXES_PER_WORKER = 2048
+
+#: up to this many workers the rounds are the serial ones (the default batch), so a run on
+#: this 2-core machine is identical to the default serial run, not only to one with its batch
+SERIAL_ROUNDS_UP_TO = 2
+
+
+def round_batch(executor: Any, batch: int) -> int:
+    """Boxes split per branch-and-bound round on `executor`: `batch` for a serial executor
+    and for up to SERIAL_ROUNDS_UP_TO workers; beyond, raised to `workers *
+    BOXES_PER_WORKER / 2` (each split gives 2 children). The verdict and bounds are those of
+    a serial run with the returned batch and the same box budget."""
+    workers = int(getattr(executor, "workers", 1))
+    if not getattr(executor, "remote", False) or workers <= SERIAL_ROUNDS_UP_TO:
+        return batch
+    return max(batch, -(-workers * BOXES_PER_WORKER // 2))
 
 
 def chunk_ranges(total: int, pieces: int, align: int = 1) -> list[tuple[int, int]]:

@@ -264,3 +264,43 @@ def test_killed_worker_mid_proof_changes_nothing(dask2, serial_proof):
     assert killer.killed_at == 2 and killer.calls >= 2  # killed mid-proof, between rounds
     _same(serial, remote)
     dask2.client.wait_for_workers(2, timeout=60)
+
+
+def test_wire_format_round_trips_and_sends_only_the_slice():
+    """Tensors cross to Dask workers as numpy arrays of their own: exact values and dtypes
+    back (also inside tuples and the BoxEval dataclass), and a chunk that is a slice of a
+    round's boxes pickles its own rows, not the whole round."""
+    import pickle
+
+    from certify.bnb import BoxEval
+    from certify.executor import WireArray, from_wire, to_wire
+
+    big = torch.arange(60_000, dtype=torch.float64).reshape(-1, 6)
+    chunk = (big[10:20], big[20:30], 3)
+    wire = to_wire(chunk)
+    assert isinstance(wire[0], WireArray) and wire[2] == 3
+    assert len(pickle.dumps(wire)) < 4000 < len(pickle.dumps(chunk))
+    back = from_wire(pickle.loads(pickle.dumps(wire)))
+    assert torch.equal(back[0], big[10:20]) and torch.equal(back[1], big[20:30])
+    ev = BoxEval(upper=torch.tensor([1.5, float("nan")]), centre_value=torch.tensor([0.25, -1.0]),
+                 score=None)
+    again = from_wire(pickle.loads(pickle.dumps(to_wire([ev, {"k": torch.tensor([1, 2])}]))))
+    assert torch.equal(again[0].upper.nan_to_num(7.0), ev.upper.nan_to_num(7.0))
+    assert torch.equal(again[0].centre_value, ev.centre_value) and again[0].score is None
+    assert again[1]["k"].dtype == torch.int64 and again[1]["k"].tolist() == [1, 2]
+
+
+def test_round_batch_fills_the_workers_and_keeps_small_runs_serial():
+    from certify.executor import BOXES_PER_WORKER, round_batch
+
+    class Remote:
+        remote = True
+
+        def __init__(self, workers: int) -> None:
+            self.workers = workers
+
+    assert round_batch(SerialExecutor(), 1024) == 1024
+    assert round_batch(Remote(1), 1024) == round_batch(Remote(2), 1024) == 1024
+    assert round_batch(Remote(3), 1024) * 2 >= 3 * BOXES_PER_WORKER
+    assert round_batch(Remote(64), 1024) * 2 == 64 * BOXES_PER_WORKER
+    assert round_batch(Remote(64), 10**6) == 10**6  # never smaller than asked
