@@ -11,8 +11,11 @@ so the MPDI prover picks one by probing (`certify.bounds.mpdi.choose_preconditio
 Back to D (`to_lam_max_D`): D = M^-1 A M^-T, so A <= a I gives lam_max(D) <= a / sigma_min(M)^2
 for a >= 0 and <= a / ||M||_2^2 for a < 0; `pos_scale` and `neg_scale` are upper bounds of
 1 / sigma_min(M)^2 and lower bounds of 1 / ||M||_2^2 (exact for M = I and for a diagonal M up
-to one rounding, taken outward; for M ~ L^-1 from the eigenvalues of P with a relative 1e-10
-slack that covers the float error of M for any well-conditioned P).
+to one rounding, taken outward; for the float M ~ L^-1 from C = M P M^T itself: c_min I <= C <=
+lam_max(P) M M^T gives 1 / sigma_min(M)^2 <= lam_max(P) / c_min, and lam_min(P) M M^T <= C <=
+c_max I gives 1 / ||M||_2^2 >= lam_min(P) / c_max, with lam_max(P), lam_min(P) bounded by the
+certified point eigenvalue bound of `certify.bounds.eigen` and c_min, c_max from the interval C:
+no assumption on how accurately M inverts L).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
-from certify.bounds.eigen import rho_upper
+from certify.bounds.eigen import lam_max_upper_point, rho_upper
 from certify.bounds.interval_ops import isym, point
 from certify.intervals import Interval, down, imatmul, up
 
@@ -36,8 +39,8 @@ class Preconditioner:
     C: Interval
     c_min: float  # lower bound of lam_min(C)
     c_max: float  # upper bound of lam_max(C)
-    pos_scale: float | None = None  # >= 1 / sigma_min(M)^2 (None: M ~ L^-1, from P)
-    neg_scale: float | None = None  # <= 1 / ||M||_2^2
+    pos_scale: float = 1.0  # >= 1 / sigma_min(M)^2
+    neg_scale: float = 1.0  # <= 1 / ||M||_2^2
     kind: str = "cholesky"  # "identity", "cholesky", "none" (M = I, P != I) or "diagonal"
 
 
@@ -54,8 +57,14 @@ def make_preconditioner(P: torch.Tensor) -> Preconditioner:
     C = imatmul(Q, point(M.T))
     dev = Interval(C.lo - eye, C.hi - eye)
     e = float(rho_upper(torch.maximum(dev.lo.abs(), dev.hi.abs())))
-    return Preconditioner(False, M, Q, C, float(down(torch.tensor(1.0 - e))),
-                          float(up(torch.tensor(1.0 + e))))
+    c_min = float(down(torch.tensor(1.0 - e, dtype=torch.float64)))
+    c_max = float(up(torch.tensor(1.0 + e, dtype=torch.float64)))
+    p_max = float(lam_max_upper_point(P))  # >= lam_max(P)
+    p_min = float(-lam_max_upper_point(-P))  # <= lam_min(P)
+    pos = float(up(torch.tensor(p_max / c_min, dtype=torch.float64))) if c_min > 0 \
+        else float("inf")
+    neg = max(0.0, float(down(torch.tensor(p_min / c_max, dtype=torch.float64))))
+    return Preconditioner(False, M, Q, C, c_min, c_max, pos, neg)
 
 
 def diagonal_preconditioner(P: torch.Tensor, m: torch.Tensor, kind: str = "diagonal"
@@ -93,16 +102,9 @@ def _congruence(pc: Preconditioner, Jm: Interval) -> Interval:
 
 
 def to_lam_max_D(upper_A: torch.Tensor, P: torch.Tensor, pc: Preconditioner) -> torch.Tensor:
-    """Convert a bound on lam_max(M D M^T) to one on lam_max(D) (same sign; D = L A L^T)."""
+    """Convert a bound on lam_max(M D M^T) to one on lam_max(D) (same sign; D = M^-1 A M^-T;
+    `P` is kept for the callers: the scales were fixed when `pc` was made)."""
     if pc.identity:
         return upper_A
-    if pc.pos_scale is not None and pc.neg_scale is not None:
-        return torch.where(upper_A >= 0, up(upper_A * pc.pos_scale),
-                           up(upper_A * pc.neg_scale))
-    ev = torch.linalg.eigvalsh(P.to(torch.float64))
-    smax = float(ev[-1]) * (1 + 1e-10)
-    smin = float(ev[0]) * (1 - 1e-10)
-    # ||L||^2 = lam_max(P), sigma_min(L)^2 = lam_min(P); M = L^-1 up to rounding (relative
-    # 1e-10 slack covers it for any well-conditioned P)
-    return torch.where(upper_A >= 0, up(upper_A * smax), up(upper_A * smin))
+    return torch.where(upper_A >= 0, up(upper_A * pc.pos_scale), up(upper_A * pc.neg_scale))
 
