@@ -129,30 +129,31 @@ def dask_overheads(executor, tasks: int = 400) -> dict:
 
 
 def timed_proof(problem, max_boxes: int, batch: int = 1024, executor=None) -> dict:
-    """One MPDI proof with a box budget; its rounds' evaluation time split from the rest
-    (the driver: selection, splitting, bookkeeping, and for Dask the waiting on workers is
-    in the evaluation)."""
-    import certify.bnb as bnb
+    """One MPDI proof with a box budget; the time its driver spends collecting rounds
+    (`RoundPipeline.collect`: serially the evaluation itself, on Dask the wait for the
+    workers' results) split from the rest (the driver: selection, splitting, merging,
+    submitting)."""
+    from certify.pipeline import RoundPipeline
     from certify.prover import prove_mpdi
 
     calls = {"n": 0, "t": 0.0}
-    original = bnb._evaluate_round
+    original = RoundPipeline.collect
 
-    def counting(*a, **k):
+    def counting(self):
         t0 = time.perf_counter()
-        out = original(*a, **k)
+        out = original(self)
         calls["t"] += time.perf_counter() - t0
         calls["n"] += 1
         return out
 
-    bnb._evaluate_round = counting
+    RoundPipeline.collect = counting
     try:
         t0 = time.perf_counter()
         out = prove_mpdi(problem, seconds=1e9, max_boxes=max_boxes, batch=batch,
                          executor=executor)
         total = time.perf_counter() - t0
     finally:
-        bnb._evaluate_round = original
+        RoundPipeline.collect = original
     return {"outcome": out, "seconds": total, "rounds": calls["n"], "eval_seconds": calls["t"]}
 
 

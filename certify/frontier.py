@@ -23,6 +23,9 @@ class Frontier:
     """Open boxes: lo, hi [slot, d] (float64), depth [slot], upper bound [slot] and split
     score [slot, d] (None once any box came without one)."""
 
+    #: compact only past this many used slots (and more than half of them dead)
+    COMPACT_MIN = 4096
+
     def __init__(self, d: int, capacity: int = 4096, with_score: bool = True) -> None:
         self.d = d
         self.used = 0  # slots written since the last compaction
@@ -108,7 +111,7 @@ class Frontier:
     def _drop(self, slots: torch.Tensor) -> None:
         self.alive[slots] = False
         self.count -= int(slots.numel())
-        if self.used > 4096 and 2 * self.count < self.used:
+        if self.used > self.COMPACT_MIN and 2 * self.count < self.used:
             self._compact()
 
     def _compact(self) -> None:
