@@ -13,8 +13,9 @@ Parts (`--part`, default all but `six`):
   bounds and boxes asserted: `identical_to_serial`); the speed-ups; Dask's measured cost per
   task (round trip; driver CPU per task). Then `scale_paper`: the efficiency at 16-64
   workers from those costs, the serial proof's evaluation and driver seconds per box, and
-  the driver's seconds per round at the batch those workers get (`round_batch`):
-      T(W) = t_driver(b_W) + per_worker c_eval + o_rt + W o_task
+  the driver's seconds per round at the batch those workers get (`round_batch`), with
+  L = PIPELINE_LAG rounds in flight:
+      T(W) = max(t_chunk, t_driver(b_W) + W o_task, (t_chunk + t_driver + o_rt + W o_task)/L)
       E(W) = per_worker (c_eval + c_driver) / T(W)
   (the arithmetic is printed in each line; see `part_paper`).
 - `six`: `certify train vdp3 --preset certified` then `certify run` (10 minute cap, memory
@@ -129,7 +130,8 @@ def dask_overheads(executor, tasks: int = 400) -> dict:
 
 
 def timed_proof(problem, max_boxes: int, batch: int = 1024, executor=None) -> dict:
-    """One MPDI proof with a box budget; the time its driver spends collecting rounds
+    """One MPDI proof with a box budget (wall and this process's CPU seconds, the load at
+    its start); the time its driver spends collecting rounds
     (`RoundPipeline.collect`: serially the evaluation itself, on Dask the wait for the
     workers' results) split from the rest (the driver: selection, splitting, merging,
     submitting)."""
@@ -147,14 +149,16 @@ def timed_proof(problem, max_boxes: int, batch: int = 1024, executor=None) -> di
         return out
 
     RoundPipeline.collect = counting
+    load = os.getloadavg()[0]
     try:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = prove_mpdi(problem, seconds=1e9, max_boxes=max_boxes, batch=batch,
                          executor=executor)
-        total = time.perf_counter() - t0
+        total, cpu = time.perf_counter() - t0, time.process_time() - c0
     finally:
         RoundPipeline.collect = original
-    return {"outcome": out, "seconds": total, "rounds": calls["n"], "eval_seconds": calls["t"]}
+    return {"outcome": out, "seconds": total, "rounds": calls["n"], "eval_seconds": calls["t"],
+            "cpu_seconds": cpu, "load_1min": load}
 
 
 def _same(a, b) -> bool:
@@ -191,6 +195,9 @@ def part_workers(args: argparse.Namespace, folder: Path) -> None:
                "boxes": rs[0]["outcome"].stats.boxes_processed, "rounds": rounds,
                "eval_s_per_round": round(t_eval, 4),
                "driver_s_per_round": round(med[name] / rounds - t_eval, 4),
+               "driver_cpu_s_per_round": round(statistics.median(r["cpu_seconds"] for r in rs)
+                                               / rounds, 4),
+               "load_1min_at_start": [round(r["load_1min"], 2) for r in rs],
                "status": rs[0]["outcome"].status.value, "upper": rs[0]["outcome"].upper,
                "identical_to_serial": all(_same(r["outcome"], ref) for r in rs)}
         if name != "serial":
@@ -209,18 +216,26 @@ def part_paper(args: argparse.Namespace, problem, serial: dict, over: dict,
     """Efficiency at W = 16, 32, 64 workers on paper, from measured costs.
 
     A round on W > 2 workers splits b_W = W * per_worker / 2 boxes (`certify.executor.
-    round_batch`): each worker evaluates one chunk of `per_worker` children. Its time is
-        T(W) = t_driver(b_W) + per_worker * c_eval + o_rt + W o_task
+    round_batch`): each worker evaluates one chunk of `per_worker` children, in
+        t_chunk = per_worker * c_eval
     with c_eval, c_driver the evaluation and driver seconds per box of the serial proof
-    (default batch: its rounds evaluate 2048 children, one worker's chunk), t_driver(b_W)
-    the driver seconds per round of the serial proof run at batch b_64 (--paper-boxes: the
-    initial grid and one round; per box for 16 and 32), o_rt the round trip of one task and
-    o_task the driver's CPU seconds per task (client + scheduler, measured on the 2-worker
-    cluster). The same boxes take (c_eval + c_driver) per box serially, so
+    (default batch: its rounds evaluate 2048 children, one worker's chunk). The driver's
+    share of a round is t_drv + W o_task: t_drv(b_W) its seconds per round in the serial
+    proof run at batch b_64 (--paper-boxes: the initial grid and a few rounds; per box for
+    16 and 32), o_task its CPU seconds per task (client + scheduler, measured on the
+    2-worker cluster); o_rt is the round trip of one task. With L = PIPELINE_LAG rounds in
+    flight (`certify.pipeline`) the driver merges round k while the workers compute round
+    k+1, so a round takes the largest of: a chunk, the driver's share, and the cycle of L
+    rounds through both (round k+L is dispatched after round k is back and merged):
+        T(W) = max(t_chunk, t_drv + W o_task, (t_chunk + t_drv + o_rt + W o_task) / L)
+    (synchronous rounds, L = 1: the sum). The same boxes take (c_eval + c_driver) per box
+    serially, so
         E(W) = per_worker (c_eval + c_driver) / T(W).
     (Per box, evaluation in one process is slower at batch b_64 than in 2048-box chunks:
     the chunk cost is taken from the default-batch run.)
     """
+    from certify.bnb import PIPELINE_LAG
+
     big = 64 * per_worker // 2
     with torch_threads(1):
         r = timed_proof(problem, min(args.paper_boxes, args.boxes), batch=big)
@@ -229,20 +244,26 @@ def part_paper(args: argparse.Namespace, problem, serial: dict, over: dict,
     c_drv = (serial["seconds"] - serial["eval_seconds"]) / boxes
     drv_per_child = (r["seconds"] - r["eval_seconds"]) / r["outcome"].stats.boxes_processed
     o_rt, o_task = over["round_trip_s"], over["driver_cpu_per_task_s"]
+    lag = PIPELINE_LAG
     for workers in (16, 32, 64):
         t_drv = drv_per_child * workers * per_worker
         t_chunk = per_worker * c_eval
-        t_round = t_drv + t_chunk + o_rt + workers * o_task
-        eff = per_worker * (c_eval + c_drv) / t_round
+        share = t_drv + workers * o_task
+        cycle = (t_chunk + t_drv + o_rt + workers * o_task) / lag
+        t_round = max(t_chunk, share, cycle)
+        t_sync = t_chunk + t_drv + o_rt + workers * o_task
+        work = per_worker * (c_eval + c_drv)
         emit({"bench": "scale_paper", "workers": workers, "batch": workers * per_worker // 2,
-              "children_per_worker": per_worker, "c_eval_per_box": round(c_eval, 8),
+              "children_per_worker": per_worker, "lag": lag, "c_eval_per_box": round(c_eval, 8),
               "c_driver_per_box_serial": round(c_drv, 8), "t_chunk": round(t_chunk, 4),
               "t_driver_per_round": round(t_drv, 4), "overhead_round_trip": o_rt,
               "overhead_driver_per_task": o_task,
-              "arithmetic": f"T = {t_drv:.4f} + {t_chunk:.4f} + {o_rt:.4f} + {workers}*"
-                            f"{o_task:.5f} = {t_round:.4f} s; E = {per_worker}*({c_eval:.3e}"
-                            f" + {c_drv:.3e}) / {t_round:.4f}",
-              "efficiency": round(eff, 3), "serial_at_b64": {
+              "arithmetic": f"T = max({t_chunk:.4f}, {t_drv:.4f} + {workers}*{o_task:.5f}, "
+                            f"({t_chunk:.4f} + {t_drv:.4f} + {o_rt:.4f} + {workers}*"
+                            f"{o_task:.5f}) / {lag}) = {t_round:.4f} s; E = {per_worker}*"
+                            f"({c_eval:.3e} + {c_drv:.3e}) / {t_round:.4f}",
+              "efficiency": round(work / t_round, 3),
+              "efficiency_synchronous": round(work / t_sync, 3), "serial_at_b64": {
                   "rounds": r["rounds"], "seconds": round(r["seconds"], 2),
                   "boxes": r["outcome"].stats.boxes_processed,
                   "driver_s_per_round": round((r["seconds"] - r["eval_seconds"])

@@ -276,13 +276,17 @@ def _worker_environment() -> Any:
     """Dask's worker environment without MALLOC_TRIM_THRESHOLD_: Dask sets it (to return
     memory to the OS sooner), which also turns off glibc's adaptive mmap threshold, so every
     large torch temporary becomes an mmap + page faults + munmap; the box bounds ran 2-5x
-    slower on a worker than in-process with it. One thread per library stays."""
+    slower on a worker than in-process with it. One thread per library stays, and the
+    workers' profiler is off."""
     import dask
 
     env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {})
     env.pop("MALLOC_TRIM_THRESHOLD_", None)
     env.update(OMP_NUM_THREADS=1, MKL_NUM_THREADS=1, OPENBLAS_NUM_THREADS=1)
-    return dask.config.set({"distributed.nanny.pre-spawn-environ": env})
+    # the worker's statistical profiler samples the task thread every 10 ms (for the
+    # dashboard, which a LocalCluster here does not serve): CPU taken from the evaluation
+    return dask.config.set({"distributed.nanny.pre-spawn-environ": env,
+                            "distributed.worker.profile.enabled": False})
 
 
 def executor_from_settings(settings: Any) -> SerialExecutor | DaskExecutor:
