@@ -129,12 +129,39 @@ def dask_overheads(executor, tasks: int = 400) -> dict:
             "driver_cpu_per_task_s": round(statistics.median(cpus), 5)}
 
 
+def _busy_cpu_seconds() -> float | None:
+    """CPU seconds the whole machine has been busy (all cores, from /proc/stat), or None."""
+    try:
+        with open("/proc/stat") as f:
+            fields = [int(v) for v in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
+    return (sum(fields[:8]) - idle) / os.sysconf("SC_CLK_TCK")
+
+
+def _tree_cpu_seconds() -> float:
+    """CPU seconds of this process and its children (the Dask scheduler and workers of a
+    LocalCluster)."""
+    import psutil
+
+    total = 0.0
+    for proc in [psutil.Process(), *psutil.Process().children(recursive=True)]:
+        try:
+            t = proc.cpu_times()
+            total += t.user + t.system
+        except psutil.Error:
+            pass
+    return total
+
+
 def timed_proof(problem, max_boxes: int, batch: int = 1024, executor=None) -> dict:
-    """One MPDI proof with a box budget (wall and this process's CPU seconds, the load at
-    its start); the time its driver spends collecting rounds
-    (`RoundPipeline.collect`: serially the evaluation itself, on Dask the wait for the
-    workers' results) split from the rest (the driver: selection, splitting, merging,
-    submitting)."""
+    """One MPDI proof with a box budget: wall and driver CPU seconds, the load at its
+    start, the CPU seconds of this process tree and of everything else on the machine
+    meanwhile (`others_cores_busy`: how many cores other users took), and the time the
+    driver spends collecting rounds (`RoundPipeline.collect`: serially the evaluation
+    itself, on Dask the wait for the workers' results) split from the rest (the driver:
+    selection, splitting, merging, submitting)."""
     from certify.pipeline import RoundPipeline
     from certify.prover import prove_mpdi
 
@@ -150,6 +177,7 @@ def timed_proof(problem, max_boxes: int, batch: int = 1024, executor=None) -> di
 
     RoundPipeline.collect = counting
     load = os.getloadavg()[0]
+    busy0, tree0 = _busy_cpu_seconds(), _tree_cpu_seconds()
     try:
         t0, c0 = time.perf_counter(), time.process_time()
         out = prove_mpdi(problem, seconds=1e9, max_boxes=max_boxes, batch=batch,
@@ -157,8 +185,11 @@ def timed_proof(problem, max_boxes: int, batch: int = 1024, executor=None) -> di
         total, cpu = time.perf_counter() - t0, time.process_time() - c0
     finally:
         RoundPipeline.collect = original
+    busy1, tree1 = _busy_cpu_seconds(), _tree_cpu_seconds()
+    others = None if busy0 is None or busy1 is None else (busy1 - busy0) - (tree1 - tree0)
     return {"outcome": out, "seconds": total, "rounds": calls["n"], "eval_seconds": calls["t"],
-            "cpu_seconds": cpu, "load_1min": load}
+            "cpu_seconds": cpu, "load_1min": load, "tree_cpu_seconds": tree1 - tree0,
+            "others_cpu_seconds": others}
 
 
 def _same(a, b) -> bool:
@@ -198,6 +229,10 @@ def part_workers(args: argparse.Namespace, folder: Path) -> None:
                "driver_cpu_s_per_round": round(statistics.median(r["cpu_seconds"] for r in rs)
                                                / rounds, 4),
                "load_1min_at_start": [round(r["load_1min"], 2) for r in rs],
+               "cpu_seconds_this_run": [round(r["tree_cpu_seconds"], 1) for r in rs],
+               "others_cores_busy": [None if r["others_cpu_seconds"] is None else
+                                     round(r["others_cpu_seconds"] / r["seconds"], 2)
+                                     for r in rs],
                "status": rs[0]["outcome"].status.value, "upper": rs[0]["outcome"].upper,
                "identical_to_serial": all(_same(r["outcome"], ref) for r in rs)}
         if name != "serial":
