@@ -265,7 +265,11 @@ def part_paper(args: argparse.Namespace, problem, serial: dict, over: dict,
         T(W) = max(t_chunk, t_drv + W o_task, (t_chunk + t_drv + o_rt + W o_task) / L)
     (synchronous rounds, L = 1: the sum). The same boxes take (c_eval + c_driver) per box
     serially, so
-        E(W) = per_worker (c_eval + c_driver) / T(W).
+        E(W) = per_worker (c_eval + c_driver) / T(W)
+    (above 1 by at most c_driver / c_eval when the driver's work is hidden behind the
+    workers': the driver is a process besides the W workers). `workers_busy` = t_chunk / T;
+    the driver's share reaches a chunk's time at W = t_chunk / (per_worker t_drv/child +
+    o_task) workers (`driver_saturates_at_workers`): beyond, the driver is the bottleneck.
     (Per box, evaluation in one process is slower at batch b_64 than in 2048-box chunks:
     the chunk cost is taken from the default-batch run.)
     """
@@ -298,7 +302,10 @@ def part_paper(args: argparse.Namespace, problem, serial: dict, over: dict,
                             f"{o_task:.5f}) / {lag}) = {t_round:.4f} s; E = {per_worker}*"
                             f"({c_eval:.3e} + {c_drv:.3e}) / {t_round:.4f}",
               "efficiency": round(work / t_round, 3),
-              "efficiency_synchronous": round(work / t_sync, 3), "serial_at_b64": {
+              "efficiency_synchronous": round(work / t_sync, 3),
+              "workers_busy": round(t_chunk / t_round, 3),
+              "driver_saturates_at_workers": int(t_chunk / (per_worker * drv_per_child
+                                                           + o_task)), "serial_at_b64": {
                   "rounds": r["rounds"], "seconds": round(r["seconds"], 2),
                   "boxes": r["outcome"].stats.boxes_processed,
                   "driver_s_per_round": round((r["seconds"] - r["eval_seconds"])
