@@ -23,7 +23,6 @@ from certify.results import MpdiResult, RateResult, Status
 from certify.settings import VerifySettings
 from certify.witness import is_witness, rate_sign_lower
 
-
 #: relative gap at which the rate proof stops: lam_cert is reported to 4 significant digits
 RATE_REL_TOL = 1e-4
 
