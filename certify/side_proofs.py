@@ -75,9 +75,10 @@ def bound_dk_dy(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_0
 
     def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
         ub, cen = dk_dy_box_upper(problem.system, problem.network, blo, bhi)
-        if not problem.structural:  # the linear bounds cover direct networks only
-            ub = level.tighten(ub, cen, lambda m: dk_dy_box_upper_crown(
-                problem.system, problem.network, blo[m], bhi[m])[0])
+        # where the interval bound is above the closing level: linear bounds (direct
+        # networks) or Taylor models (structural ones)
+        ub = level.tighten(ub, cen, lambda m: dk_dy_box_upper_crown(
+            problem.system, problem.network, blo[m], bhi[m])[0])
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         return BoxEval(upper=ub, centre_value=cen, score=None)
 
