@@ -167,7 +167,7 @@ def test_relu_checkpoint_and_config_are_refused_with_the_reason(tmp_path):
 def test_prover_entry_points_bound_every_sampled_value_for_any_activation(act):
     """The prover reads the activation: every entry point runs on a non-tanh network and its
     sound upper bounds lie above the sampled values (mpdi, ||dk/dy||, ||k(x, h(x))||)."""
-    from certify import prover
+    from certify import prover, side_proofs
     from certify.checks.lipschitz import dk_dy_norms
 
     system = load_system("vdp")
@@ -178,9 +178,9 @@ def test_prover_entry_points_bound_every_sampled_value_for_any_activation(act):
     sampled = mpdi_lam_max(system, net, problem.P_t, 1.0, x, y)
     assert out.status.value in ("PROVED", "VIOLATED", "UNKNOWN")
     assert math.isfinite(out.upper) and out.upper >= float(sampled.max())
-    dky = prover.bound_dk_dy(problem, seconds=2.0, max_boxes=200)
+    dky = side_proofs.bound_dk_dy(problem, seconds=2.0, max_boxes=200)
     assert dky is not None and dky >= float(dk_dy_norms(problem, torch.cat([x, y], 1)).max())
-    res, _, _ = prover.bound_residual(problem, seconds=2.0, max_boxes=200)
+    res, _, _ = side_proofs.bound_residual(problem, seconds=2.0, max_boxes=200)
     k_on = gain_terms(system, net, x, system.h(x), with_dy=False).k
     assert res >= float(torch.linalg.vector_norm(k_on, dim=-1).max())
     rate = prover.prove_rate(problem, seconds=2.0, max_boxes=200)

@@ -11,16 +11,9 @@ import torch
 from certify.kernels import gain_terms, mpdi_lam_max, pointwise_rate
 from certify.network import GainNetwork
 from certify.problem import Problem
-from certify.prover import (
-    ProofOutcome,
-    RateOutcome,
-    bound_dk_dy,
-    bound_manifold_quantity,
-    bound_residual,
-    prove_mpdi,
-    prove_rate,
-)
+from certify.prover import ProofOutcome, RateOutcome, prove_mpdi, prove_rate
 from certify.results import Counterexample, ProofStats, Status
+from certify.side_proofs import bound_dk_dy, bound_manifold_quantity, bound_residual
 from certify.system import System, load_system
 from tests.planted import lam_cert_linear, linear_problem, planted_problem
 

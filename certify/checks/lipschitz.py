@@ -235,7 +235,7 @@ class LipschitzCheck(Check):
     reads = ("lipschitz_seconds", "max_boxes", "grid_points", "seed")
 
     def run(self, context: Context) -> LipschitzResult:
-        from certify.prover import bound_dk_dy
+        from certify.side_proofs import bound_dk_dy
 
         s = context.settings
         local = bound_dk_dy(context.problem, seconds=s.lipschitz_seconds,

@@ -21,8 +21,8 @@ import torch
 
 from certify import sdp
 from certify.checks.base import Check, Presentation, Quantity
-from certify.prover import kernel_basis_with_error
 from certify.results import MetricResult, Status
+from certify.side_proofs import kernel_basis_with_error
 from certify.system import System
 from certify.system_enclosures import h_enclosure, jacobian_f_enclosure
 from certify.witness import invisible_mode_certified

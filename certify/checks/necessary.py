@@ -125,7 +125,7 @@ def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
         upper = vertex_upper_bound(system, Pn, lam)
         if upper is None or upper > 0:
             try:
-                from certify.prover import bound_manifold_quantity
+                from certify.side_proofs import bound_manifold_quantity
             except ImportError:  # pragma: no cover - the prover is part of the package
                 bound_manifold_quantity = None
             if bound_manifold_quantity is not None:

@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from certify.checks.metric import enclosure_vertices, kernel_values, output_matrix, sub_boxes
-from certify.prover import kernel_basis_with_error
+from certify.side_proofs import kernel_basis_with_error
 from certify.system import System
 
 

@@ -43,7 +43,7 @@ def check_residual(problem: Problem, settings: VerifySettings, *,
     if search.nonfinite:
         return ResidualResult(Status.UNKNOWN, "k(x, h(x)) is NaN/Inf at some grid points",
                               float("nan"), None, seconds=time.perf_counter() - t0)
-    from certify.prover import bound_residual
+    from certify.side_proofs import bound_residual
 
     upper, _, _ = bound_residual(problem, seconds=settings.residual_seconds,
                                  max_boxes=settings.max_boxes)
