@@ -1,8 +1,11 @@
 """The pipelined MPDI proof on Dask: serial == 1 worker == 2 workers (verdict, bounds, boxes,
-counterexample) with rounds really in flight, on a budget-ended proof and on a violation."""
+counterexample) with rounds really in flight, on a budget-ended proof and on a violation; a
+worker killed while a round is in flight changes nothing."""
 
 from __future__ import annotations
 
+import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -48,6 +51,22 @@ class CountingInFlight:
         return Handle()
 
 
+class KillWithRoundsInFlight(CountingInFlight):
+    """SIGKILLs `victim` as round `at` is submitted, while the rounds before it are in
+    flight (its chunk of the last one among them, queued or running, is lost with it)."""
+
+    def __init__(self, inner, victim: int, at: int) -> None:
+        super().__init__(inner)
+        self.victim, self.at = victim, at
+        self.in_flight_at_kill: int | None = None
+
+    def submit_chunks(self, fn, payload, items):
+        if self.rounds + 1 == self.at:
+            self.in_flight_at_kill = self.in_flight
+            os.kill(self.victim, signal.SIGKILL)
+        return super().submit_chunks(fn, payload, items)
+
+
 @pytest.fixture(scope="module")
 def clusters():
     one, two = DaskExecutor(workers=1), DaskExecutor(workers=2)
@@ -91,3 +110,18 @@ def test_serial_one_and_two_workers_agree_with_rounds_in_flight(clusters, case):
         assert serial.status is Status.UNKNOWN and serial.stats.budget_exhausted
     else:
         assert serial.status is Status.VIOLATED and serial.counterexample.sound_bound > 0
+
+
+def test_killed_worker_with_rounds_in_flight_changes_nothing(clusters):
+    problem = _vdp_problem()
+    kw = {"max_boxes": BUDGET, "batch": BATCH}
+    serial = prove_mpdi(problem, seconds=1e9, executor=SerialExecutor(), **kw)
+    two = clusters[1]
+    two.client.wait_for_workers(2, timeout=60)
+    victim = list(two.worker_pids().values())[0]
+    killer = KillWithRoundsInFlight(two, victim, at=5)
+    remote = prove_mpdi(problem, seconds=1e9, executor=killer, **kw)
+    assert killer.in_flight_at_kill == 1 and killer.rounds > 5  # mid-proof, pipelined
+    _same(serial, remote)
+    two.client.wait_for_workers(2, timeout=60)
+    assert victim not in two.worker_pids().values()  # it really died
