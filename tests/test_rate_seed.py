@@ -1,4 +1,4 @@
-"""The rate proof seeded with the rate grid's worst point: same sound bound, fewer boxes.
+"""Side proofs seeded with their grid's worst point (rate, residual): same bound, fewer boxes.
 
 A seed only sets the closing level early; the proved lam_cert must stay below every sampled
 pointwise rate (soundness), meet the asked relative gap, and the seeded proof must need fewer
@@ -52,3 +52,20 @@ def test_seeded_rate_proof_is_sound_and_needs_fewer_boxes() -> None:
         assert out.lower >= worst_rate - 2e-4 * abs(worst_rate) - 1e-9  # the asked gap
     assert seeded.upper_sampled <= worst_rate + 1e-12  # the seed's value was seen
     assert seeded.stats.boxes_processed < plain.stats.boxes_processed
+
+
+def test_seeded_residual_proof_is_sound_and_needs_no_more_boxes() -> None:
+    from certify.checks.residual import residual_norm
+    from certify.side_proofs import bound_residual
+
+    problem = _problem()
+    X = torch.as_tensor(problem.system.X)
+    search = maximize_over_box(lambda x: residual_norm(problem, x), X[:, 0], X[:, 1],
+                               grid_points=20_000, starts=8, steps=50, top_k=1, seed=0)
+    worst = search.best_point.tolist()
+    plain, _, plain_stats = bound_residual(problem, seconds=60.0)
+    seeded, _, seeded_stats = bound_residual(problem, seconds=60.0, seeds=[worst])
+    for upper in (plain, seeded):
+        assert upper is not None
+        assert search.best_value <= upper <= search.best_value * (1 + 2e-3)
+    assert seeded_stats.boxes_processed <= plain_stats.boxes_processed
