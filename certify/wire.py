@@ -28,38 +28,33 @@ class WireArray:
         return (WireArray, (self.array,))
 
 
+def _map_leaves(obj: Any, leaf: Any) -> Any:
+    """`obj` with `leaf(v)` applied to every value inside tuples, lists, dicts and dataclass
+    fields (the containers rebuilt as they were); `leaf` returns its argument to keep it."""
+    import dataclasses
+
+    if type(obj) in (tuple, list):
+        return type(obj)(_map_leaves(v, leaf) for v in obj)
+    if isinstance(obj, dict):
+        return {k: _map_leaves(v, leaf) for k, v in obj.items()}
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.replace(obj, **{f.name: _map_leaves(getattr(obj, f.name), leaf)
+                                           for f in dataclasses.fields(obj) if f.init})
+    return leaf(obj)
+
+
 def to_wire(obj: Any) -> Any:
     """`obj` with every CPU/GPU torch tensor (also inside tuples, lists, dicts and
     dataclasses) replaced by a `WireArray`; `from_wire` undoes it exactly (dtype, values)."""
-    import dataclasses
-
     import torch
 
-    if isinstance(obj, torch.Tensor):
-        return WireArray(obj.detach().cpu().numpy().copy())
-    if type(obj) in (tuple, list):
-        return type(obj)(to_wire(v) for v in obj)
-    if isinstance(obj, dict):
-        return {k: to_wire(v) for k, v in obj.items()}
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return dataclasses.replace(obj, **{f.name: to_wire(getattr(obj, f.name))
-                                           for f in dataclasses.fields(obj) if f.init})
-    return obj
+    return _map_leaves(obj, lambda v: WireArray(v.detach().cpu().numpy().copy())
+                       if isinstance(v, torch.Tensor) else v)
 
 
 def from_wire(obj: Any) -> Any:
     """Inverse of `to_wire`: `WireArray`s back to (CPU) torch tensors."""
-    import dataclasses
-
     import torch
 
-    if isinstance(obj, WireArray):
-        return torch.from_numpy(obj.array)
-    if type(obj) in (tuple, list):
-        return type(obj)(from_wire(v) for v in obj)
-    if isinstance(obj, dict):
-        return {k: from_wire(v) for k, v in obj.items()}
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return dataclasses.replace(obj, **{f.name: from_wire(getattr(obj, f.name))
-                                           for f in dataclasses.fields(obj) if f.init})
-    return obj
+    return _map_leaves(obj, lambda v: torch.from_numpy(v.array)
+                       if isinstance(v, WireArray) else v)
