@@ -24,6 +24,7 @@ from certify.bounds.eigen import (
     MAX_VERTEX_DIM,
     _vertices,
     hertz_upper,
+    lam_max_at_most,
     lam_max_upper_point,
     rho_upper,
 )
@@ -308,11 +309,17 @@ def tm_congruence(pc: Preconditioner, J: TM, lam: float, r: torch.Tensor) -> TM:
     return A
 
 
-def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False):
+def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | None = None):
     """max over the box of lam_max(A(z)) <= max_vertices lam_max(c + sum_m s_m r_m g_m)
     + rho(e + rounding) (convexity of lam_max in the affine part); for n <= 3 the smaller
     max_vertices hertz_upper(vertex matrix, e + rounding) (the remainder entrywise, not by its
-    spectral radius)."""
+    spectral radius).
+
+    level (a decision: only "bound <= level" matters; n >= 4): the vertex matrices are first
+    tested against t = down(level' - rho) by the certified Cholesky test
+    (`certify.bounds.eigen.lam_max_at_most`), level' = level - 1e-12 (1 + |level|); a box whose
+    every vertex passes reports the bound level' (proved: vertex max <= t, t + rho <= level'),
+    without eigenvalues; the others get their eigenvalue bounds as without `level`."""
     B, n, _, d = A.g.shape
     rG = (A.g * r[:, None, None, :]).permute(0, 3, 1, 2)  # [B, d, n, n]
     gk = gamma(d + 5)
@@ -323,13 +330,25 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False):
         V = _vertices(d)
         S = A.c[:, None] + torch.einsum("vd,bdij->bvij", V, rG)
         S = 0.5 * (S + S.transpose(-1, -2))
-        lv = lam_max_upper_point(S).amax(-1)
     else:
         S = None
         rem = up(rem + rG.abs().sum(1) * (1.0 + gk))
-        lv = lam_max_upper_point(A.c)
     rr = rho_upper(rem)
+    decided = None
+    if S is not None and level is not None and n >= 4:
+        lvl = float(level) - 1e-12 * (1.0 + abs(float(level)))
+        t = down(lvl - rr)  # proved vertex max <= t  =>  lv + rr <= lvl
+        decided = lam_max_at_most(S, t[:, None].expand(B, S.shape[1])).all(-1)
+        lv = t.clone()
+        if not bool(decided.all()):
+            lv[~decided] = lam_max_upper_point(S[~decided]).amax(-1)
+    elif S is not None:
+        lv = lam_max_upper_point(S).amax(-1)
+    else:
+        lv = lam_max_upper_point(A.c)
     bound = up(lv + rr)
+    if decided is not None:
+        bound = torch.where(decided, torch.full_like(bound, lvl), bound)
     if S is not None and n <= 3:
         hz = hertz_upper(S, rem.unsqueeze(1).expand_as(S)).amax(-1)
         bound = torch.where(torch.isnan(bound) | torch.isnan(hz), bound + hz,
