@@ -79,6 +79,23 @@ def lam_max_at_most(S: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return ok
 
 
+def vertex_max_upper(S: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(upper bound of max_v lam_max(S[:, v]) [B], decided [B]) for vertex matrices
+    S [B, V, n, n] and levels t [B]: every vertex is first tested against t by
+    `lam_max_at_most`; the vertices that pass are <= t, only the others get eigenvalue
+    bounds (`lam_max_upper_point`). decided: every vertex passed (the bound is then t)."""
+    B, V = S.shape[:2]
+    ok = lam_max_at_most(S, t[:, None].expand(B, V))
+    decided = ok.all(-1)
+    out = torch.where(ok.any(-1), t, torch.full_like(t, -float("inf")))
+    if not bool(decided.all()):
+        vals = torch.full((B, V), -float("inf"), dtype=torch.float64)
+        vals[~ok] = lam_max_upper_point(S[~ok])
+        out = torch.maximum(out, vals.amax(-1))
+        out = torch.where(torch.isnan(vals).any(-1), torch.full_like(out, float("nan")), out)
+    return out, decided
+
+
 def _lam_max_upper_lapack(S: torch.Tensor) -> torch.Tensor:
     """LAPACK eigvalsh plus the margin 8 (n + 1) u ||S||_F (module docstring)."""
     n = S.shape[-1]

@@ -24,9 +24,9 @@ from certify.bounds.eigen import (
     MAX_VERTEX_DIM,
     _vertices,
     hertz_upper,
-    lam_max_at_most,
     lam_max_upper_point,
     rho_upper,
+    vertex_max_upper,
 )
 from certify.bounds.interval_ops import const_lam
 from certify.bounds.preconditioner import Preconditioner
@@ -338,10 +338,7 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
     if S is not None and level is not None and n >= 4:
         lvl = float(level) - 1e-12 * (1.0 + abs(float(level)))
         t = down(lvl - rr)  # proved vertex max <= t  =>  lv + rr <= lvl
-        decided = lam_max_at_most(S, t[:, None].expand(B, S.shape[1])).all(-1)
-        lv = t.clone()
-        if not bool(decided.all()):
-            lv[~decided] = lam_max_upper_point(S[~decided]).amax(-1)
+        lv, decided = vertex_max_upper(S, t)
     elif S is not None:
         lv = lam_max_upper_point(S).amax(-1)
     else:
