@@ -319,7 +319,11 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
     tested against t = down(level' - rho) by the certified Cholesky test
     (`certify.bounds.eigen.lam_max_at_most`), level' = level - 1e-12 (1 + |level|); a box whose
     every vertex passes reports the bound level' (proved: vertex max <= t, t + rho <= level'),
-    without eigenvalues; the others get their eigenvalue bounds as without `level`."""
+    without eigenvalues. In the others, the vertices that fail are tested again at t + k s,
+    s = rho + 1e-3 (1 + |level|), k = 1/4, 1, 4 (their bound: the first level passed) and
+    only the rest get eigenvalue bounds: the box's bound then ranks it in the branch and
+    bound (a completed proof splits the same boxes whatever it is; a budgeted run's order
+    depends on it)."""
     B, n, _, d = A.g.shape
     rG = (A.g * r[:, None, None, :]).permute(0, 3, 1, 2)  # [B, d, n, n]
     gk = gamma(d + 5)
@@ -338,7 +342,7 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
     if S is not None and level is not None and n >= 4:
         lvl = float(level) - 1e-12 * (1.0 + abs(float(level)))
         t = down(lvl - rr)  # proved vertex max <= t  =>  lv + rr <= lvl
-        lv, decided = vertex_max_upper(S, t)
+        lv, decided = vertex_max_upper(S, t, step=rr + 1e-3 * (1.0 + abs(lvl)))
     elif S is not None:
         lv = lam_max_upper_point(S).amax(-1)
     else:
