@@ -13,8 +13,9 @@ Parts (`--part`, default all but `six`):
   bounds and boxes asserted: `identical_to_serial`); the speed-ups; Dask's measured cost per
   task (round trip; driver CPU per task). Then `scale_paper`: the efficiency at 16-64
   workers from those costs, the serial proof's evaluation and driver seconds per box, and
-  the driver's seconds per round at the batch those workers get (`round_batch`):
-      T(W) = t_driver(b_W) + per_worker c_eval + o_rt + W o_task
+  the driver's seconds per round at the batch those workers get (`round_batch`), with
+  L = PIPELINE_LAG rounds in flight:
+      T(W) = max(t_chunk, t_driver(b_W) + W o_task, (t_chunk + t_driver + o_rt + W o_task)/L)
       E(W) = per_worker (c_eval + c_driver) / T(W)
   (the arithmetic is printed in each line; see `part_paper`).
 - `six`: `certify train vdp3 --preset certified` then `certify run` (10 minute cap, memory
@@ -128,32 +129,67 @@ def dask_overheads(executor, tasks: int = 400) -> dict:
             "driver_cpu_per_task_s": round(statistics.median(cpus), 5)}
 
 
+def _busy_cpu_seconds() -> float | None:
+    """CPU seconds the whole machine has been busy (all cores, from /proc/stat), or None."""
+    try:
+        with open("/proc/stat") as f:
+            fields = [int(v) for v in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
+    return (sum(fields[:8]) - idle) / os.sysconf("SC_CLK_TCK")
+
+
+def _tree_cpu_seconds() -> float:
+    """CPU seconds of this process and its children (the Dask scheduler and workers of a
+    LocalCluster)."""
+    import psutil
+
+    total = 0.0
+    for proc in [psutil.Process(), *psutil.Process().children(recursive=True)]:
+        try:
+            t = proc.cpu_times()
+            total += t.user + t.system
+        except psutil.Error:
+            pass
+    return total
+
+
 def timed_proof(problem, max_boxes: int, batch: int = 1024, executor=None) -> dict:
-    """One MPDI proof with a box budget; its rounds' evaluation time split from the rest
-    (the driver: selection, splitting, bookkeeping, and for Dask the waiting on workers is
-    in the evaluation)."""
-    import certify.bnb as bnb
+    """One MPDI proof with a box budget: wall and driver CPU seconds, the load at its
+    start, the CPU seconds of this process tree and of everything else on the machine
+    meanwhile (`others_cores_busy`: how many cores other users took), and the time the
+    driver spends collecting rounds (`RoundPipeline.collect`: serially the evaluation
+    itself, on Dask the wait for the workers' results) split from the rest (the driver:
+    selection, splitting, merging, submitting)."""
+    from certify.pipeline import RoundPipeline
     from certify.prover import prove_mpdi
 
     calls = {"n": 0, "t": 0.0}
-    original = bnb._evaluate_round
+    original = RoundPipeline.collect
 
-    def counting(*a, **k):
+    def counting(self):
         t0 = time.perf_counter()
-        out = original(*a, **k)
+        out = original(self)
         calls["t"] += time.perf_counter() - t0
         calls["n"] += 1
         return out
 
-    bnb._evaluate_round = counting
+    RoundPipeline.collect = counting
+    load = os.getloadavg()[0]
+    busy0, tree0 = _busy_cpu_seconds(), _tree_cpu_seconds()
     try:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = prove_mpdi(problem, seconds=1e9, max_boxes=max_boxes, batch=batch,
                          executor=executor)
-        total = time.perf_counter() - t0
+        total, cpu = time.perf_counter() - t0, time.process_time() - c0
     finally:
-        bnb._evaluate_round = original
-    return {"outcome": out, "seconds": total, "rounds": calls["n"], "eval_seconds": calls["t"]}
+        RoundPipeline.collect = original
+    busy1, tree1 = _busy_cpu_seconds(), _tree_cpu_seconds()
+    others = None if busy0 is None or busy1 is None else (busy1 - busy0) - (tree1 - tree0)
+    return {"outcome": out, "seconds": total, "rounds": calls["n"], "eval_seconds": calls["t"],
+            "cpu_seconds": cpu, "load_1min": load, "tree_cpu_seconds": tree1 - tree0,
+            "others_cpu_seconds": others}
 
 
 def _same(a, b) -> bool:
@@ -190,6 +226,13 @@ def part_workers(args: argparse.Namespace, folder: Path) -> None:
                "boxes": rs[0]["outcome"].stats.boxes_processed, "rounds": rounds,
                "eval_s_per_round": round(t_eval, 4),
                "driver_s_per_round": round(med[name] / rounds - t_eval, 4),
+               "driver_cpu_s_per_round": round(statistics.median(r["cpu_seconds"] for r in rs)
+                                               / rounds, 4),
+               "load_1min_at_start": [round(r["load_1min"], 2) for r in rs],
+               "cpu_seconds_this_run": [round(r["tree_cpu_seconds"], 1) for r in rs],
+               "others_cores_busy": [None if r["others_cpu_seconds"] is None else
+                                     round(r["others_cpu_seconds"] / r["seconds"], 2)
+                                     for r in rs],
                "status": rs[0]["outcome"].status.value, "upper": rs[0]["outcome"].upper,
                "identical_to_serial": all(_same(r["outcome"], ref) for r in rs)}
         if name != "serial":
@@ -208,18 +251,30 @@ def part_paper(args: argparse.Namespace, problem, serial: dict, over: dict,
     """Efficiency at W = 16, 32, 64 workers on paper, from measured costs.
 
     A round on W > 2 workers splits b_W = W * per_worker / 2 boxes (`certify.executor.
-    round_batch`): each worker evaluates one chunk of `per_worker` children. Its time is
-        T(W) = t_driver(b_W) + per_worker * c_eval + o_rt + W o_task
+    round_batch`): each worker evaluates one chunk of `per_worker` children, in
+        t_chunk = per_worker * c_eval
     with c_eval, c_driver the evaluation and driver seconds per box of the serial proof
-    (default batch: its rounds evaluate 2048 children, one worker's chunk), t_driver(b_W)
-    the driver seconds per round of the serial proof run at batch b_64 (--paper-boxes: the
-    initial grid and one round; per box for 16 and 32), o_rt the round trip of one task and
-    o_task the driver's CPU seconds per task (client + scheduler, measured on the 2-worker
-    cluster). The same boxes take (c_eval + c_driver) per box serially, so
-        E(W) = per_worker (c_eval + c_driver) / T(W).
+    (default batch: its rounds evaluate 2048 children, one worker's chunk). The driver's
+    share of a round is t_drv + W o_task: t_drv(b_W) its seconds per round in the serial
+    proof run at batch b_64 (--paper-boxes: the initial grid and a few rounds; per box for
+    16 and 32), o_task its CPU seconds per task (client + scheduler, measured on the
+    2-worker cluster); o_rt is the round trip of one task. With L = PIPELINE_LAG rounds in
+    flight (`certify.pipeline`) the driver merges round k while the workers compute round
+    k+1, so a round takes the largest of: a chunk, the driver's share, and the cycle of L
+    rounds through both (round k+L is dispatched after round k is back and merged):
+        T(W) = max(t_chunk, t_drv + W o_task, (t_chunk + t_drv + o_rt + W o_task) / L)
+    (synchronous rounds, L = 1: the sum). The same boxes take (c_eval + c_driver) per box
+    serially, so
+        E(W) = per_worker (c_eval + c_driver) / T(W)
+    (above 1 by at most c_driver / c_eval when the driver's work is hidden behind the
+    workers': the driver is a process besides the W workers). `workers_busy` = t_chunk / T;
+    the driver's share reaches a chunk's time at W = t_chunk / (per_worker t_drv/child +
+    o_task) workers (`driver_saturates_at_workers`): beyond, the driver is the bottleneck.
     (Per box, evaluation in one process is slower at batch b_64 than in 2048-box chunks:
     the chunk cost is taken from the default-batch run.)
     """
+    from certify.bnb import PIPELINE_LAG
+
     big = 64 * per_worker // 2
     with torch_threads(1):
         r = timed_proof(problem, min(args.paper_boxes, args.boxes), batch=big)
@@ -228,20 +283,29 @@ def part_paper(args: argparse.Namespace, problem, serial: dict, over: dict,
     c_drv = (serial["seconds"] - serial["eval_seconds"]) / boxes
     drv_per_child = (r["seconds"] - r["eval_seconds"]) / r["outcome"].stats.boxes_processed
     o_rt, o_task = over["round_trip_s"], over["driver_cpu_per_task_s"]
+    lag = PIPELINE_LAG
     for workers in (16, 32, 64):
         t_drv = drv_per_child * workers * per_worker
         t_chunk = per_worker * c_eval
-        t_round = t_drv + t_chunk + o_rt + workers * o_task
-        eff = per_worker * (c_eval + c_drv) / t_round
+        share = t_drv + workers * o_task
+        cycle = (t_chunk + t_drv + o_rt + workers * o_task) / lag
+        t_round = max(t_chunk, share, cycle)
+        t_sync = t_chunk + t_drv + o_rt + workers * o_task
+        work = per_worker * (c_eval + c_drv)
         emit({"bench": "scale_paper", "workers": workers, "batch": workers * per_worker // 2,
-              "children_per_worker": per_worker, "c_eval_per_box": round(c_eval, 8),
+              "children_per_worker": per_worker, "lag": lag, "c_eval_per_box": round(c_eval, 8),
               "c_driver_per_box_serial": round(c_drv, 8), "t_chunk": round(t_chunk, 4),
               "t_driver_per_round": round(t_drv, 4), "overhead_round_trip": o_rt,
               "overhead_driver_per_task": o_task,
-              "arithmetic": f"T = {t_drv:.4f} + {t_chunk:.4f} + {o_rt:.4f} + {workers}*"
-                            f"{o_task:.5f} = {t_round:.4f} s; E = {per_worker}*({c_eval:.3e}"
-                            f" + {c_drv:.3e}) / {t_round:.4f}",
-              "efficiency": round(eff, 3), "serial_at_b64": {
+              "arithmetic": f"T = max({t_chunk:.4f}, {t_drv:.4f} + {workers}*{o_task:.5f}, "
+                            f"({t_chunk:.4f} + {t_drv:.4f} + {o_rt:.4f} + {workers}*"
+                            f"{o_task:.5f}) / {lag}) = {t_round:.4f} s; E = {per_worker}*"
+                            f"({c_eval:.3e} + {c_drv:.3e}) / {t_round:.4f}",
+              "efficiency": round(work / t_round, 3),
+              "efficiency_synchronous": round(work / t_sync, 3),
+              "workers_busy": round(t_chunk / t_round, 3),
+              "driver_saturates_at_workers": int(t_chunk / (per_worker * drv_per_child
+                                                           + o_task)), "serial_at_b64": {
                   "rounds": r["rounds"], "seconds": round(r["seconds"], 2),
                   "boxes": r["outcome"].stats.boxes_processed,
                   "driver_s_per_round": round((r["seconds"] - r["eval_seconds"])

@@ -10,30 +10,40 @@ A box is closed when its bound is at most `threshold`
 Inf bounds never close a box; a box split past `max_depth` is set aside as UNKNOWN.
 
 The loop runs in deterministic rounds (the executor contract, `certify.executor`): each round
-takes the `batch` worst open boxes in a fixed order (stable sort on the bound), bisects them,
-evaluates all children with one `evaluate(lo, hi)` call, then closes / sets aside in order.
-In decision mode half of each batch is instead the open boxes nearest to the threshold (the
-rest the worst), so a run cut short by its budget has closed what was nearly closed.
+takes the `batch` worst open boxes (`certify.frontier.Frontier.take`), bisects them and
+dispatches all children as one evaluation; up to `lag` rounds are in flight at once
+(`certify.pipeline`: round k+1 is chosen before round k is merged, so workers never wait for
+the driver), and rounds are merged oldest first: children closed, set aside or added to the
+frontier in order. A batch is chosen only from merged results, and only when fewer than
+`lag` rounds are in flight and the frontier can fill it (or nothing is in flight), so the
+schedule depends on the results alone, never on timing; the serial path runs the same
+schedule. In decision mode half of each batch is instead the open boxes nearest to the
+threshold (the rest the worst), so a run cut short by its budget has closed what was nearly
+closed. A run that stops (budget, violation) first merges the rounds in flight, so the
+bound covers every box it dispatched.
 With an `executor` of more than one worker and a picklable `remote = (chunk_fn, payload)`
 (`chunk_fn(payload, lo, hi) -> BoxEval`, module level), the children are cut into
 `executor.workers * CHUNKS_PER_WORKER` contiguous chunks (the batch raised to fill the workers,
-`certify.executor.round_batch`; unchanged up to 2 workers) evaluated with
-`executor.map_chunks` and concatenated in order, so the boxes, bounds and verdict are those
-of the serial run for the same box budget (up to the last bits of BLAS products whose
-blocking depends on the chunk size; bounds stay sound either way).
+`certify.executor.round_batch`; unchanged up to 2 workers) submitted together and
+concatenated in order, so the boxes, bounds and verdict are those of the serial run for the
+same box budget and lag (up to the last bits of BLAS products whose blocking depends on the
+chunk size; bounds stay sound either way).
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 
+from certify.frontier import Frontier
 from certify.intervals import ROUNDING
+from certify.pipeline import RoundPipeline
 from certify.progress import NullProgress, Progress
 from certify.results import ProofStats
 
@@ -100,34 +110,11 @@ def initial_grid(lo: torch.Tensor, hi: torch.Tensor, target: int) -> Box:
     return Box(blo, bhi, depth)
 
 
-def _cat(a: Box, b: Box) -> Box:
-    return Box(torch.cat([a.lo, b.lo]), torch.cat([a.hi, b.hi]), torch.cat([a.depth, b.depth]))
-
-
-def _take(a: Box, idx: torch.Tensor) -> Box:
-    return Box(a.lo[idx], a.hi[idx], a.depth[idx])
-
-
-CHUNKS_PER_WORKER = 1  # one task per worker per round: fewest round trips
-
-
-def _evaluate_round(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval],
-                    lo: torch.Tensor, hi: torch.Tensor, executor: Any, remote: Any) -> BoxEval:
-    """One round's evaluation: in process, or chunked over the executor's workers."""
-    if executor is None or remote is None \
-            or not (getattr(executor, "remote", False) or getattr(executor, "workers", 1) > 1) \
-            or len(lo) < 2:
-        return evaluate(lo, hi)
-    from certify.executor import chunk_ranges
-
-    chunk_fn, payload = remote
-    ranges = chunk_ranges(len(lo), executor.workers * CHUNKS_PER_WORKER)
-    parts = executor.map_chunks(chunk_fn, payload, [(lo[a:b], hi[a:b]) for a, b in ranges])
-    score = None
-    if all(p.score is not None for p in parts):
-        score = torch.cat([p.score for p in parts])
-    return BoxEval(upper=torch.cat([p.upper for p in parts]),
-                   centre_value=torch.cat([p.centre_value for p in parts]), score=score)
+#: rounds in flight before the oldest is merged (1: synchronous rounds). 2 keeps the next
+#: round queued on the workers while the driver merges. In a decision proof that closes, the
+#: lag changes only the order in which boxes are refined, not which: each box is split or
+#: closed on its own bound against the fixed threshold.
+PIPELINE_LAG = 2
 
 
 def split(box: Box, dims: torch.Tensor) -> Box:
@@ -163,6 +150,7 @@ def branch_and_bound(
     seeds: Box | None = None,
     executor: Any = None,
     remote: tuple[Callable[..., BoxEval], Any] | None = None,
+    lag: int = PIPELINE_LAG,
 ) -> BnBOutcome:
     """Sound upper bound of max f over [root_lo, root_hi] [d], refining the worst boxes first.
 
@@ -170,7 +158,9 @@ def branch_and_bound(
     centre value > threshold is a violation (stops when `stop_on_violation`). Maximisation
     mode: boxes with upper <= best + max(tol, rel_tol |best|) close; the result `upper` is
     the max over closed and open boxes. Budgets: `seconds` and `max_boxes` (boxes evaluated).
-    `executor` / `remote`: where each round's children are evaluated (module docstring).
+    `executor` / `remote`: where each round's children are evaluated; `lag`: rounds in
+    flight before the oldest is merged (module docstring). The outcome depends on `lag` and
+    the budgets, not on the executor.
     """
     progress = progress or NullProgress()
     t0 = time.perf_counter()
@@ -201,13 +191,13 @@ def branch_and_bound(
     leaves_area: list[torch.Tensor] = []
     px = list(project) if project is not None and d >= 2 else None
 
-    def record(box: Box, status: int) -> None:
-        if px is None or len(box) == 0:
+    def record(lo: torch.Tensor, hi: torch.Tensor, status: int) -> None:
+        if px is None or len(lo) == 0:
             return
-        lo2, hi2 = box.lo[:, px], box.hi[:, px]
+        lo2, hi2 = lo[:, px], hi[:, px]
         leaves_lo.append(lo2)
         leaves_hi.append(hi2)
-        leaves_st.append(torch.full((len(box),), status, dtype=torch.int8))
+        leaves_st.append(torch.full((len(lo),), status, dtype=torch.int8))
         leaves_area.append((hi2 - lo2).prod(-1))
         # keep memory bounded: prune the smallest proved leaves beyond 20x the cap
         if sum(len(a) for a in leaves_area) > 20 * max(keep_leaves, 1):
@@ -233,21 +223,6 @@ def branch_and_bound(
             best = float(cv[i])
             best_point = box.centre[i].clone()
 
-    # seeds: falsification points first (degenerate boxes give exact centre values)
-    if seeds is not None and len(seeds) > 0:
-        ev = evaluate(seeds.lo, seeds.hi)
-        update_best(ev, seeds)
-        if threshold is not None and best > threshold and stop_on_violation:
-            violated = True
-
-    open_box = initial_grid(root_lo, root_hi, batch)
-    ev = _evaluate_round(evaluate, open_box.lo, open_box.hi, executor, remote)
-    processed += len(open_box)
-    update_best(ev, open_box)
-    open_ub = ev.upper
-    open_score = ev.score
-    budget_exhausted = False
-
     def closing_level() -> float:
         lvl = -math.inf
         if threshold is not None:
@@ -257,93 +232,106 @@ def branch_and_bound(
                 lvl = max(lvl, best + max(tol, rel_tol * abs(best)))
         return lvl
 
-    last_report = t0
-    while True:
+    def close(lo: torch.Tensor, hi: torch.Tensor, ub: torch.Tensor) -> None:
+        nonlocal closed_vol, closed_max
+        if len(lo):
+            closed_vol += float((hi - lo).prod(-1).sum()) / root_vol
+            closed_max = max(closed_max, float(ub.max()))
+            record(lo, hi, 0)
+
+    # seeds: falsification points first (degenerate boxes give exact centre values)
+    if seeds is not None and len(seeds) > 0:
+        ev = evaluate(seeds.lo, seeds.hi)
+        update_best(ev, seeds)
         if threshold is not None and best > threshold and stop_on_violation:
             violated = True
-        # close boxes
+
+    frontier = Frontier(d)
+    rounds = RoundPipeline(evaluate, executor, remote)
+    in_flight: deque[Box] = deque()  # the boxes of each round in flight, oldest first
+    scanned_level = -math.inf  # the frontier holds no box closed at this level
+
+    def dispatch(box: Box) -> None:
+        nonlocal processed
+        rounds.dispatch(box.lo, box.hi)
+        in_flight.append(box)
+        processed += len(box)
+
+    def merge() -> None:
+        """The oldest round in flight: best point, violation, then its boxes closed, set
+        aside (too deep) or added to the frontier, in order."""
+        nonlocal violated, scanned_level, stuck_count, stuck_max
+        box = in_flight.popleft()
+        ev = rounds.collect()
+        update_best(ev, box)
+        if threshold is not None and best > threshold and stop_on_violation:
+            violated = True
         lvl = closing_level()
-        close = (open_ub <= lvl) & (open_ub < math.inf)  # NaN compares False: stays open
-        if bool(close.any()):
-            cb = _take(open_box, close)
-            closed_vol += float(cb.volume().sum()) / root_vol
-            closed_max = max(closed_max, float(open_ub[close].max()))
-            record(cb, 0)
-            keep = ~close
-            open_box = _take(open_box, keep)
-            open_ub = open_ub[keep]
-            open_score = open_score[keep] if open_score is not None else None
-        # set aside boxes that cannot be split further
-        too_deep = open_box.depth >= max_depth
-        if bool(too_deep.any()):
-            sb = _take(open_box, too_deep)
-            stuck_count += len(sb)
-            ub = open_ub[too_deep]
-            stuck_max = max(stuck_max, float(torch.nan_to_num(ub, nan=math.inf).max()))
-            record(sb, 2)
-            keep = ~too_deep
-            open_box = _take(open_box, keep)
-            open_ub = open_ub[keep]
-            open_score = open_score[keep] if open_score is not None else None
-        now = time.perf_counter()
-        if now - last_report > 0.25:
-            history.append([now - t0, closed_vol])
-            progress.update(task, 0.0, proved=closed_vol, boxes=processed)
-            last_report = now
-        if len(open_box) == 0 or violated:
-            break
-        if now - t0 > seconds or processed >= max_boxes:
-            budget_exhausted = True
-            break
-        # pick the boxes (stable order: deterministic rounds): the worst ones; in decision
-        # mode half of the batch is the boxes nearest to closing instead, so that a budgeted
-        # run closes regions early while the worst boxes (counterexamples) are still refined
-        key = torch.nan_to_num(open_ub, nan=math.inf)
-        k = min(batch, len(open_box))
-        order = torch.sort(key, descending=True, stable=True).indices
-        if threshold is not None and len(order) > k:
-            kw = (k + 1) // 2
-            idx = torch.cat([order[:kw], order[len(order) - (k - kw):]])
-        else:
-            idx = order[:k]
-        mask = torch.zeros(len(open_box), dtype=torch.bool)
-        mask[idx] = True
-        work = _take(open_box, mask)
-        wscore = open_score[mask] if open_score is not None else None
-        open_box = _take(open_box, ~mask)
-        open_ub = open_ub[~mask]
-        open_score = open_score[~mask] if open_score is not None else None
-        # split dimension: the caller's score, ties broken by scaled width
-        widths = (work.hi - work.lo) / scale
-        s = widths.clone()
-        if wscore is not None:
-            ws = torch.nan_to_num(wscore, nan=0.0, posinf=0.0)
-            norm = ws.amax(-1, keepdim=True)
-            use = norm > 0
-            s = torch.where(use, ws / norm.clamp_min(1e-300) + 1e-3 * widths, widths)
-        dims = torch.argmax(s, -1)
-        kids = split(work, dims)
-        max_seen_depth = max(max_seen_depth, int(kids.depth.max()))
-        ev = _evaluate_round(evaluate, kids.lo, kids.hi, executor, remote)
-        processed += len(kids)
-        update_best(ev, kids)
-        open_box = _cat(open_box, kids)
-        open_ub = torch.cat([open_ub, ev.upper])
-        if open_score is not None and ev.score is not None:
-            open_score = torch.cat([open_score, ev.score])
-        else:
-            open_score = None
+        if lvl > scanned_level:  # the level rose (maximisation): open boxes may close now
+            shut = frontier.close(lvl)
+            if shut is not None:
+                close(*shut)
+            scanned_level = lvl
+        ub = ev.upper
+        shut = (ub <= lvl) & (ub < math.inf)  # NaN compares False: stays open
+        close(box.lo[shut], box.hi[shut], ub[shut])
+        deep = ~shut & (box.depth >= max_depth)
+        if bool(deep.any()):  # cannot be split further: set aside as UNKNOWN
+            stuck_count += int(deep.sum())
+            stuck_max = max(stuck_max, float(torch.nan_to_num(ub[deep], nan=math.inf).max()))
+            record(box.lo[deep], box.hi[deep], 2)
+        keep = ~shut & ~deep
+        frontier.add(box.lo[keep], box.hi[keep], box.depth[keep], ub[keep],
+                     ev.score[keep] if ev.score is not None else None)
+
+    dispatch(initial_grid(root_lo, root_hi, batch))
+    budget_hit = False
+    last_report = t0
+    try:
+        while True:
+            # merge the oldest round while `lag` rounds are in flight, while the frontier
+            # cannot fill a batch, and (to stop) after a violation: a function of the
+            # merged results only, so every executor runs the same schedule
+            while in_flight and (len(in_flight) >= lag or len(frontier) < batch or violated):
+                merge()
+            now = time.perf_counter()
+            if now - last_report > 0.25:
+                history.append([now - t0, closed_vol])
+                progress.update(task, 0.0, proved=closed_vol, boxes=processed)
+                last_report = now
+            if len(frontier) == 0 or violated:
+                break
+            if now - t0 > seconds or processed >= max_boxes:
+                budget_hit = True
+                break
+            # the boxes to refine: the worst ones; in decision mode half of the batch is the
+            # boxes nearest to closing instead, so that a budgeted run closes regions early
+            # while the worst boxes (counterexamples) are still refined
+            lo, hi, depth, wscore = frontier.take(batch, threshold is not None)
+            # split dimension: the caller's score, ties broken by scaled width
+            widths = (hi - lo) / scale
+            s = widths
+            if wscore is not None:
+                ws = torch.nan_to_num(wscore, nan=0.0, posinf=0.0)
+                norm = ws.amax(-1, keepdim=True)
+                s = torch.where(norm > 0, ws / norm.clamp_min(1e-300) + 1e-3 * widths, widths)
+            kids = split(Box(lo, hi, depth), torch.argmax(s, -1))
+            max_seen_depth = max(max_seen_depth, int(kids.depth.max()))
+            dispatch(kids)
+        while in_flight:  # stopped: merge what was dispatched (the bound covers it all)
+            merge()
+    finally:
+        rounds.cancel()
+    budget_exhausted = budget_hit and len(frontier) > 0
 
     elapsed = time.perf_counter() - t0
     history.append([elapsed, closed_vol])
-    open_max = float(torch.nan_to_num(open_ub, nan=math.inf).max()) if len(open_box) else -math.inf
-    upper = max(closed_max, open_max, stuck_max)
-    complete = len(open_box) == 0 and stuck_count == 0 and not violated
-    if len(open_box):
-        record(open_box, 2)
+    upper = max(closed_max, frontier.open_max(), stuck_max)
+    complete = len(frontier) == 0 and stuck_count == 0 and not violated
+    if len(frontier):
+        record(*frontier.boxes(), 2)
     if violated and best_point is not None:
-        vb = Box(best_point[None], best_point[None], torch.zeros(1, dtype=torch.long))
-        record(vb, 1)
+        record(best_point[None], best_point[None], 1)
     leaves: dict[str, list] = {"lo": [], "hi": [], "status": []}
     if leaves_lo:
         _compact(keep_leaves)

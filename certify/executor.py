@@ -3,6 +3,9 @@
 Branch and bound, the MPDI grid sweep and the residual/rate proofs cut their work into chunks
 and call `executor.map(fn, items)` (or `map_chunks(fn, payload, items)`); results come back
 in the order of `items`, so what the caller merges is identical whichever executor ran it.
+`submit_chunks(fn, payload, items)` is `map_chunks` without the wait: it returns a handle whose
+`result()` gives the same list later, so a caller can keep several rounds in flight (branch and
+bound's pipeline, `certify.pipeline`) and still merge them in the order it dispatched them.
 
 - `SerialExecutor()`: the default; runs `fn(item)` here, in order.
 - `DaskExecutor(workers=N)`: starts a `dask.distributed.LocalCluster` of N worker processes
@@ -29,6 +32,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, Protocol, runtime_checkable
 
 from certify.errors import SettingsError
+from certify.wire import WireArray, from_wire, to_wire  # noqa: F401 - re-exported
 
 #: seconds to wait for a scheduler given by address before giving up (exit 2)
 CONNECT_TIMEOUT = 5.0
@@ -64,6 +68,11 @@ class SerialExecutor:
                    items: Sequence[tuple]) -> list[Any]:
         return [fn(payload, *item) for item in items]
 
+    def submit_chunks(self, fn: Callable[..., Any], payload: Any,
+                      items: Sequence[tuple]) -> LazyChunks:
+        """`map_chunks` run when its `result()` is asked for (in this process, in order)."""
+        return LazyChunks(lambda: self.map_chunks(fn, payload, items))
+
     def close(self) -> None:
         pass
 
@@ -74,63 +83,75 @@ class SerialExecutor:
         self.close()
 
 
+class LazyChunks:
+    """A round of chunks computed in this process when `result()` is first called."""
+
+    def __init__(self, compute: Callable[[], list[Any]]) -> None:
+        self._compute: Callable[[], list[Any]] | None = compute
+        self._value: list[Any] = []
+
+    def result(self) -> list[Any]:
+        if self._compute is not None:
+            self._value, self._compute = self._compute(), None
+        return self._value
+
+    def cancel(self) -> None:
+        self._compute = None
+
+
+class PendingChunks:
+    """A round of chunks on a Dask cluster: `result()` waits for all of them and returns them
+    in the order submitted (whatever order they finish in). When workers vanish (a lost
+    worker's tasks that Dask could not re-run itself, or the scattered payload lost with
+    every worker that held it) the round is scattered and submitted again, up to
+    `LOST_WORKER_RETRIES` times; a task's result depends only on its inputs, so a re-run
+    gives the same answer."""
+
+    def __init__(self, executor: DaskExecutor, fn: Callable[..., Any], payload: Any,
+                 items: Sequence[tuple]) -> None:
+        self._executor, self._fn, self._payload = executor, fn, payload
+        self._wired = [to_wire(tuple(it)) for it in items]
+        self._futures: list[Any] | None = None
+        self._failures = 0
+        try:
+            self._submit()
+        except _lost_work_errors() as exc:  # a worker died during the scatter: retry later
+            self._lost(exc)
+
+    def _submit(self) -> None:
+        ex, n = self._executor, len(self._wired)
+        shared = ex._shared(self._payload)
+        self._futures = ex.client.map(_call_with_payload, [self._fn] * n, [shared] * n,
+                                      self._wired, pure=False)
+
+    def _lost(self, exc: BaseException) -> None:
+        self._futures = None
+        self._executor._forget(self._payload)
+        self._failures += 1
+        if self._failures > LOST_WORKER_RETRIES:
+            raise RuntimeError(f"Dask lost workers {self._failures} times in one round: "
+                               f"{type(exc).__name__}: {exc}") from exc
+        self._executor.client.wait_for_workers(1, timeout=60)
+
+    def result(self) -> list[Any]:
+        while True:
+            try:
+                if self._futures is None:
+                    self._submit()
+                return from_wire(self._executor.client.gather(self._futures))
+            except _lost_work_errors() as exc:
+                self._lost(exc)
+
+    def cancel(self) -> None:
+        if self._futures:
+            self._executor.client.cancel(self._futures)
+        self._futures = None
+
+
 def _call_with_payload(fn: Callable[..., Any], payload: Any, item: tuple) -> Any:
     """Task body of `DaskExecutor.map_chunks` (module level: picklable): arguments and
     result cross the wire as numpy arrays (`to_wire`)."""
     return to_wire(fn(payload, *from_wire(item)))
-
-
-class WireArray:
-    """A torch tensor in transit: its values as a contiguous numpy array of its own.
-
-    Pickling a torch tensor that is a slice (a chunk of a round's boxes) writes the whole
-    storage it views, so W chunks would carry W copies of the round; torch's own pickling is
-    also slower than numpy's, which Dask sends as out-of-band buffers without copying."""
-
-    __slots__ = ("array",)
-
-    def __init__(self, array: Any) -> None:
-        self.array = array
-
-    def __reduce__(self) -> tuple:
-        return (WireArray, (self.array,))
-
-
-def to_wire(obj: Any) -> Any:
-    """`obj` with every CPU/GPU torch tensor (also inside tuples, lists, dicts and
-    dataclasses) replaced by a `WireArray`; `from_wire` undoes it exactly (dtype, values)."""
-    import dataclasses
-
-    import torch
-
-    if isinstance(obj, torch.Tensor):
-        return WireArray(obj.detach().cpu().numpy().copy())
-    if type(obj) in (tuple, list):
-        return type(obj)(to_wire(v) for v in obj)
-    if isinstance(obj, dict):
-        return {k: to_wire(v) for k, v in obj.items()}
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return dataclasses.replace(obj, **{f.name: to_wire(getattr(obj, f.name))
-                                           for f in dataclasses.fields(obj) if f.init})
-    return obj
-
-
-def from_wire(obj: Any) -> Any:
-    """Inverse of `to_wire`: `WireArray`s back to (CPU) torch tensors."""
-    import dataclasses
-
-    import torch
-
-    if isinstance(obj, WireArray):
-        return torch.from_numpy(obj.array)
-    if type(obj) in (tuple, list):
-        return type(obj)(from_wire(v) for v in obj)
-    if isinstance(obj, dict):
-        return {k: from_wire(v) for k, v in obj.items()}
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return dataclasses.replace(obj, **{f.name: from_wire(getattr(obj, f.name))
-                                           for f in dataclasses.fields(obj) if f.init})
-    return obj
 
 
 class DaskExecutor:
@@ -186,24 +207,12 @@ class DaskExecutor:
         workers once (scattered), not once per task."""
         if not len(items):
             return []
-        for attempt in range(LOST_WORKER_RETRIES + 1):
-            try:
-                shared = self._shared(payload)
-                futures = self.client.map(_call_with_payload, [fn] * len(items),
-                                          [shared] * len(items),
-                                          [to_wire(tuple(it)) for it in items], pure=False)
-                return from_wire(self.client.gather(futures))
-            except _lost_work_errors() as exc:
-                # A worker died while the payload was being scattered (the scheduler's
-                # replicate step then raises KeyError for its address) or every copy of the
-                # scattered payload was lost: scatter again and re-run. Each task's result
-                # depends only on its inputs, so a re-run gives the same answer.
-                self._forget(payload)
-                if attempt == LOST_WORKER_RETRIES:
-                    raise RuntimeError(f"Dask lost workers {attempt + 1} times in one round: "
-                                       f"{type(exc).__name__}: {exc}") from exc
-                self.client.wait_for_workers(1, timeout=60)
-        raise AssertionError("unreachable")  # pragma: no cover
+        return self.submit_chunks(fn, payload, items).result()
+
+    def submit_chunks(self, fn: Callable[..., Any], payload: Any,
+                      items: Sequence[tuple]) -> PendingChunks:
+        """`map_chunks` without waiting: the tasks start now, `result()` gathers them."""
+        return PendingChunks(self, fn, payload, items)
 
     def _forget(self, payload: Any) -> None:
         """Drop the cached scatter of `payload` (its copies may have died with a worker)."""
@@ -267,13 +276,17 @@ def _worker_environment() -> Any:
     """Dask's worker environment without MALLOC_TRIM_THRESHOLD_: Dask sets it (to return
     memory to the OS sooner), which also turns off glibc's adaptive mmap threshold, so every
     large torch temporary becomes an mmap + page faults + munmap; the box bounds ran 2-5x
-    slower on a worker than in-process with it. One thread per library stays."""
+    slower on a worker than in-process with it. One thread per library stays, and the
+    workers' profiler is off."""
     import dask
 
     env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {})
     env.pop("MALLOC_TRIM_THRESHOLD_", None)
     env.update(OMP_NUM_THREADS=1, MKL_NUM_THREADS=1, OPENBLAS_NUM_THREADS=1)
-    return dask.config.set({"distributed.nanny.pre-spawn-environ": env})
+    # the worker's statistical profiler samples the task thread every 10 ms (for the
+    # dashboard, which a LocalCluster here does not serve): CPU taken from the evaluation
+    return dask.config.set({"distributed.nanny.pre-spawn-environ": env,
+                            "distributed.worker.profile.enabled": False})
 
 
 def executor_from_settings(settings: Any) -> SerialExecutor | DaskExecutor:

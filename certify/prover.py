@@ -197,7 +197,7 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
 
 def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_000_000,
                progress: Progress | None = None, tol: float = 1e-9, rel_tol: float = 1e-3,
-               batch: int = 1024) -> RateOutcome:
+               batch: int = 1024, seeds: object | None = None) -> RateOutcome:
     """Proved lower bound on lam_cert = -max lam_max(He{P J_cl}, P) / 2 over X x Y.
 
     Direct branch and bound on phi(z) = lam_max(He{P J_cl(z)}, P) (no bisection): boxes are
@@ -206,6 +206,10 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     The generalised eigenvalue uses the congruence with M ~ L^-1: with A0 = M He{PJ} M^T
     and C = M P M^T in [c_min, c_max] (bounded), lam_max(A0, C) <= mu / c_min (mu >= 0) or
     mu / c_max (mu < 0), mu >= lam_max(A0).
+    `seeds` [S, n + p]: points evaluated first (the rate grid's worst points): their values
+    set the closing level from the start, so boxes far below the max close in the first
+    rounds instead of being refined until the search finds a point as bad. They only choose
+    what is refined; the bound is the max over every box's sound bound either way.
     """
     progress = progress or NullProgress()
     pc = make_preconditioner(problem.P_t)
@@ -233,7 +237,8 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
 
     out = branch_and_bound(lo, hi, evaluate, threshold=None, tol=tol, rel_tol=rel_tol,
                            seconds=seconds, max_boxes=max_boxes, batch=batch,
-                           progress=progress, task="rate proof")
+                           progress=progress, task="rate proof",
+                           seeds=_seed_box(seeds, lo.shape[0]))
     lower = -out.upper / 2.0 if math.isfinite(out.upper) else None
     worst = None
     upper_sampled = -out.lower / 2.0 if math.isfinite(out.lower) else float("inf")

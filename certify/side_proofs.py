@@ -26,7 +26,7 @@ from certify.enclosures import (
 from certify.intervals import up
 from certify.problem import Problem
 from certify.progress import Progress
-from certify.prover import _Level, _root
+from certify.prover import _Level, _root, _seed_box
 from certify.results import ProofStats
 from certify.system import System
 from certify.system_enclosures import h_enclosure
@@ -37,8 +37,12 @@ __all__ = ["bound_residual", "bound_dk_dy", "bound_manifold_quantity",
 
 def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_000_000,
                    progress: Progress | None = None, rel_tol: float = 1e-3,
-                   batch: int = 1024) -> tuple[float | None, list[float] | None, ProofStats]:
+                   batch: int = 1024, seeds: object | None = None
+                   ) -> tuple[float | None, list[float] | None, ProofStats]:
     """Sound upper bound on sup_{x in X} ||k(x, h(x))||_2 (B&B over X; exactly 0 if structural).
+
+    `seeds` [S, n]: points evaluated first (the residual grid's worst): their values set the
+    closing level from the first round (they choose what is refined, never the bound).
 
     Returns (upper, worst point x found, stats); upper is None when some box stayed NaN/Inf.
     """
@@ -58,7 +62,8 @@ def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 
 
     out = branch_and_bound(X[:, 0].clone(), X[:, 1].clone(), evaluate, threshold=None,
                            rel_tol=rel_tol, tol=1e-12, seconds=seconds, max_boxes=max_boxes,
-                           batch=batch, progress=progress, task="residual bound", project=None)
+                           batch=batch, progress=progress, task="residual bound", project=None,
+                           seeds=_seed_box(seeds, X.shape[0]))
     upper = out.upper if math.isfinite(out.upper) else None
     worst = out.best_point.tolist() if out.best_point is not None else None
     return upper, worst, out.stats
@@ -75,9 +80,10 @@ def bound_dk_dy(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_0
 
     def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
         ub, cen = dk_dy_box_upper(problem.system, problem.network, blo, bhi)
-        if not problem.structural:  # the linear bounds cover direct networks only
-            ub = level.tighten(ub, cen, lambda m: dk_dy_box_upper_crown(
-                problem.system, problem.network, blo[m], bhi[m])[0])
+        # where the interval bound is above the closing level: linear bounds (direct
+        # networks) or Taylor models (structural ones)
+        ub = level.tighten(ub, cen, lambda m: dk_dy_box_upper_crown(
+            problem.system, problem.network, blo[m], bhi[m])[0])
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         return BoxEval(upper=ub, centre_value=cen, score=None)
 

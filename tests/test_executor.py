@@ -233,9 +233,10 @@ def test_mpdi_proof_on_dask_equals_serial(dask2, serial_proof):
 
 
 class _KillDuringRound:
-    """The Dask executor, but a worker is SIGKILLed as round `at` starts (after the payload
-    was scattered to it in round 1, before the round's tasks run): deterministic in rounds,
-    unlike a wall-clock timer that a fast proof can outrun."""
+    """The Dask executor, but a worker is SIGKILLed as round `at` is submitted (after the
+    payload was scattered to it in round 1; with the pipeline, round `at - 1` is still in
+    flight then): deterministic in rounds, unlike a wall-clock timer that a fast proof can
+    outrun."""
 
     def __init__(self, inner, victim: int, at: int = 2) -> None:
         self.inner, self.victim, self.at, self.calls = inner, victim, at, 0
@@ -244,12 +245,12 @@ class _KillDuringRound:
     def __getattr__(self, name):
         return getattr(self.inner, name)
 
-    def map_chunks(self, fn, payload, items):
+    def submit_chunks(self, fn, payload, items):
         self.calls += 1
         if self.calls == self.at:
             os.kill(self.victim, signal.SIGKILL)
             self.killed_at = self.calls
-        return self.inner.map_chunks(fn, payload, items)
+        return self.inner.submit_chunks(fn, payload, items)
 
 
 def test_killed_worker_mid_proof_changes_nothing(dask2, serial_proof):

@@ -114,13 +114,15 @@ def residual_box_upper_crown(system: System, net: GainNetwork, lo: torch.Tensor,
 def dk_dy_box_upper_crown(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor
                           ) -> tuple[torch.Tensor, torch.Tensor]:
     """`dk_dy_box_upper` tightened by linear bound propagation of dN/dy (direct network):
-    dk/dy = dN/dy + K entry by entry, the smaller magnitude bound per entry."""
+    dk/dy = dN/dy + K, its norm bounded by `_tm_frobenius_upper` and by the entrywise
+    smaller of the linear and interval magnitudes; the smallest per box. A structural
+    network (no linear bounds here) gets `dk_dy_box_upper_taylor`."""
     from certify.bounds.crown import forward_bounds, jacobian_crown, tm_tighter, to_tm
     from certify.bounds.taylor import TM
 
-    nrm, cen = dk_dy_box_upper(system, net, lo, hi)
     if net.structure != "direct":
-        return nrm, cen
+        return dk_dy_box_upper_taylor(system, net, lo, hi)
+    nrm, cen = dk_dy_box_upper(system, net, lo, hi)
     n, p = system.n, system.p
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
@@ -135,6 +137,59 @@ def dk_dy_box_upper_crown(system: System, net: GainNetwork, lo: torch.Tensor, hi
     mag = _tm_mag(ck, jt.g, e, fb.r[:, None, None, :])
     gb, _ = gain_enclosure(system, net, lo, hi)
     mag = torch.minimum(mag, torch.maximum(gb.dk_dy.lo.abs(), gb.dk_dy.hi.abs()))
-    tight = up(torch.sqrt(up((mag * mag).sum((-1, -2))
-                             * (1.0 + 2.0 * gamma(mag[0].numel() + 1)))))
+    entrywise = up(torch.sqrt(up((mag * mag).sum((-1, -2))
+                                 * (1.0 + 2.0 * gamma(mag[0].numel() + 1)))))
+    tight = torch.minimum(entrywise, _tm_frobenius_upper(ck, jt.g, e, fb.r))
     return torch.where(torch.isnan(tight), nrm, torch.minimum(nrm, tight)), cen
+
+
+def dk_dy_box_upper_taylor(system: System, net: GainNetwork, lo: torch.Tensor,
+                           hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """`dk_dy_box_upper` tightened by first-order Taylor models of dk/dy (any structure):
+    `certify.bounds.taylor.gain_taylor`'s model (float errors already in its remainder)
+    bounded by `_tm_frobenius_upper`; the smaller of that and the interval bound per box."""
+    from certify.bounds.taylor import gain_taylor
+
+    nrm, cen = dk_dy_box_upper(system, net, lo, hi)
+    lo = lo.to(torch.float64)
+    hi = hi.to(torch.float64)
+    zc = 0.5 * (lo + hi)
+    r = up(torch.maximum(hi - zc, zc - lo))  # the radii gain_taylor's models are over
+    t = gain_taylor(system, net, lo, hi, with_k=False, with_dy=True).dk_dy  # [B, n, p]
+    tight = _tm_frobenius_upper(t.c, t.g, t.e, r)
+    return torch.where(torch.isnan(tight), nrm, torch.minimum(nrm, tight)), cen
+
+
+#: most float64 entries the vertex maximum of `_tm_frobenius_upper` builds at once
+MAX_VERTEX_ENTRIES = 2**23
+
+
+def _tm_frobenius_upper(c: torch.Tensor, g: torch.Tensor, e: torch.Tensor, r: torch.Tensor
+                        ) -> torch.Tensor:
+    """Upper bound of max ||c + G dz + E||_F over |dz| <= r, |E| <= e (entrywise), per box.
+
+    c, e [B, n, p], g [B, n, p, d], r [B, d]. ||.||_F of the linear part is convex in dz, so
+    its max over the box is at a vertex: max_v ||c + G (v * r)||_F exactly, plus ||e||_F
+    (triangle inequality). Bounding each entry at its own worst vertex instead leaves an
+    excess linear in the box size; the vertex maximum leaves one quadratic in it, which is
+    what lets a maximisation close near its maximum. The vertex values are computed in float
+    with the error of each entry bounded by gamma_(d+2) (|c| + |G| r), added to its
+    magnitude; sums and square roots are rounded up. Where the 2^d vertices would not fit
+    (`MAX_VERTEX_ENTRIES`), each entry's magnitude is bounded on its own (`_tm_mag`).
+    """
+    from certify.bounds.eigen import _vertices
+
+    B, d = r.shape
+    rr = r[:, None, None, :]
+    size = c[0].numel()
+    if B * 2**d * size > MAX_VERTEX_ENTRIES:
+        mag = _tm_mag(c, g, e, rr)
+        return up(torch.sqrt(up((mag * mag).sum((-1, -2)) * (1.0 + 2.0 * gamma(size + 1)))))
+    gr = g * rr  # one rounding per product, covered by the gamma below
+    err = up((c.abs() + gr.abs().sum(-1)) * gamma(d + 2))  # [B, n, p]
+    lin = c[:, None] + torch.einsum("bijd,vd->bvij", gr, _vertices(d))  # [B, V, n, p]
+    mag = lin.abs() + err[:, None]
+    sq = up((mag * mag).sum((-1, -2)) * (1.0 + 2.0 * gamma(size + 1)))
+    lin_norm = up(torch.sqrt(sq.amax(1)))
+    e_norm = up(torch.sqrt(up((e * e).sum((-1, -2)) * (1.0 + 2.0 * gamma(size + 1)))))
+    return up(lin_norm + e_norm)

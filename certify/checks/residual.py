@@ -45,9 +45,9 @@ def check_residual(problem: Problem, settings: VerifySettings, *,
                               float("nan"), None, seconds=time.perf_counter() - t0)
     from certify.side_proofs import bound_residual
 
-    upper, _, _ = bound_residual(problem, seconds=settings.residual_seconds,
-                                 max_boxes=settings.max_boxes)
     worst = search.best_point.tolist()
+    upper, _, _ = bound_residual(problem, seconds=settings.residual_seconds,
+                                 max_boxes=settings.max_boxes, seeds=[worst])
     # the reported eps_bar >= value is a SOUND lower bound at the worst point found
     sound = float(residual_lower(problem, torch.as_tensor(worst, dtype=torch.float64)[None])[0])
     sampled = max(sound, 0.0) if sound == sound else 0.0
