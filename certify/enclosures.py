@@ -22,7 +22,9 @@ box (`certify.bounds.mpdi.mpdi_box_bounds`), the smallest sound bound kept:
 
 Eigenvalue bounds of interval matrices (`bounds.eigen`): exact closed form for n <= 2, else
 the smallest of centre + radius (Weyl, Collatz-Wielandt), Gershgorin and the sign-pattern
-vertex bound (Hertz) for n <= 6.
+vertex bound (Hertz) for n <= 6. In a decision (the MPDI proof, `mpdi_box_bounds(decide=True)`)
+the vertex matrices of n >= 4 are tested against the level by a certified Cholesky
+factorisation (`bounds.eigen.lam_max_at_most`) instead of eigenvalues.
 
 M is the identity for P = I; otherwise M ~ L^-1 (P = L L^T, computed in floating point and
 then used as an exact matrix: by Sylvester's law of inertia D <= 0 iff M D M^T <= 0 for every

@@ -88,7 +88,7 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
         # boxes the plain interval bound already proves skip the Taylor / relaxation work
         bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, taylor=taylor, crown=crown,
-                             screen=0.0, crown_gain=gain, root_width=rhi - rlo)
+                             screen=0.0, crown_gain=gain, root_width=rhi - rlo, decide=True)
         ub = to_lam_max_D(bb.upper, P, pc)
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         c = 0.5 * (lo + hi)

@@ -87,6 +87,20 @@ def contraction_tm_mixed(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: tor
     and a direct network: He{P (Jf - K dh/dx)} + 2 lam P from the Taylor models
     (`jcl_taylor` with the network's Jacobian left out, then `tm_congruence`, whose Q = I P
     encloses P), plus He{P dN/dx} from `network_crown_mixed_jacobian` with R = P exactly."""
+    n = problem.n
+    rest = contraction_rest(problem, pc, lo, hi, r, lam)
+    Nt = network_crown_mixed_jacobian(problem.network, lo, hi, list(range(n)),
+                                      problem.P_t)  # [B, n, n]
+    c = 0.5 * (Nt.c + Nt.c.transpose(1, 2))
+    g = 0.5 * (Nt.g + Nt.g.transpose(1, 2))
+    e = 0.5 * up(Nt.e + Nt.e.transpose(1, 2))
+    return tm_add(rest, tm_absorb(c, g, up(e), r, 2), r)
+
+
+def contraction_rest(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: torch.Tensor,
+                     lam: float) -> TM:
+    """TM of He{P (Jf - K dh/dx)} + 2 lam P over boxes (a direct network's Jacobian left
+    out): `jcl_taylor` with zero network models, then `tm_congruence`."""
     system, net = problem.system, problem.network
     n = problem.n
     B, d = lo.shape
@@ -95,9 +109,4 @@ def contraction_tm_mixed(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: tor
     jac0 = TM(torch.zeros(B, n, d, dtype=torch.float64),
               torch.zeros(B, n, d, d, dtype=torch.float64),
               torch.zeros(B, n, d, dtype=torch.float64))
-    rest = tm_congruence(pc, jcl_taylor(system, net, lo, hi, net_tms=(val, jac0, r)), lam, r)
-    Nt = network_crown_mixed_jacobian(net, lo, hi, list(range(n)), problem.P_t)  # [B, n, n]
-    c = 0.5 * (Nt.c + Nt.c.transpose(1, 2))
-    g = 0.5 * (Nt.g + Nt.g.transpose(1, 2))
-    e = 0.5 * up(Nt.e + Nt.e.transpose(1, 2))
-    return tm_add(rest, tm_absorb(c, g, up(e), r, 2), r)
+    return tm_congruence(pc, jcl_taylor(system, net, lo, hi, net_tms=(val, jac0, r)), lam, r)

@@ -46,7 +46,7 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
                     crown: bool = True, screen: float | None = None,
                     crown_gain: float | CrownGain = CROWN_GAIN,
                     root_width: torch.Tensor | None = None,
-                    split_rule: str = "sensitivity") -> BoxBounds:
+                    split_rule: str = "sensitivity", decide: bool = False) -> BoxBounds:
     """Sound upper bounds of max over each box of lam_max(M D M^T), D with rate lam.
 
     taylor: True (first-order Taylor models through the network, the default), "interval"
@@ -59,7 +59,10 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     `choose_preconditioner`) and a direct network, the boxes the plain bound leaves go straight
     to the linear bounds of P dN/dx with mixed rows (`certify.bounds.mixed`), which contain
     the Taylor models entry by entry. split_rule: how the split score is formed
-    (`certify.bounds.split.split_score`)."""
+    (`certify.bounds.split.split_score`). decide: the caller only asks whether each bound is
+    <= the level (screen, else 0; a decision, not a maximisation): for n >= 4 the vertex
+    matrices are tested by the certified Cholesky test (`tm_lam_upper(level=...)`) and a box
+    it decides reports (just below) the level instead of its eigenvalue bound."""
     system, net = problem.system, problem.network
     if pc is None:
         pc = make_preconditioner(problem.P_t)
@@ -88,6 +91,7 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     # backward linear bounds, only where stage 2 failed while its affine (vertex) part alone
     # would pass, i.e. where a tighter remainder can decide the box
     work = torch.ones(B, dtype=torch.bool) if screen is None else ~(plain <= screen)
+    decide_level = (0.0 if screen is None else screen) if decide else None
     STAGE_COUNTS["boxes"] += B
     tay = torch.full_like(plain, float("inf"))
     score = wscore.clone()
@@ -100,14 +104,16 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
             from certify.bounds.mixed import contraction_tm_mixed
 
             STAGE_COUNTS["crown"] += int(work.sum())
-            t_w, s_w = tm_lam_upper(contraction_tm_mixed(problem, pc, wl, wh, wr, lam), wr)
+            t_w, s_w = tm_lam_upper(contraction_tm_mixed(problem, pc, wl, wh, wr, lam), wr,
+                                    level=decide_level)
             STAGE_COUNTS["crown_closed"] += int((t_w <= (0.0 if screen is None else screen)).sum())
             tay[work] = t_w
             score[work] = split_score(split_rule, s_w, wr, root_width, net)
             return BoxBounds(nan_min(plain, tay), plain, tay, score)
         STAGE_COUNTS["taylor"] += int(work.sum())
         Jt = jcl_taylor(system, net, wl, wh)
-        t_w, s_w, lv = tm_lam_upper(tm_congruence(pc, Jt, lam, wr), wr, parts=True)
+        t_w, s_w, lv = tm_lam_upper(tm_congruence(pc, Jt, lam, wr), wr, parts=True,
+                                    level=decide_level)
         if crown:
             level = 0.0 if screen is None else screen
             # the linear bounds cut the remainder by 10-1000x on small boxes: try them where
@@ -134,7 +140,7 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
                                                 value=problem.structural)
                     Jc = jcl_taylor(system, net, al, ah, net_tms=net_tms)
                     Ac = tm_congruence(pc, Jc, lam, ar)
-                t_c, s_c = tm_lam_upper(Ac, ar)
+                t_c, s_c = tm_lam_upper(Ac, ar, level=decide_level)
                 STAGE_COUNTS["crown"] += int(again.sum())
                 STAGE_COUNTS["crown_closed"] += int((t_c <= level).sum())
                 better = torch.nan_to_num(t_c, nan=float("inf")) < t_w[again]

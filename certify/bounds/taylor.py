@@ -24,8 +24,10 @@ from certify.bounds.eigen import (
     MAX_VERTEX_DIM,
     _vertices,
     hertz_upper,
+    lam_max_at_most,
     lam_max_upper_point,
     rho_upper,
+    vertex_max_upper,
 )
 from certify.bounds.interval_ops import const_lam
 from certify.bounds.preconditioner import Preconditioner
@@ -308,11 +310,22 @@ def tm_congruence(pc: Preconditioner, J: TM, lam: float, r: torch.Tensor) -> TM:
     return A
 
 
-def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False):
+def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | None = None):
     """max over the box of lam_max(A(z)) <= max_vertices lam_max(c + sum_m s_m r_m g_m)
     + rho(e + rounding) (convexity of lam_max in the affine part); for n <= 3 the smaller
     max_vertices hertz_upper(vertex matrix, e + rounding) (the remainder entrywise, not by its
-    spectral radius)."""
+    spectral radius).
+
+    level (a decision: only "bound <= level" matters; n >= 4): the vertex matrices are first
+    tested against t = down(level' - rho) by the certified Cholesky test
+    (`certify.bounds.eigen.lam_max_at_most`), level' = level - 1e-12 (1 + |level|); a box whose
+    every vertex passes reports the bound level' (proved: vertex max <= t, t + rho <= level'),
+    without eigenvalues. The others (their bound then only ranks them in the branch and
+    bound: a completed proof splits the same boxes whatever it is, a budgeted run's order
+    depends on it) get Weyl's lam_max(c) + sum_m ||r_m g_m||_F (one eigenproblem per box,
+    `_weyl_upper`); with `parts` (the vertex part is wanted), the vertices that fail are
+    tested again at t + k s, s = rho + 1e-3 (1 + |level|), k = 1/4, 1, 4 (their bound: the
+    first level passed) and only the rest get eigenvalue bounds."""
     B, n, _, d = A.g.shape
     rG = (A.g * r[:, None, None, :]).permute(0, 3, 1, 2)  # [B, d, n, n]
     gk = gamma(d + 5)
@@ -323,13 +336,28 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False):
         V = _vertices(d)
         S = A.c[:, None] + torch.einsum("vd,bdij->bvij", V, rG)
         S = 0.5 * (S + S.transpose(-1, -2))
-        lv = lam_max_upper_point(S).amax(-1)
     else:
         S = None
         rem = up(rem + rG.abs().sum(1) * (1.0 + gk))
-        lv = lam_max_upper_point(A.c)
     rr = rho_upper(rem)
+    decided = None
+    if S is not None and level is not None and n >= 4:
+        lvl = float(level) - 1e-12 * (1.0 + abs(float(level)))
+        t = down(lvl - rr)  # proved vertex max <= t  =>  lv + rr <= lvl
+        if parts:  # the vertex part itself is wanted (where the linear bounds are tried)
+            lv, decided = vertex_max_upper(S, t, step=rr + 1e-3 * (1.0 + abs(lvl)))
+        else:
+            decided = lam_max_at_most(S, t[:, None].expand(B, S.shape[1])).all(-1)
+            lv = t.clone()
+            if not bool(decided.all()):
+                lv[~decided] = _weyl_upper(A.c[~decided], rG[~decided])
+    elif S is not None:
+        lv = lam_max_upper_point(S).amax(-1)
+    else:
+        lv = lam_max_upper_point(A.c)
     bound = up(lv + rr)
+    if decided is not None:
+        bound = torch.where(decided, torch.full_like(bound, lvl), bound)
     if S is not None and n <= 3:
         hz = hertz_upper(S, rem.unsqueeze(1).expand_as(S)).amax(-1)
         bound = torch.where(torch.isnan(bound) | torch.isnan(hz), bound + hz,
@@ -342,3 +370,14 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False):
         return bound, score, lv  # could reach
     return bound, score
 
+
+
+def _weyl_upper(c: torch.Tensor, rG: torch.Tensor) -> torch.Tensor:
+    """Upper bound of lam_max(sym(c) + sum_m v_m rG_m) over v in [-1, 1]^d: lam_max(sym(c))
+    + sum_m ||rG_m||_F (Weyl; the spectral norm is at most the Frobenius norm), rounded up.
+    c [B, n, n], rG [B, d, n, n]; the float errors of sym(c) and of the vertex sums are
+    those `tm_lam_upper`'s remainder already covers."""
+    d = rG.shape[1]
+    lc = lam_max_upper_point(0.5 * (c + c.transpose(-1, -2)))
+    fro = torch.linalg.matrix_norm(rG).sum(-1)
+    return up(lc + up(fro * (1.0 + 2.0 * gamma(d * rG.shape[-1] ** 2 + 2))))
