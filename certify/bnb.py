@@ -138,6 +138,7 @@ def branch_and_bound(
     threshold: float | None = None,
     tol: float = 0.0,
     rel_tol: float = 0.0,
+    coarse_after: tuple[int, float] | None = None,
     stop_on_violation: bool = True,
     seconds: float = 60.0,
     max_boxes: int = 2_000_000,
@@ -157,8 +158,11 @@ def branch_and_bound(
     Decision mode (`threshold` given): boxes with upper <= threshold close as proved; a
     centre value > threshold is a violation (stops when `stop_on_violation`). Maximisation
     mode: boxes with upper <= best + max(tol, rel_tol |best|) close; the result `upper` is
-    the max over closed and open boxes. Budgets: `seconds` and `max_boxes` (boxes evaluated).
-    `executor` / `remote`: where each round's children are evaluated; `lag`: rounds in
+    the max over closed and open boxes. `coarse_after = (N, coarse)`: once N boxes have been
+    evaluated the closing tolerance relaxes to `coarse` (a fine precision where it is cheap,
+    never more than N boxes spent on it beyond the coarse one; boxes closed before stay
+    closed, their bounds are below either level). Budgets: `seconds` and `max_boxes` (boxes
+    evaluated). `executor` / `remote`: where each round's children are evaluated; `lag`: rounds in
     flight before the oldest is merged (module docstring). The outcome depends on `lag` and
     the budgets, not on the executor.
     """
@@ -227,9 +231,12 @@ def branch_and_bound(
         lvl = -math.inf
         if threshold is not None:
             lvl = threshold
-        if threshold is None or tol > 0 or rel_tol > 0:
+        rt = rel_tol
+        if coarse_after is not None and processed >= coarse_after[0]:
+            rt = max(rel_tol, coarse_after[1])
+        if threshold is None or tol > 0 or rt > 0:
             if math.isfinite(best):
-                lvl = max(lvl, best + max(tol, rel_tol * abs(best)))
+                lvl = max(lvl, best + max(tol, rt * abs(best)))
         return lvl
 
     def close(lo: torch.Tensor, hi: torch.Tensor, ub: torch.Tensor) -> None:

@@ -197,7 +197,8 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
 
 def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_000_000,
                progress: Progress | None = None, tol: float = 1e-9, rel_tol: float = 1e-3,
-               batch: int = 1024, seeds: object | None = None) -> RateOutcome:
+               batch: int = 1024, seeds: object | None = None,
+               coarse_after: tuple[int, float] | None = None) -> RateOutcome:
     """Proved lower bound on lam_cert = -max lam_max(He{P J_cl}, P) / 2 over X x Y.
 
     Direct branch and bound on phi(z) = lam_max(He{P J_cl(z)}, P) (no bisection): boxes are
@@ -210,6 +211,7 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     set the closing level from the start, so boxes far below the max close in the first
     rounds instead of being refined until the search finds a point as bad. They only choose
     what is refined; the bound is the max over every box's sound bound either way.
+    `coarse_after`: see `branch_and_bound` (the tolerance relaxes after that many boxes).
     """
     progress = progress or NullProgress()
     pc = make_preconditioner(problem.P_t)
@@ -237,7 +239,7 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
 
     out = branch_and_bound(lo, hi, evaluate, threshold=None, tol=tol, rel_tol=rel_tol,
                            seconds=seconds, max_boxes=max_boxes, batch=batch,
-                           progress=progress, task="rate proof",
+                           progress=progress, task="rate proof", coarse_after=coarse_after,
                            seeds=_seed_box(seeds, lo.shape[0]))
     lower = -out.upper / 2.0 if math.isfinite(out.upper) else None
     worst = None

@@ -1,0 +1,35 @@
+"""Maximisation B&B with a tolerance that relaxes after a box budget (`coarse_after`)."""
+
+from __future__ import annotations
+
+import torch
+
+from certify.bnb import BoxEval, branch_and_bound
+
+F64 = torch.float64
+
+
+def _evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+    """f(x) = 1 - |x - a|^2 with a mean-value bound: f(c) + sum 2 (|c - a| + r) r (sound)."""
+    a = torch.tensor([0.31415926, 0.71828182], dtype=F64)
+    c = 0.5 * (lo + hi)
+    r = 0.5 * (hi - lo)
+    value = 1.0 - ((c - a) ** 2).sum(-1)
+    upper = value + (2.0 * ((c - a).abs() + r) * r).sum(-1) * (1 + 1e-12) + 1e-15
+    return BoxEval(upper=upper, centre_value=value, score=None)
+
+
+def test_coarse_after_stops_at_the_coarse_tolerance_after_the_budget() -> None:
+    lo, hi = torch.zeros(2, dtype=F64), torch.ones(2, dtype=F64)
+    kw = dict(batch=16, seconds=60.0, max_boxes=200_000, project=None)
+    fine = branch_and_bound(lo, hi, _evaluate, rel_tol=1e-9, **kw)
+    relaxed = branch_and_bound(lo, hi, _evaluate, rel_tol=1e-9, coarse_after=(128, 1e-2), **kw)
+    coarse = branch_and_bound(lo, hi, _evaluate, rel_tol=1e-2, **kw)
+    for out in (fine, relaxed, coarse):
+        assert out.complete and out.upper >= 1.0  # sound: the true max is 1, at a
+    assert fine.upper <= 1.0 + 2e-9
+    assert relaxed.upper <= 1.0 + 1e-2 + 1e-12  # the coarse tolerance, no more
+    # the fine phase refines until 128 boxes, then the coarse rule closes the rest
+    assert coarse.stats.boxes_processed < relaxed.stats.boxes_processed \
+        < fine.stats.boxes_processed
+    assert relaxed.stats.boxes_processed <= 128 + 4 * 2 * 16  # a few rounds in flight at most
