@@ -151,6 +151,18 @@ def residual_norm(layers, x: Sequence[float], p: int) -> mpmath.mpf:
         return mpmath.sqrt(sum(k[i] ** 2 for i in range(k.rows)))
 
 
+def exact_lam_max(S: np.ndarray, digits: int = 50) -> mpmath.mpf:
+    """lam_max of the symmetric matrix given by S's lower triangle (a double array), at
+    `digits` digits (mpmath's symmetric eigensolver)."""
+    with mpmath.workdps(digits):
+        n = S.shape[0]
+        M = mpmath.matrix(n, n)
+        for i in range(n):
+            for j in range(n):
+                M[i, j] = mpmath.mpf(float(S[max(i, j), min(i, j)]))
+        return max(mpmath.eigsy(M, eigvals_only=True))
+
+
 def jacobian_f(spec: RandomSpec, x: Sequence[float]) -> mpmath.matrix:
     xs = [mpmath.mpf(float(v)) for v in x]
     J = mpmath.matrix(spec.n, spec.n)

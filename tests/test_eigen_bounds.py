@@ -3,26 +3,14 @@ reference at 50 digits) and close to it; refused cases fall back to LAPACK."""
 
 from __future__ import annotations
 
-import mpmath
-import numpy as np
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from certify.bounds.eigen import _lam3_certified, hertz_upper, lam_max_upper_point
+from tests.mp_reference import exact_lam_max
 
 F64 = torch.float64
-
-
-def _exact_lam_max(S: np.ndarray) -> float:
-    """lam_max of the symmetric matrix given by S's lower triangle, at 50 digits."""
-    mpmath.mp.dps = 50
-    n = S.shape[0]
-    M = mpmath.matrix(n, n)
-    for i in range(n):
-        for j in range(n):
-            M[i, j] = mpmath.mpf(float(S[max(i, j), min(i, j)]))
-    return max(mpmath.eigsy(M, eigvals_only=True))
 
 
 def _sym_batch(seed: int, count: int, scale: float, cluster: bool) -> torch.Tensor:
@@ -39,11 +27,11 @@ def _sym_batch(seed: int, count: int, scale: float, cluster: bool) -> torch.Tens
 @settings(max_examples=12, deadline=None)
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-6, 1.0, 37.0, 1e5]),
        cluster=st.booleans())
-def test_lam3_bound_contains_exact_lam_max(seed: int, scale: float, cluster: bool) -> None:
+def test_lam3_bound_containsexact_lam_max(seed: int, scale: float, cluster: bool) -> None:
     S = _sym_batch(seed, 6, scale, cluster)
     ub = lam_max_upper_point(S)
     for k in range(len(S)):
-        exact = _exact_lam_max(S[k].numpy())
+        exact = exact_lam_max(S[k].numpy())
         assert float(ub[k]) >= exact
         # tight: within a relative 1e-7 of the matrix scale
         assert float(ub[k]) - exact <= 1e-7 * float(S[k].abs().sum()) + 1e-280
