@@ -305,3 +305,24 @@ def test_round_batch_fills_the_workers_and_keeps_small_runs_serial():
     assert round_batch(Remote(3), 1024) * 2 >= 3 * BOXES_PER_WORKER
     assert round_batch(Remote(64), 1024) * 2 == 64 * BOXES_PER_WORKER
     assert round_batch(Remote(64), 10**6) == 10**6  # never smaller than asked
+
+
+def test_cli_workers_2_gives_the_serial_certificate(tmp_path, capsys):
+    """`certify run --workers 2` end to end: the same exit code, verdict and proved numbers
+    as the serial run (the grid and the MPDI rounds run on a local Dask cluster)."""
+    import json
+
+    ckpt = save_linear(tmp_path / "lin.ckpt")
+    small = ("--no-config", "--grid-points", "20000", "--adversarial-starts", "4",
+             "--sim-time", "1", "--quiet")
+    serial_json, dask_json = tmp_path / "serial.json", tmp_path / "dask.json"
+    code_s, _, _ = run_cli(capsys, "run", ckpt, *small, "--json", str(serial_json))
+    code_d, _, err = run_cli(capsys, "run", ckpt, *small, "--workers", "2",
+                             "--json", str(dask_json))
+    assert code_s == code_d == 0, err
+    serial, dask = json.loads(serial_json.read_text()), json.loads(dask_json.read_text())
+    assert serial["verdict"] == dask["verdict"] == "CERTIFIED"
+    assert dask["settings"]["workers"] == 2
+    for name in ("mpdi", "rate"):
+        for key in ("status", "lower", "upper", "proved_lower", "sampled_upper"):
+            assert serial["checks"][name].get(key) == dask["checks"][name].get(key), (name, key)
