@@ -9,7 +9,10 @@ a `Figure`, or None when its data is missing (every figure is optional).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from certify.certificate import Certificate
@@ -18,34 +21,51 @@ from reports.figure_data import check_result, grid_map, state_names
 from reports.figure_kit import heatmap, legend_below, mark, new_figure, point_marker
 
 
+def _open_map(fig_height: float, x: np.ndarray, y: np.ndarray, v: np.ndarray, label: str,
+              **style: Any) -> tuple[Figure, Axes]:
+    """A new figure with one axes holding the heatmap of v over the (x, y) grid."""
+    fig = new_figure(fig_height)
+    ax = fig.add_subplot()
+    heatmap(fig, ax, x, y, v, label=label, **style)
+    return fig, ax
+
+
+def _star(fig: Figure, ax: Axes, xy: Any, element: str, color: str, label: str) -> None:
+    """The map's one distinguished point (worst point, witness): a large outlined star."""
+    point_marker(fig, ax, xy, element, marker="*", s=150, c=color, edgecolors="black",
+                 linewidths=0.8, zorder=6, label=label)
+
+
+def _finish(ax: Axes, axes: list[str], title: str) -> None:
+    """Axis names, title and the legend below the map."""
+    ax.set_xlabel(axes[0])
+    ax.set_ylabel(axes[1] if len(axes) > 1 else "")
+    ax.set_title(title)
+    legend_below(ax)
+
+
 def fig_mpdi_map(cert: Certificate) -> Figure | None:
     """Heatmap of max over y of lam_max(D) over the xhat box, zero contour, counterexamples."""
     g = grid_map(cert, "mpdi_map")
     if g is None:
         return None
     x, y, v, axes = g
-    fig = new_figure(4.3)
-    ax = fig.add_subplot()
-    heatmap(fig, ax, x, y, v, label="max over y of \u03bb_max(D)", diverging=True)
+    fig, ax = _open_map(4.3, x, y, v, "max over y of \u03bb_max(D)", diverging=True)
     r = check_result(cert, "mpdi")
     if r is not None:
         if r.worst is not None and len(r.worst.xhat) >= 2:
-            point_marker(fig, ax, r.worst.xhat, "worst point", marker="*", s=150, c="#fde047",
-                   edgecolors="black", linewidths=0.8, zorder=6,
-                   label=f"worst point ({fmt(r.worst.value, 4, signed=True)})")
+            _star(fig, ax, r.worst.xhat, "worst point", "#fde047",
+                  f"worst point ({fmt(r.worst.value, 4, signed=True)})")
         pts = np.array([c.xhat[:2] for c in r.counterexamples if len(c.xhat) >= 2])
         if len(pts):  # above the star: a counterexample on the worst point stays visible
             ax.scatter(pts[:, 0], pts[:, 1], marker="x", s=40, c="#111827", linewidths=1.5,
                        label=f"counterexamples ({len(pts)})", zorder=7, clip_on=False)
             mark(fig, "counterexamples", len(pts))
-    ax.set_xlabel(axes[0])
-    ax.set_ylabel(axes[1] if len(axes) > 1 else "")
     n = len(state_names(cert))
     extra = " (other states at their box centre)" if n > 2 else ""
     if n > 2:
         mark(fig, "slice")
-    ax.set_title("MPDI map: max over y of \u03bb_max(D(x\u0302, y))" + extra)
-    legend_below(ax)
+    _finish(ax, axes, "MPDI map: max over y of \u03bb_max(D(x\u0302, y))" + extra)
     return fig
 
 
@@ -55,20 +75,14 @@ def fig_necessary_map(cert: Certificate) -> Figure | None:
     if g is None:
         return None
     x, y, v, axes = g
-    fig = new_figure(3.9)
-    ax = fig.add_subplot()
-    heatmap(fig, ax, x, y, v, label="q(x\u0302)", diverging=True)
+    fig, ax = _open_map(3.9, x, y, v, "q(x\u0302)", diverging=True)
     r = check_result(cert, "necessary")
     if r is not None and r.witness is not None and len(r.witness) >= 2:
-        point_marker(fig, ax, r.witness, "witness", marker="*", s=150, c="#fde047",
-               edgecolors="black", linewidths=0.8, zorder=6,
-               label=f"witness (q = {fmt(r.q_max, 4, signed=True)})")
+        _star(fig, ax, r.witness, "witness", "#fde047",
+              f"witness (q = {fmt(r.q_max, 4, signed=True)})")
     if np.isnan(v).any():
         ax.scatter([], [], marker="s", s=40, c="#d1d5db", label="h(x\u0302) \u2209 Y")
-    ax.set_xlabel(axes[0])
-    ax.set_ylabel(axes[1] if len(axes) > 1 else "")
-    ax.set_title("Necessary condition: q(x\u0302) on the output manifold (> 0: impossible)")
-    legend_below(ax)
+    _finish(ax, axes, "Necessary condition: q(x\u0302) on the output manifold (> 0: impossible)")
     return fig
 
 
@@ -81,18 +95,12 @@ def fig_residual_map(cert: Certificate) -> Figure | None:
     r = check_result(cert, "residual")
     if r is not None and r.structural and np.all(v[np.isfinite(v)] == 0):
         return None  # zero by construction: the section says so, a blank map adds nothing
-    fig = new_figure(3.9)
-    ax = fig.add_subplot()
-    heatmap(fig, ax, x, y, v, label="\u2016k(x, h(x))\u2016", diverging=False,
-             cmap="viridis")
+    fig, ax = _open_map(3.9, x, y, v, "\u2016k(x, h(x))\u2016", diverging=False,
+                        cmap="viridis")
     if r is not None and r.worst is not None and len(r.worst) >= 2:
-        point_marker(fig, ax, r.worst, "worst point", marker="*", s=150, c="#f472b6",
-               edgecolors="black", linewidths=0.8, zorder=6, label=f"worst ({fmt(r.sampled)})")
-    ax.set_xlabel(axes[0])
-    ax.set_ylabel(axes[1] if len(axes) > 1 else "")
+        _star(fig, ax, r.worst, "worst point", "#f472b6", f"worst ({fmt(r.sampled)})")
     title = "Boundary residual \u2016k(x, h(x))\u2016 over X"
     if r is not None and r.structural:
         title += " (zero by construction)"
-    ax.set_title(title)
-    legend_below(ax)
+    _finish(ax, axes, title)
     return fig
