@@ -14,8 +14,8 @@ convex for |x| >= c, concave for |x| <= c, c = atanh(1/sqrt 3), with the boundar
 outwards on each side and the sliver between evaluated by plain interval arithmetic). On a
 convex piece the maximum is at an endpoint and the minimum is bounded below by the tangent at
 any point x0 of the piece, r(x) >= r(x0) + r'(x0)(x - x0); on a concave piece the reverse. x0
-is an approximate critical point (closed forms: for tanh' the roots of a cubic in tanh x), which only
-affects tightness. Rounding: every r(.) and r'(.) value is an outward-rounded interval
+is an approximate critical point (closed forms; for tanh' the roots of a cubic in tanh x),
+which only affects tightness. Rounding: every r(.) and r'(.) value is an outward-rounded interval
 (`certify.intervals` rules: libm widened by 4 ulps, +, -, * one ulp outward), so the returned
 intercepts hold for the real-number lines a x + b; users of the lines account for the float
 evaluation of a x + b themselves.
