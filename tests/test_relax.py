@@ -90,3 +90,42 @@ def test_mccormick_is_sound(seed: int, scale: float) -> None:
     tol = 8 * 2.0**-53 * (v.abs() + lin.abs() + 1e-300)
     assert bool((lin + bb.lower_icpt[:, None] <= v + tol).all())
     assert bool((v <= lin + bb.upper_icpt[:, None] + tol).all())
+
+
+def test_dtanh_critical_points_solve_the_cubic_on_their_pieces() -> None:
+    """`_dtanh_crit` (closed form) returns, per piece of known curvature, the x where
+    tanh''(x) = a when the piece has one: it only places the tangent of the sound bound,
+    so a wrong root costs tightness; this pins that it is the right root."""
+    import math
+
+    from certify.bounds.relax import _C_D1, _dtanh_crit
+
+    gmax = 4.0 / (3.0 * math.sqrt(3.0))
+    a = torch.linspace(-0.999 * gmax, 0.999 * gmax, 2001, dtype=F64)
+    x_left, x_mid, x_right = _dtanh_crit(a)
+
+    def d2(x: torch.Tensor) -> torch.Tensor:
+        t = torch.tanh(x)
+        return -2.0 * t * (1.0 - t * t)
+
+    assert bool((x_mid.abs() <= _C_D1 + 1e-9).all())
+    assert float((d2(x_mid) - a).abs().max()) < 1e-9
+    pos, neg = a > 1e-3, a < -1e-3  # a root on the left (right) convex piece
+    assert bool((x_left[pos] <= -_C_D1 + 1e-9).all()) and bool((x_right[neg] >= _C_D1 - 1e-9).all())
+    assert float((d2(x_left[pos]) - a[pos]).abs().max()) < 1e-9
+    assert float((d2(x_right[neg]) - a[neg]).abs().max()) < 1e-9
+    # no root on a piece: the point lies beyond the piece's far end (clamped there later)
+    assert bool((x_left[neg] <= -15).all()) and bool((x_right[pos] >= 15).all())
+
+
+def test_point_enclosures_match_the_general_path() -> None:
+    """A point interval (lo is hi) takes one libm call; the enclosure is bit-identical to
+    the general path's (lo and hi equal but distinct tensors)."""
+    from certify.activations.tanh import d2tanh_enclosure, dtanh_enclosure, tanh_enclosure
+
+    g = torch.Generator().manual_seed(3)
+    x = torch.cat([torch.randn(500, generator=g, dtype=F64) * s for s in (0.01, 1.0, 30.0)]
+                  + [torch.tensor([0.0, -0.0, 25.0, -40.0], dtype=F64)])
+    for enc in (tanh_enclosure, dtanh_enclosure, d2tanh_enclosure):
+        fast, general = enc(Interval(x, x)), enc(Interval(x, x.clone()))
+        assert torch.equal(fast.lo, general.lo) and torch.equal(fast.hi, general.hi)

@@ -31,13 +31,21 @@ _T_CRIT = 1.0 / math.sqrt(3.0)
 
 def tanh_enclosure(a: Interval) -> Interval:
     """tanh over [lo, hi] (increasing: endpoint rule, widened; |tanh| <= 1 never overflows,
-    so the plain widening of `certify.intervals` serves)."""
+    so the plain widening of `certify.intervals` serves). A point interval (lo and hi the
+    same tensor, as the relaxations pass them) costs one libm call."""
+    if a.lo is a.hi:
+        t = torch.tanh(a.lo)
+        return Interval(widen_down(t), widen_up(t))
     return Interval(widen_down(torch.tanh(a.lo)), widen_up(torch.tanh(a.hi)))
 
 
 def dtanh_enclosure(a: Interval) -> Interval:
     """tanh'(x) = 1 - tanh(x)^2 over [lo, hi]: maximum 1 at 0 when the interval contains 0."""
-    t = tanh_enclosure(Interval(a.mig(), a.mag()))  # tanh over |x|, increasing
+    if a.lo is a.hi:  # a point: mig = mag = |x|
+        m = a.lo.abs()
+        t = tanh_enclosure(Interval(m, m))
+    else:
+        t = tanh_enclosure(Interval(a.mig(), a.mag()))  # tanh over |x|, increasing
     lo = down(1.0 - up(t.hi * t.hi)).clamp_min(0.0)
     hi = up(1.0 - down(t.lo * t.lo)).clamp(max=1.0)
     return Interval(lo, hi)

@@ -14,8 +14,8 @@ convex for |x| >= c, concave for |x| <= c, c = atanh(1/sqrt 3), with the boundar
 outwards on each side and the sliver between evaluated by plain interval arithmetic). On a
 convex piece the maximum is at an endpoint and the minimum is bounded below by the tangent at
 any point x0 of the piece, r(x) >= r(x0) + r'(x0)(x - x0); on a concave piece the reverse. x0
-is an approximate critical point (closed form for tanh, bisection for tanh'), which only
-affects tightness. Rounding: every r(.) and r'(.) value is an outward-rounded interval
+is an approximate critical point (closed forms; for tanh' the roots of a cubic in tanh x),
+which only affects tightness. Rounding: every r(.) and r'(.) value is an outward-rounded interval
 (`certify.intervals` rules: libm widened by 4 ulps, +, -, * one ulp outward), so the returned
 intercepts hold for the real-number lines a x + b; users of the lines account for the float
 evaluation of a x + b themselves.
@@ -50,12 +50,18 @@ def _f_and_df(kind: str, x: Interval) -> tuple[Interval, Interval]:
     return dtanh_enclosure(x), d2tanh_enclosure(x)
 
 
-def _residual(kind: str, x: torch.Tensor, a: torch.Tensor) -> tuple[Interval, Interval]:
-    """r(x) = f(x) - a x and r'(x) = f'(x) - a at points x (outward-rounded intervals)."""
-    f, df = _f_and_df(kind, Interval(x, x))
-    ax = imul(Interval(a, a), Interval(x, x))
+def _residual(kind: str, x: torch.Tensor, a: torch.Tensor, slope: bool = True
+              ) -> tuple[Interval, Interval | None]:
+    """r(x) = f(x) - a x and (slope) r'(x) = f'(x) - a at points x (outward-rounded
+    intervals); without `slope` r' is not computed (None)."""
+    xi = Interval(x, x)
+    if slope:
+        f, df = _f_and_df(kind, xi)
+    else:
+        f, df = (tanh_enclosure(xi) if kind == "tanh" else dtanh_enclosure(xi)), None
+    ax = imul(Interval(a, a), xi)
     r = Interval(down(f.lo - ax.hi), up(f.hi - ax.lo))
-    dr = Interval(down(df.lo - a), up(df.hi - a))
+    dr = None if df is None else Interval(down(df.lo - a), up(df.hi - a))
     return r, dr
 
 
@@ -74,8 +80,8 @@ def _piece_extrema(kind: str, a: torch.Tensor, lo: torch.Tensor, hi: torch.Tenso
         f, _ = _f_and_df(kind, Interval(pa, pb))
         ax = imul(Interval(a, a), Interval(pa, pb))
         return down(f.lo - ax.hi), up(f.hi - ax.lo), empty
-    ra, _ = _residual(kind, pa, a)
-    rb, _ = _residual(kind, pb, a)
+    ra, _ = _residual(kind, pa, a, slope=False)
+    rb, _ = _residual(kind, pb, a, slope=False)
     x0 = torch.minimum(torch.maximum(x0, pa), pb)
     r0, dr0 = _residual(kind, x0, a)
     da = Interval(down(pa - x0), up(pa - x0))
@@ -134,17 +140,26 @@ def _dtanh_slope(x: torch.Tensor) -> torch.Tensor:
     return -2.0 * t * (1.0 - t * t)
 
 
-def _bisect_crit(a: torch.Tensor, pa: torch.Tensor, pb: torch.Tensor, increasing: bool,
-                 iters: int = 14) -> torch.Tensor:
-    """x in [pa, pb] with tanh''(x) ~ a, tanh'' monotone there (clamped to an endpoint)."""
-    lo, hi = pa.clone(), pb.clone()
-    for _ in range(iters):
-        m = 0.5 * (lo + hi)
-        v = _dtanh_slope(m)
-        go_right = (v < a) if increasing else (v > a)
-        lo = torch.where(go_right, m, lo)
-        hi = torch.where(go_right, hi, m)
-    return 0.5 * (lo + hi)
+def _dtanh_crit(a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Points where tanh''(x) = a on each piece of known curvature: (left convex piece x <=
+    -c, concave piece |x| <= c, right convex piece x >= c), in closed form. With T = tanh x,
+    tanh'' = -2 T (1 - T^2) = a is the cubic T^3 - T - a/2 = 0, whose three real roots (|a| <=
+    4 / (3 sqrt 3), the largest |tanh''|) are T_k = (2 / sqrt 3) cos(phi - 2 pi k / 3), phi =
+    arccos(3 sqrt(3) a / 4) / 3: k = 0 the largest (T >= 1/sqrt 3), k = 1 the middle one, k = 2
+    the smallest. A root outside (-1, 1) means no critical point on that piece (r' keeps
+    its sign there): its x comes out at +-30 and `_piece_extrema` clamps it to the end the
+    bisection it replaces would have reached. Float only: x0 affects tightness, never
+    soundness (the tangent bound holds at any x0 of the piece)."""
+    k = 3.0 * math.sqrt(3.0) / 4.0
+    phi = torch.arccos((a * k).clamp(-1.0, 1.0)) / 3.0
+    s = 2.0 / math.sqrt(3.0)
+
+    def x_of(t: torch.Tensor) -> torch.Tensor:
+        return torch.atanh(t.clamp(-1.0 + 1e-16, 1.0 - 1e-16)).clamp(-30.0, 30.0)
+
+    third = 2.0 * math.pi / 3.0
+    return (x_of(s * torch.cos(phi - 2.0 * third)), x_of(s * torch.cos(phi - third)),
+            x_of(s * torch.cos(phi)))
 
 
 def relax_dtanh(lo: torch.Tensor, hi: torch.Tensor) -> LinearBounds:
@@ -160,21 +175,15 @@ def relax_dtanh(lo: torch.Tensor, hi: torch.Tensor) -> LinearBounds:
     a = _chord_slope(s(lo), s(hi), _dtanh_slope(mid), lo, hi)
     a = torch.nan_to_num(a, nan=0.0)
     c_in, c_out = _C_D1 - _GAP, _C_D1 + _GAP
-    parts = []
-    # convex (-inf, -c_out]: tanh'' increasing there
-    pa, pb = torch.clamp(lo, max=-c_out), torch.clamp(hi, max=-c_out)
-    pa = torch.clamp(pa, min=-30.0)
-    pb = torch.clamp(pb, min=-30.0)
-    x0 = _bisect_crit(a, torch.minimum(pa, pb), pb, True)
-    parts.append(_piece_extrema("dtanh", a, lo, hi, -inf_(), -c_out, True, x0))
-    # concave [-c_in, c_in]: tanh'' decreasing
-    pa, pb = torch.clamp(lo, -c_in, c_in), torch.clamp(hi, -c_in, c_in)
-    x0 = _bisect_crit(a, pa, pb, False)
-    parts.append(_piece_extrema("dtanh", a, lo, hi, -c_in, c_in, False, x0))
-    # convex [c_out, inf): tanh'' increasing
-    pa, pb = torch.clamp(lo, min=c_out, max=30.0), torch.clamp(hi, min=c_out, max=30.0)
-    x0 = _bisect_crit(a, pa, torch.maximum(pa, pb), True)
-    parts.append(_piece_extrema("dtanh", a, lo, hi, c_out, inf_(), True, x0))
+    x_left, x_mid, x_right = _dtanh_crit(a)
+    parts = [
+        # convex (-inf, -c_out]: tanh'' increasing there
+        _piece_extrema("dtanh", a, lo, hi, -inf_(), -c_out, True, x_left),
+        # concave [-c_in, c_in]: tanh'' decreasing
+        _piece_extrema("dtanh", a, lo, hi, -c_in, c_in, False, x_mid),
+        # convex [c_out, inf): tanh'' increasing
+        _piece_extrema("dtanh", a, lo, hi, c_out, inf_(), True, x_right),
+    ]
     # the two slivers around +-c: plain interval evaluation
     parts.append(_piece_extrema("dtanh", a, lo, hi, -c_out, -c_in, None, lo))
     parts.append(_piece_extrema("dtanh", a, lo, hi, c_in, c_out, None, lo))

@@ -1,0 +1,145 @@
+"""How far the prover's enclosures are from the best any affine enclosure could do (issue 9).
+
+The MPDI prover bounds A(z) = M D(z) M^T on a sub-box by an affine matrix function plus an
+interval remainder E, and closes the box when max over the vertices of lam_max(affine) +
+rho(E) <= 0. This bench measures, on sub-boxes of the issue-9 instance families:
+
+- `sound_rho`: rho(E) of the prover's own Taylor model of A (linear bound propagation; the
+  mixed-row form for a direct network with M = I, as `certify.bounds.mpdi` uses it);
+- `best_affine_rho`: rho of the entrywise half-range of A(z) minus its least-squares affine
+  fit, over `--points` random points of the sub-box. A sampled ESTIMATE (not a bound) of the
+  remainder of the best affine enclosure; no sound linear relaxation can do much better;
+- `room`: minus the sampled max of lam_max(A) over the sub-box (what a remainder may use);
+- `closed`: the fraction of sub-boxes the prover's bound closes; `closable_by_best_affine`:
+  the fraction the prover's bound form (max over the vertices of lam_max of the affine part,
+  plus rho of the remainder) closes with the fitted affine part and its sampled remainder in
+  place of the prover's: an estimate of what a perfect affine enclosure could close.
+
+If `closable_by_best_affine` is small at a radius, no tightening of linear relaxations
+closes boxes of that size: the proof needs that many smaller boxes, or enclosures of higher
+order. One JSON line per (instance, radius); radii are relative to the root's half-widths.
+
+Example (why the 2x10 six-state chain does not close at radius 1/4):
+    python bench/remainder_gap.py --family 2x10 --n 6 --seeds 0 --radii 0.25 0.125 0.0625
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from bench.instances import InstanceSpec  # noqa: E402
+from bench.prove_suite import FAMILIES, _cached_instance  # noqa: E402
+from certify.bounds.eigen import rho_upper  # noqa: E402
+from certify.bounds.mpdi import choose_preconditioner, direct_mixed  # noqa: E402
+from certify.kernels import closed_loop_jacobian, contraction_matrix  # noqa: E402
+
+
+def prover_tm(problem, pc, lo: torch.Tensor, hi: torch.Tensor, lam: float):
+    """The Taylor model of A = M D M^T the prover's linear-bound stage builds on the boxes."""
+    from certify.bounds.crown import network_crown_tms
+    from certify.bounds.mixed import contraction_tm_mixed
+    from certify.bounds.taylor import jcl_taylor, tm_congruence
+
+    r = 0.5 * (hi - lo)
+    if direct_mixed(problem, pc):
+        return contraction_tm_mixed(problem, pc, lo, hi, r, lam)
+    net_tms = network_crown_tms(problem.network, lo, hi, list(range(problem.n)),
+                                value=problem.structural)
+    J = jcl_taylor(problem.system, problem.network, lo, hi, net_tms=net_tms)
+    return tm_congruence(pc, J, lam, r)
+
+
+def contraction_at(problem, pc, z: torch.Tensor, lam: float) -> torch.Tensor:
+    """A(z) = M D(z) M^T at points z [m, d] (float64)."""
+    n = problem.n
+    J = closed_loop_jacobian(problem.system, problem.network, z[:, :n], z[:, n:])
+    D = contraction_matrix(J, torch.zeros_like(J), problem.P_t.to(torch.float64), lam)
+    M = pc.M.to(torch.float64)
+    return M @ D @ M.T
+
+
+def measure(problem, rel_radius: float, boxes: int, points: int, seed: int) -> dict:
+    s = problem.system
+    root = torch.as_tensor(np.concatenate([s.X, s.Y], 0), dtype=torch.float64)
+    rlo, rhi = root[:, 0], root[:, 1]
+    half = 0.5 * (rhi - rlo)
+    d = len(half)
+    lam = float(problem.lam)
+    pc = choose_preconditioner(problem, lam)
+    g = torch.Generator().manual_seed(seed)
+    rad = rel_radius * half
+    c = rlo + rad + (rhi - rlo - 2 * rad) * torch.rand(boxes, d, generator=g, dtype=torch.float64)
+    lo, hi = c - rad, c + rad
+    tm = prover_tm(problem, pc, lo, hi, lam)
+    sound = rho_upper(tm.e)
+    from certify.bounds.taylor import tm_lam_upper
+
+    bound, _ = tm_lam_upper(tm, rad.expand(boxes, d).clone())
+    best, smax, ideal_bound = [], [], []
+    V = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=torch.float64)] * d).reshape(-1, d)
+    for k in range(boxes):
+        u = 2 * torch.rand(points, d, generator=g, dtype=torch.float64) - 1
+        A = contraction_at(problem, pc, c[k] + rad * u, lam)
+        Y = A.reshape(points, -1)
+        X = torch.cat([torch.ones(points, 1, dtype=torch.float64), u], 1)
+        coef = torch.linalg.lstsq(X, Y).solution
+        dev = Y - X @ coef
+        mid = 0.5 * (dev.amax(0) + dev.amin(0))
+        e = (0.5 * (dev.amax(0) - dev.amin(0))).reshape(A.shape[1:])
+        rho = float(rho_upper(e[None])[0])
+        best.append(rho)
+        smax.append(float(torch.linalg.eigvalsh(0.5 * (A + A.transpose(1, 2)))[:, -1].max()))
+        # the prover's bound form with this affine enclosure: vertex max + rho(E)
+        Lv = (torch.cat([torch.ones(len(V), 1, dtype=torch.float64), V], 1) @ coef + mid)
+        Lv = Lv.reshape(len(V), *A.shape[1:])
+        ideal_bound.append(float(torch.linalg.eigvalsh(0.5 * (Lv + Lv.transpose(1, 2)))[:, -1]
+                                 .max()) + rho)
+    best_t, smax_t = torch.tensor(best), torch.tensor(smax)
+    ratio = sound / best_t.clamp_min(1e-300)
+    return {"rel_radius": rel_radius, "boxes": boxes, "points": points,
+            "preconditioner": pc.kind,
+            "sound_rho_median": round(float(sound.median()), 5),
+            "best_affine_rho_median": round(float(best_t.median()), 5),
+            "ratio_median": round(float(ratio.median()), 3),
+            "room_median": round(float(-smax_t.median()), 5),
+            "closed": round(float((bound <= 0).double().mean()), 4),
+            "closable_by_best_affine": round(float((torch.tensor(ideal_bound) <= 0).double()
+                                                   .mean()), 4)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--family", nargs="+", default=["2x10"], choices=sorted(FAMILIES))
+    ap.add_argument("--g", type=float, default=2.0)
+    ap.add_argument("--n", nargs="+", type=int, default=[2])
+    ap.add_argument("--margin", type=float, default=0.02)
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0])
+    ap.add_argument("--radii", nargs="+", type=float, default=[0.25, 0.125, 0.0625])
+    ap.add_argument("--boxes", type=int, default=32, help="random sub-boxes per radius")
+    ap.add_argument("--points", type=int, default=3000, help="samples per sub-box")
+    ap.add_argument("--cache", default="/tmp/certify-bench/instances.json")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    cache = Path(args.cache) if args.cache else None
+    for fam in args.family:
+        depth, width = FAMILIES[fam]
+        for n in args.n:
+            for seed in args.seeds:
+                spec = InstanceSpec(depth, width, args.g, n, args.margin, seed)
+                prob, _ = _cached_instance(spec, cache)
+                for r in args.radii:
+                    rec = {"bench": "remainder_gap", "instance": spec.name}
+                    rec.update(measure(prob, r, args.boxes, args.points, seed))
+                    print(json.dumps(rec), flush=True)
+
+
+if __name__ == "__main__":
+    main()
