@@ -4,8 +4,8 @@ The MPDI prover bounds A(z) = M D(z) M^T on a sub-box by an affine matrix functi
 interval remainder E, and closes the box when max over the vertices of lam_max(affine) +
 rho(E) <= 0. This bench measures, on sub-boxes of the issue-9 instance families:
 
-- `sound_rho`: rho(E) of the prover's own Taylor model of A (linear bound propagation; the
-  mixed-row form for a direct network with M = I, as `certify.bounds.mpdi` uses it);
+- `sound_rho`: rho(E) of the prover's own Taylor model of A (`certify.bounds.mpdi.
+  crown_contraction_tm`, the linear-bound stage);
 - `best_affine_rho`: rho of the entrywise half-range of A(z) minus its least-squares affine
   fit, over `--points` random points of the sub-box. A sampled ESTIMATE (not a bound) of the
   remainder of the best affine enclosure; no sound linear relaxation can do much better;
@@ -38,23 +38,10 @@ import torch  # noqa: E402
 from bench.instances import InstanceSpec  # noqa: E402
 from bench.prove_suite import FAMILIES, _cached_instance  # noqa: E402
 from certify.bounds.eigen import rho_upper  # noqa: E402
-from certify.bounds.mpdi import choose_preconditioner, direct_mixed  # noqa: E402
+from certify.bounds.mpdi import choose_preconditioner, crown_contraction_tm  # noqa: E402
+from certify.bounds.taylor import tm_lam_upper  # noqa: E402
+from certify.intervals import up  # noqa: E402
 from certify.kernels import closed_loop_jacobian, contraction_matrix  # noqa: E402
-
-
-def prover_tm(problem, pc, lo: torch.Tensor, hi: torch.Tensor, lam: float):
-    """The Taylor model of A = M D M^T the prover's linear-bound stage builds on the boxes."""
-    from certify.bounds.crown import network_crown_tms
-    from certify.bounds.mixed import contraction_tm_mixed
-    from certify.bounds.taylor import jcl_taylor, tm_congruence
-
-    r = 0.5 * (hi - lo)
-    if direct_mixed(problem, pc):
-        return contraction_tm_mixed(problem, pc, lo, hi, r, lam)
-    net_tms = network_crown_tms(problem.network, lo, hi, list(range(problem.n)),
-                                value=problem.structural)
-    J = jcl_taylor(problem.system, problem.network, lo, hi, net_tms=net_tms)
-    return tm_congruence(pc, J, lam, r)
 
 
 def contraction_at(problem, pc, z: torch.Tensor, lam: float) -> torch.Tensor:
@@ -66,53 +53,52 @@ def contraction_at(problem, pc, z: torch.Tensor, lam: float) -> torch.Tensor:
     return M @ D @ M.T
 
 
+def lam_max_sym(A: torch.Tensor) -> torch.Tensor:
+    return torch.linalg.eigvalsh(0.5 * (A + A.transpose(-1, -2)))[..., -1]
+
+
 def measure(problem, rel_radius: float, boxes: int, points: int, seed: int) -> dict:
     s = problem.system
     root = torch.as_tensor(np.concatenate([s.X, s.Y], 0), dtype=torch.float64)
     rlo, rhi = root[:, 0], root[:, 1]
-    half = 0.5 * (rhi - rlo)
-    d = len(half)
+    d = len(rlo)
     lam = float(problem.lam)
     pc = choose_preconditioner(problem, lam)
     g = torch.Generator().manual_seed(seed)
-    rad = rel_radius * half
+    rad = rel_radius * 0.5 * (rhi - rlo)
     c = rlo + rad + (rhi - rlo - 2 * rad) * torch.rand(boxes, d, generator=g, dtype=torch.float64)
     lo, hi = c - rad, c + rad
-    tm = prover_tm(problem, pc, lo, hi, lam)
+    r = up(torch.maximum(hi - c, c - lo))  # the prover's radii (`mpdi_box_bounds`)
+    tm = crown_contraction_tm(problem, pc, lo, hi, r, lam)
     sound = rho_upper(tm.e)
-    from certify.bounds.taylor import tm_lam_upper
-
-    bound, _ = tm_lam_upper(tm, rad.expand(boxes, d).clone())
-    best, smax, ideal_bound = [], [], []
+    bound, _ = tm_lam_upper(tm, r)
+    # sampled best affine fit per box (batched least squares over the points of each box)
+    u = 2 * torch.rand(boxes, points, d, generator=g, dtype=torch.float64) - 1
+    A = contraction_at(problem, pc, (c[:, None] + rad * u).reshape(-1, d), lam)
+    m = A.shape[-1]
+    A = A.reshape(boxes, points, m, m)
+    Y = A.reshape(boxes, points, m * m)
+    ones = torch.ones(boxes, points, 1, dtype=torch.float64)
+    coef = torch.linalg.lstsq(torch.cat([ones, u], -1), Y).solution  # [boxes, d + 1, m m]
+    dev = Y - torch.cat([ones, u], -1) @ coef
+    mid = 0.5 * (dev.amax(1) + dev.amin(1))
+    e = (0.5 * (dev.amax(1) - dev.amin(1))).reshape(boxes, m, m)
+    best = rho_upper(e)
+    smax = lam_max_sym(A).amax(1)
+    # the prover's bound form with the fitted affine part: vertex max + rho(E)
     V = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=torch.float64)] * d).reshape(-1, d)
-    for k in range(boxes):
-        u = 2 * torch.rand(points, d, generator=g, dtype=torch.float64) - 1
-        A = contraction_at(problem, pc, c[k] + rad * u, lam)
-        Y = A.reshape(points, -1)
-        X = torch.cat([torch.ones(points, 1, dtype=torch.float64), u], 1)
-        coef = torch.linalg.lstsq(X, Y).solution
-        dev = Y - X @ coef
-        mid = 0.5 * (dev.amax(0) + dev.amin(0))
-        e = (0.5 * (dev.amax(0) - dev.amin(0))).reshape(A.shape[1:])
-        rho = float(rho_upper(e[None])[0])
-        best.append(rho)
-        smax.append(float(torch.linalg.eigvalsh(0.5 * (A + A.transpose(1, 2)))[:, -1].max()))
-        # the prover's bound form with this affine enclosure: vertex max + rho(E)
-        Lv = (torch.cat([torch.ones(len(V), 1, dtype=torch.float64), V], 1) @ coef + mid)
-        Lv = Lv.reshape(len(V), *A.shape[1:])
-        ideal_bound.append(float(torch.linalg.eigvalsh(0.5 * (Lv + Lv.transpose(1, 2)))[:, -1]
-                                 .max()) + rho)
-    best_t, smax_t = torch.tensor(best), torch.tensor(smax)
-    ratio = sound / best_t.clamp_min(1e-300)
+    Vx = torch.cat([torch.ones(len(V), 1, dtype=torch.float64), V], 1)
+    Lv = (Vx @ coef + mid[:, None]).reshape(boxes, len(V), m, m)
+    ideal_bound = lam_max_sym(Lv).amax(1) + best
+    ratio = sound / best.clamp_min(1e-300)
     return {"rel_radius": rel_radius, "boxes": boxes, "points": points,
             "preconditioner": pc.kind,
             "sound_rho_median": round(float(sound.median()), 5),
-            "best_affine_rho_median": round(float(best_t.median()), 5),
+            "best_affine_rho_median": round(float(best.median()), 5),
             "ratio_median": round(float(ratio.median()), 3),
-            "room_median": round(float(-smax_t.median()), 5),
+            "room_median": round(float(-smax.median()), 5),
             "closed": round(float((bound <= 0).double().mean()), 4),
-            "closable_by_best_affine": round(float((torch.tensor(ideal_bound) <= 0).double()
-                                                   .mean()), 4)}
+            "closable_by_best_affine": round(float((ideal_bound <= 0).double().mean()), 4)}
 
 
 def main() -> None:

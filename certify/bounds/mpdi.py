@@ -128,18 +128,8 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
             if screen is None:
                 again = torch.ones_like(again)
             if bool(again.any()):
-                from certify.bounds.crown import network_crown_tms
-
                 al, ah, ar = wl[again], wh[again], wr[again]
-                if pc.kind == "none" and net.structure == "direct":
-                    from certify.bounds.mixed import contraction_tm_mixed
-
-                    Ac = contraction_tm_mixed(problem, pc, al, ah, ar, lam)
-                else:
-                    net_tms = network_crown_tms(net, al, ah, list(range(problem.n)),
-                                                value=problem.structural)
-                    Jc = jcl_taylor(system, net, al, ah, net_tms=net_tms)
-                    Ac = tm_congruence(pc, Jc, lam, ar)
+                Ac = crown_contraction_tm(problem, pc, al, ah, ar, lam)
                 t_c, s_c = tm_lam_upper(Ac, ar, level=decide_level)
                 STAGE_COUNTS["crown"] += int(again.sum())
                 STAGE_COUNTS["crown_closed"] += int((t_c <= level).sum())
@@ -150,6 +140,22 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
         tay[work] = t_w
         score[work] = split_score(split_rule, s_w, wr, root_width, net)
     return BoxBounds(nan_min(plain, tay), plain, tay, score)
+
+
+def crown_contraction_tm(problem: Problem, pc: Preconditioner, lo: torch.Tensor,
+                         hi: torch.Tensor, r: torch.Tensor, lam: float):
+    """The Taylor model of A = M D M^T over boxes (radii r, rounded up) from the backward
+    linear bounds: the mixed-row form (`certify.bounds.mixed`) for M = I and a direct
+    network, else the network's linear-bound Taylor models through `jcl_taylor`."""
+    net = problem.network
+    if pc.kind == "none" and net.structure == "direct":
+        from certify.bounds.mixed import contraction_tm_mixed
+
+        return contraction_tm_mixed(problem, pc, lo, hi, r, lam)
+    from certify.bounds.crown import network_crown_tms
+
+    net_tms = network_crown_tms(net, lo, hi, list(range(problem.n)), value=problem.structural)
+    return tm_congruence(pc, jcl_taylor(problem.system, net, lo, hi, net_tms=net_tms), lam, r)
 
 
 def direct_mixed(problem: Problem, pc: Preconditioner) -> bool:
