@@ -77,7 +77,8 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     order = 2 if taylor == "interval" else 1
     gb, _ = gain_enclosure(system, net, lo, hi, order=order, center_pre=nec.pre)
     Ab = iadd(_congruence(pc, iadd(gb.jf, gb.dk_dx)), bcast(lamC, B))
-    plain = lam_max_upper_interval(Ab)
+    plain = lam_max_upper_interval(Ab, level=(0.0 if screen is None else screen) if decide
+                                   else None)
     wscore = zr * (1.0 / (zr.amax(-1, keepdim=True) + 1e-300))
     if not taylor:
         return BoxBounds(plain, plain, torch.full_like(plain, float("inf")), wscore)
