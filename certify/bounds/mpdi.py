@@ -76,14 +76,8 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     zr = up(torch.maximum(hi - zc, zc - lo))
     wscore = zr * (1.0 / (zr.amax(-1, keepdim=True) + 1e-300))
     if not plain_screen and taylor is True and crown and direct_mixed(problem, pc):
-        from certify.bounds.mixed import contraction_tm_mixed
-
         STAGE_COUNTS["boxes"] += B
-        STAGE_COUNTS["crown"] += B
-        level = 0.0 if screen is None else screen
-        tay, s_w = tm_lam_upper(contraction_tm_mixed(problem, pc, lo, hi, zr, lam), zr,
-                                level=level if decide else None)
-        STAGE_COUNTS["crown_closed"] += int((tay <= level).sum())
+        tay, s_w = _mixed_stage(problem, pc, lo, hi, zr, lam, screen, decide)
         return BoxBounds(tay, torch.full_like(tay, float("inf")), tay,
                          split_score(split_rule, s_w, zr, root_width, net))
     lamC = imul(pc.C, const_lam(2.0 * lam, pc.C))
@@ -116,12 +110,7 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
             # the mixed-row linear bounds contain the Taylor models entry by entry: no
             # Taylor stage first (measured on the 2x10 4-state chain: fewer boxes per CPU
             # second than screening with the Taylor models)
-            from certify.bounds.mixed import contraction_tm_mixed
-
-            STAGE_COUNTS["crown"] += int(work.sum())
-            t_w, s_w = tm_lam_upper(contraction_tm_mixed(problem, pc, wl, wh, wr, lam), wr,
-                                    level=decide_level)
-            STAGE_COUNTS["crown_closed"] += int((t_w <= (0.0 if screen is None else screen)).sum())
+            t_w, s_w = _mixed_stage(problem, pc, wl, wh, wr, lam, screen, decide)
             tay[work] = t_w
             score[work] = split_score(split_rule, s_w, wr, root_width, net)
             return BoxBounds(nan_min(plain, tay), plain, tay, score)
@@ -155,6 +144,22 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
         tay[work] = t_w
         score[work] = split_score(split_rule, s_w, wr, root_width, net)
     return BoxBounds(nan_min(plain, tay), plain, tay, score)
+
+
+def _mixed_stage(problem: Problem, pc: Preconditioner, lo: torch.Tensor, hi: torch.Tensor,
+                 r: torch.Tensor, lam: float, screen: float | None, decide: bool
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(bound, Taylor split score) of the boxes from the mixed-row linear bounds
+    (`certify.bounds.mixed.contraction_tm_mixed`), decided against the level (screen, else 0)
+    when `decide`."""
+    from certify.bounds.mixed import contraction_tm_mixed
+
+    level = 0.0 if screen is None else screen
+    STAGE_COUNTS["crown"] += lo.shape[0]
+    bound, score = tm_lam_upper(contraction_tm_mixed(problem, pc, lo, hi, r, lam), r,
+                                level=level if decide else None)
+    STAGE_COUNTS["crown_closed"] += int((bound <= level).sum())
+    return bound, score
 
 
 def crown_contraction_tm(problem: Problem, pc: Preconditioner, lo: torch.Tensor,
