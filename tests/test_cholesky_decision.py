@@ -103,3 +103,31 @@ def test_vertex_bound_with_level_contains_sampled_lam_max(seed: int, n: int, d: 
     lam = torch.linalg.eigvalsh(Az)[..., -1].amax(-1)
     assert bool((lam <= decided + 1e-12 * (1 + lam.abs())).all())
     assert all(math.isfinite(float(v)) for v in decided)
+
+
+def test_boxes_weyl_decides_skip_the_vertex_tests(monkeypatch) -> None:
+    """tm_lam_upper(level=...): boxes whose Weyl bound of the affine part already passes get
+    no vertex tests, and are reported decided like the vertex-tested ones."""
+    import certify.bounds.taylor as taylor
+
+    gen = torch.Generator().manual_seed(7)
+    B, n, d = 32, 4, 3
+    c = _sym(gen, B, n, 1.0, False)
+    shift = -torch.linalg.eigvalsh(c)[:, -1] + torch.linspace(-3.0, 0.5, B, dtype=F64)
+    c = c + shift[:, None, None] * torch.eye(n, dtype=F64)
+    g = torch.randn(B, n, n, d, generator=gen, dtype=F64) * 0.1
+    g = 0.5 * (g + g.transpose(1, 2))
+    A = TM(c, g, torch.full((B, n, n), 1e-3, dtype=F64))
+    r = torch.full((B, d), 0.5, dtype=F64)
+    seen = []
+
+    def counting(S, t):
+        seen.append(S.shape[0])
+        return lam_max_at_most(S, t)
+
+    monkeypatch.setattr(taylor, "lam_max_at_most", counting)
+    bound, _ = tm_lam_upper(A, r, level=0.0)
+    lvl = -1e-12
+    assert 0 < sum(seen) < B  # Weyl decided some boxes, the vertices were tested on others
+    assert bool((bound[:8] == lvl).all())
+    assert not bool((bound[-4:] <= 0).any())  # lam_max(c) > 0 there: never decided

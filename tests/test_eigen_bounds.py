@@ -7,7 +7,14 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.bounds.eigen import _lam3_certified, hertz_upper, lam_max_upper_point
+from certify.bounds.eigen import (
+    _lam3_certified,
+    _pairs_lower,
+    hertz_upper,
+    lam_max_upper_interval,
+    lam_max_upper_point,
+)
+from certify.intervals import Interval
 from tests.mp_reference import exact_lam_max
 
 F64 = torch.float64
@@ -68,3 +75,39 @@ def test_hertz_3x3_above_sampled_members() -> None:
         E = (2 * torch.rand(20, 3, 3, generator=gen, dtype=F64) - 1) * R
         E = torch.tril(E) + torch.tril(E, -1).transpose(-1, -2)
         assert bool((torch.linalg.eigvalsh(C + E)[:, -1] <= ub).all())
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.sampled_from([3, 4, 5, 7]),
+       level=st.sampled_from([-0.5, 0.0, 0.5]))
+def test_interval_bound_with_a_level_is_sound_and_decides_the_same(seed: int, n: int,
+                                                                   level: float) -> None:
+    """lam_max_upper_interval(A, level): above every sampled member of the family (also where
+    the 2 x 2 sub-families say no bound decides and Gershgorin is returned); decides exactly
+    the boxes the full bound decides, with the same value there; and a sub-family whose
+    exact max exceeds the level is never decided."""
+    gen = torch.Generator().manual_seed(seed)
+    C = torch.randn(64, n, n, generator=gen, dtype=F64) * 0.3
+    C = 0.5 * (C + C.transpose(-1, -2)) - torch.eye(n, dtype=F64) * (0.2 + n * 0.15)
+    R = torch.rand(64, n, n, generator=gen, dtype=F64) * 0.3 * torch.rand(64, 1, 1, generator=gen,
+                                                                          dtype=F64)
+    R = 0.5 * (R + R.transpose(-1, -2))
+    A = Interval(C - R, C + R)
+    full = lam_max_upper_interval(A)
+    lev = lam_max_upper_interval(A, level=level)
+    # (LAPACK's eigenvalues of a sub-batch may differ from the whole batch's in the last
+    # bits, inside the bound's margin: compare to 1e-12)
+    edge = (full - level).abs() <= 1e-12
+    assert bool(((lev <= level) == (full <= level))[~edge].all())
+    decided = full <= level
+    assert torch.allclose(lev[decided], full[decided], rtol=0, atol=1e-12)
+    assert bool((lev >= full - 1e-12).all())  # never tighter than the full bound
+    for _ in range(20):
+        E = (2 * torch.rand(64, n, n, generator=gen, dtype=F64) - 1) * R
+        E = torch.tril(E) + torch.tril(E, -1).transpose(-1, -2)
+        assert bool((torch.linalg.eigvalsh(C + E)[:, -1] <= lev).all())
+    # a 2 x 2 sub-family above the level: its members' lam_max is, so nothing may decide
+    pair = _pairs_lower(A)
+    assert not bool((lev[pair > level] <= level).any())
+    assert 0 < int(decided.sum()) < 64 or level != 0.0  # the level splits the batch here
+    assert bool((pair > level).any()) or level != -0.5  # and the shortcut is taken

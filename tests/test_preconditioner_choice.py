@@ -10,7 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.bounds.mpdi import choose_preconditioner, mpdi_box_bounds
+from certify.bounds.mpdi import choose_preconditioner, mpdi_box_bounds, plain_screen_pays
 from certify.bounds.preconditioner import (
     candidate_preconditioners,
     diagonal_preconditioner,
@@ -64,8 +64,9 @@ def test_every_candidate_bounds_lam_max_of_D_over_boxes(seed: int, n: int, cond:
     cands = candidate_preconditioners(prob.P_t)
     assert [pc.kind for pc in cands] == ["cholesky", "none", "diagonal"]
     for pc in cands:
-        for crown in (False, True):
-            bb = mpdi_box_bounds(prob, lo, hi, prob.lam, pc=pc, crown=crown)
+        for crown, plain_screen in ((False, True), (True, True), (True, False)):
+            bb = mpdi_box_bounds(prob, lo, hi, prob.lam, pc=pc, crown=crown,
+                                 plain_screen=plain_screen)
             ub = to_lam_max_D(bb.upper, prob.P_t, pc)
             assert bool((torch.isnan(ub) | (vmax <= ub)).all()), (pc.kind, crown)
 
@@ -125,3 +126,34 @@ def test_each_split_rule_scores_every_dimension() -> None:
     W0 = prob.network.weights()[0][0].abs().sum(0)
     want = int((r[0] * W0 / (r[0] * W0).max() + 0.5 * ts[0]).argmax())
     assert int(split_score("sensitivity", ts, r, None, prob.network).argmax()) == want
+
+
+def test_plain_screen_is_kept_where_it_closes_boxes_and_dropped_where_it_cannot() -> None:
+    """`plain_screen_pays`: on a linear observer well inside its rate (the plain interval
+    bound is nearly exact there) it keeps the screen; above the rate (no box can close) it
+    drops it; and proofs decide the same with the screen on or off."""
+    A = np.array([[-1.0, 2.0, 0.0], [0.0, -1.0, 1.5], [-0.5, 0.0, -1.0]])
+    C = np.array([[1.0, 0.0, 0.0]])
+    K = np.array([[1.0], [0.5], [-0.3]])
+    P = scipy.linalg.solve_continuous_lyapunov((A - K @ C).T, -np.eye(3))
+    lc = lam_cert_linear(A, C, K, P)
+    inside = linear_problem(A, C, K, lam=0.5 * lc, P=P)
+    above = linear_problem(A, C, K, lam=1.5 * lc, P=P)
+    for prob, want in ((inside, True), (above, False)):
+        pc = diagonal_preconditioner(prob.P_t, torch.ones(3, dtype=F64), "none")
+        assert plain_screen_pays(prob, prob.lam, pc) is want
+    # the 2-layer gain-2 network with a metric: the screen never changes a bound's soundness
+    prob = _problem(11, 3, 8.0)
+    pc = diagonal_preconditioner(prob.P_t, torch.ones(3, dtype=F64), "none")
+    gen = torch.Generator().manual_seed(3)
+    c = 2 * torch.rand(32, 4, generator=gen, dtype=F64) - 1
+    on = mpdi_box_bounds(prob, c - 0.02, c + 0.02, prob.lam, pc=pc, screen=0.0, decide=True)
+    off = mpdi_box_bounds(prob, c - 0.02, c + 0.02, prob.lam, pc=pc, screen=0.0, decide=True,
+                          plain_screen=False)
+    assert bool((off.plain == float("inf")).all())
+    # where the plain stage did not close a box, the linear bounds are the same either way
+    # (to LAPACK's sub-batch last bits), so the screen only ever adds closed boxes
+    rest = ~(on.plain <= 0)
+    assert bool(rest.any())
+    assert torch.allclose(on.taylor[rest], off.taylor[rest], rtol=0, atol=1e-9)
+    assert bool(((off.upper <= 0) <= (on.upper <= 0)).all())

@@ -58,30 +58,81 @@ def _residual(kind: str, x: torch.Tensor, a: torch.Tensor, slope: bool = True
     if slope:
         f, df = _f_and_df(kind, xi)
     else:
-        f, df = (tanh_enclosure(xi) if kind == "tanh" else dtanh_enclosure(xi)), None
-    ax = imul(Interval(a, a), xi)
-    r = Interval(down(f.lo - ax.hi), up(f.hi - ax.lo))
+        f, df = _f_point(kind, x), None
+    r = _minus_ax(f, a, x, x)
     dr = None if df is None else Interval(down(df.lo - a), up(df.hi - a))
     return r, dr
 
 
-def _piece_extrema(kind: str, a: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
-                   p_lo: float, p_hi: float, convex: bool | None, x0: torch.Tensor
+def _f_point(kind: str, x: torch.Tensor) -> Interval:
+    """Enclosure of f at points x (one libm call)."""
+    xi = Interval(x, x)
+    return tanh_enclosure(xi) if kind == "tanh" else dtanh_enclosure(xi)
+
+
+def _minus_ax(f: Interval, a: torch.Tensor, xa: torch.Tensor, xb: torch.Tensor) -> Interval:
+    """f - a x for x in [xa, xb] (f an enclosure of f over it), rounded outward; for a point
+    x (xa is xb) the float product a x is within one ulp of the real one."""
+    if xa is xb:
+        ax = a * xa
+        return Interval(down(f.lo - up(ax)), up(f.hi - down(ax)))
+    ax = imul(Interval(a, a), Interval(xa, xb))
+    return Interval(down(f.lo - ax.hi), up(f.hi - ax.lo))
+
+
+_CONSTS: dict[tuple[str, float, float], tuple[float, float]] = {}
+
+
+def _const_f(kind: str, lo: float, hi: float) -> tuple[float, float]:
+    """Enclosure of f over the fixed interval [lo, hi] (a piece boundary when lo = hi, or a
+    sliver), computed once and cached."""
+    key = (kind, lo, hi)
+    if key not in _CONSTS:
+        lt = torch.tensor([lo], dtype=torch.float64)
+        ht = lt if lo == hi else torch.tensor([hi], dtype=torch.float64)
+        f = (tanh_enclosure if kind == "tanh" else dtanh_enclosure)(Interval(lt, ht))
+        _CONSTS[key] = (float(f.lo[0]), float(f.hi[0]))
+    return _CONSTS[key]
+
+
+class _Ends:
+    """f at the interval ends lo, hi, computed once per relaxation and shared by its pieces
+    (a piece's end is lo / hi, or the piece's fixed boundary where it clamps them)."""
+
+    def __init__(self, kind: str, lo: torch.Tensor, hi: torch.Tensor) -> None:
+        self.kind, self.lo, self.hi = kind, lo, hi
+        self.f_lo, self.f_hi = _f_point(kind, lo), _f_point(kind, hi)
+
+    def clamped(self, f_end: Interval, clamp: torch.Tensor, p: float) -> Interval:
+        """f at the end, or at the boundary p where `clamp` (the end lies beyond p)."""
+        if not math.isfinite(p):
+            return f_end
+        plo, phi = _const_f(self.kind, p, p)
+        return Interval(torch.where(clamp, plo, f_end.lo), torch.where(clamp, phi, f_end.hi))
+
+
+def _piece_extrema(ends: _Ends, a: torch.Tensor, p_lo: float, p_hi: float,
+                   convex: bool | None, x0: torch.Tensor | None
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Sound (min, max) of r over [lo, hi] cap [p_lo, p_hi] and whether that piece is empty.
 
-    convex: True / False for a piece of known curvature, None for plain interval evaluation.
+    convex: True / False for a piece of known curvature, None for a sliver evaluated by
+    intervals (f enclosed over the whole fixed sliver [p_lo, p_hi], a constant).
     x0: approximate critical point (clamped into the piece here)."""
+    kind, lo, hi = ends.kind, ends.lo, ends.hi
     pa = torch.clamp(lo, min=p_lo)
     pb = torch.clamp(hi, max=p_hi)
     empty = pa > pb
     pb = torch.where(empty, pa, pb)
     if convex is None:
-        f, _ = _f_and_df(kind, Interval(pa, pb))
-        ax = imul(Interval(a, a), Interval(pa, pb))
-        return down(f.lo - ax.hi), up(f.hi - ax.lo), empty
-    ra, _ = _residual(kind, pa, a, slope=False)
-    rb, _ = _residual(kind, pb, a, slope=False)
+        flo, fhi = _const_f(kind, p_lo, p_hi)
+        f = Interval(torch.full_like(pa, flo), torch.full_like(pa, fhi))
+        r = _minus_ax(f, a, pa, pb)
+        return r.lo, r.hi, empty
+    fa = ends.clamped(ends.f_lo, lo < p_lo, p_lo)
+    fb = ends.clamped(ends.f_hi, hi > p_hi, p_hi)
+    ra = _minus_ax(fa, a, pa, pa)
+    rb = _minus_ax(fb, a, pb, pb)  # (empty pieces: any value, `_combine` drops them)
     x0 = torch.minimum(torch.maximum(x0, pa), pb)
     r0, dr0 = _residual(kind, x0, a)
     da = Interval(down(pa - x0), up(pa - x0))
@@ -125,8 +176,9 @@ def relax_tanh(lo: torch.Tensor, hi: torch.Tensor) -> LinearBounds:
     a = torch.nan_to_num(a, nan=0.0).clamp(0.0, 1.0)
     # critical points of r: tanh'(x) = a  <=>  |x| = atanh(sqrt(1 - a))
     xc = torch.atanh(torch.sqrt((1.0 - a).clamp(0.0, 1.0)).clamp(max=1.0 - 1e-16))
-    parts = [_piece_extrema("tanh", a, lo, hi, -inf_(), 0.0, True, -xc),
-             _piece_extrema("tanh", a, lo, hi, 0.0, inf_(), False, xc)]
+    ends = _Ends("tanh", lo, hi)
+    parts = [_piece_extrema(ends, a, -inf_(), 0.0, True, -xc),
+             _piece_extrema(ends, a, 0.0, inf_(), False, xc)]
     rmin, rmax = _combine(parts)
     return LinearBounds(a, rmin, a, rmax)
 
@@ -176,17 +228,18 @@ def relax_dtanh(lo: torch.Tensor, hi: torch.Tensor) -> LinearBounds:
     a = torch.nan_to_num(a, nan=0.0)
     c_in, c_out = _C_D1 - _GAP, _C_D1 + _GAP
     x_left, x_mid, x_right = _dtanh_crit(a)
+    ends = _Ends("dtanh", lo, hi)
     parts = [
         # convex (-inf, -c_out]: tanh'' increasing there
-        _piece_extrema("dtanh", a, lo, hi, -inf_(), -c_out, True, x_left),
+        _piece_extrema(ends, a, -inf_(), -c_out, True, x_left),
         # concave [-c_in, c_in]: tanh'' decreasing
-        _piece_extrema("dtanh", a, lo, hi, -c_in, c_in, False, x_mid),
+        _piece_extrema(ends, a, -c_in, c_in, False, x_mid),
         # convex [c_out, inf): tanh'' increasing
-        _piece_extrema("dtanh", a, lo, hi, c_out, inf_(), True, x_right),
+        _piece_extrema(ends, a, c_out, inf_(), True, x_right),
+        # the two slivers around +-c: tanh' enclosed over the whole sliver (a constant)
+        _piece_extrema(ends, a, -c_out, -c_in, None, None),
+        _piece_extrema(ends, a, c_in, c_out, None, None),
     ]
-    # the two slivers around +-c: plain interval evaluation
-    parts.append(_piece_extrema("dtanh", a, lo, hi, -c_out, -c_in, None, lo))
-    parts.append(_piece_extrema("dtanh", a, lo, hi, c_in, c_out, None, lo))
     rmin, rmax = _combine(parts)
     return LinearBounds(a, rmin, a, rmax)
 
@@ -220,12 +273,11 @@ def mccormick(s: Interval, t: Interval) -> BilinearBounds:
     corners = [(s.lo, t.lo), (s.lo, t.hi), (s.hi, t.lo), (s.hi, t.hi)]
     vals_lo, vals_hi = [], []
     for sv, tv in corners:
-        # g(s, t) = s t - tc s - sc t is bilinear: its min / max over the box is at a corner
-        p = imul(Interval(sv, sv), Interval(tv, tv))
-        q1 = imul(Interval(tc, tc), Interval(sv, sv))
-        q2 = imul(Interval(sc, sc), Interval(tv, tv))
-        vals_lo.append(down(down(p.lo - q1.hi) - q2.hi))
-        vals_hi.append(up(up(p.hi - q1.lo) - q2.lo))
+        # g(s, t) = s t - tc s - sc t is bilinear: its min / max over the box is at a corner;
+        # each product of two floats is within one ulp of its rounded value
+        p, q1, q2 = sv * tv, tc * sv, sc * tv
+        vals_lo.append(down(down(down(p) - up(q1)) - up(q2)))
+        vals_hi.append(up(up(up(p) - down(q1)) - down(q2)))
     bl = torch.minimum(torch.minimum(vals_lo[0], vals_lo[1]), torch.minimum(vals_lo[2], vals_lo[3]))
     bu = torch.maximum(torch.maximum(vals_hi[0], vals_hi[1]), torch.maximum(vals_hi[2], vals_hi[3]))
     return BilinearBounds(tc, sc, bl, bu)

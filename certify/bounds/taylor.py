@@ -318,14 +318,15 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
 
     level (a decision: only "bound <= level" matters; n >= 4): the vertex matrices are first
     tested against t = down(level' - rho) by the certified Cholesky test
-    (`certify.bounds.eigen.lam_max_at_most`), level' = level - 1e-12 (1 + |level|); a box whose
-    every vertex passes reports the bound level' (proved: vertex max <= t, t + rho <= level'),
-    without eigenvalues. The others (their bound then only ranks them in the branch and
-    bound: a completed proof splits the same boxes whatever it is, a budgeted run's order
-    depends on it) get Weyl's lam_max(c) + sum_m ||r_m g_m||_F (one eigenproblem per box,
-    `_weyl_upper`); with `parts` (the vertex part is wanted), the vertices that fail are
-    tested again at t + k s, s = rho + 1e-3 (1 + |level|), k = 1/4, 1, 4 (their bound: the
-    first level passed) and only the rest get eigenvalue bounds."""
+    (`certify.bounds.eigen.lam_max_at_most`), level' = level - 1e-12 (1 + |level|), unless
+    (without `parts`) Weyl's bound of the affine part is already <= t; a box whose every vertex
+    passes (or whose Weyl bound does) reports the bound level' (proved: vertex max <= t,
+    t + rho <= level'), without vertex eigenvalues. The others (their bound then only ranks
+    them in the branch and bound: a completed proof splits the same boxes whatever it is, a
+    budgeted run's order depends on it) get Weyl's lam_max(c) + sum_m ||r_m g_m||_F (one
+    eigenproblem per box, `_weyl_upper`); with `parts` (the vertex part is wanted), the
+    vertices that fail are tested again at t + k s, s = rho + 1e-3 (1 + |level|), k = 1/4, 1,
+    4 (their bound: the first level passed) and only the rest get eigenvalue bounds."""
     B, n, _, d = A.g.shape
     rG = (A.g * r[:, None, None, :]).permute(0, 3, 1, 2)  # [B, d, n, n]
     gk = gamma(d + 5)
@@ -347,10 +348,16 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
         if parts:  # the vertex part itself is wanted (where the linear bounds are tried)
             lv, decided = vertex_max_upper(S, t, step=rr + 1e-3 * (1.0 + abs(lvl)))
         else:
-            decided = lam_max_at_most(S, t[:, None].expand(B, S.shape[1])).all(-1)
-            lv = t.clone()
-            if not bool(decided.all()):
-                lv[~decided] = _weyl_upper(A.c[~decided], rG[~decided])
+            # Weyl's bound first (one eigenproblem per box, which the boxes the vertices do not
+            # decide need anyway, for their rank): where it decides, no vertex tests
+            lv = _weyl_upper(A.c, rG)
+            decided = lv <= t
+            need = torch.nonzero(~decided).squeeze(-1)
+            if len(need):
+                vert = lam_max_at_most(S[need], t[need, None].expand(len(need), S.shape[1]))
+                hit = need[vert.all(-1)]
+                decided[hit] = True
+            lv = torch.where(decided, t, lv)
     elif S is not None:
         lv = lam_max_upper_point(S).amax(-1)
     else:
