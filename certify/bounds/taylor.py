@@ -333,16 +333,17 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
     absum = A.c.abs() + rG.abs().sum(1)
     rem = up((A.e + gk * absum) * (1.0 + 2.0 * gk) + (d + 2) * TINY)
     rem = torch.maximum(rem, rem.transpose(1, 2))
-    if d <= MAX_VERTEX_DIM:
-        V = _vertices(d)
-        S = A.c[:, None] + torch.einsum("vd,bdij->bvij", V, rG)
-        S = 0.5 * (S + S.transpose(-1, -2))
-    else:
-        S = None
+    vertex = d <= MAX_VERTEX_DIM
+    if not vertex:
         rem = up(rem + rG.abs().sum(1) * (1.0 + gk))
+    decide_lower = vertex and level is not None and n >= 4 and not parts
+    # the vertex matrices; the Cholesky decision reads their lower triangles only (as LAPACK),
+    # which enclose D's like the whole matrices do, so there they are built unsymmetrised and
+    # only for the boxes that need them (below)
+    S = _vertex_matrices(A.c, rG, sym=True) if vertex and not decide_lower else None
     rr = rho_upper(rem)
     decided = None
-    if S is not None and level is not None and n >= 4:
+    if vertex and level is not None and n >= 4:
         lvl = float(level) - 1e-12 * (1.0 + abs(float(level)))
         t = down(lvl - rr)  # proved vertex max <= t  =>  lv + rr <= lvl
         if parts:  # the vertex part itself is wanted (where the linear bounds are tried)
@@ -354,7 +355,8 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
             decided = lv <= t
             need = torch.nonzero(~decided).squeeze(-1)
             if len(need):
-                vert = lam_max_at_most(S[need], t[need, None].expand(len(need), S.shape[1]))
+                Sn = _vertex_matrices(A.c[need], rG[need], sym=False)
+                vert = lam_max_at_most(Sn, t[need, None].expand(len(need), Sn.shape[1]))
                 hit = need[vert.all(-1)]
                 decided[hit] = True
             lv = torch.where(decided, t, lv)
@@ -377,6 +379,14 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
         return bound, score, lv  # could reach
     return bound, score
 
+
+
+def _vertex_matrices(c: torch.Tensor, rG: torch.Tensor, sym: bool) -> torch.Tensor:
+    """c + sum_m v_m rG_m at the 2^d vertices v of [-1, 1]^d: [B, 2^d, n, n] (float; the
+    caller's remainder covers the rounding); `sym`: symmetrised, else as computed (for
+    consumers of the lower triangle only)."""
+    S = c[:, None] + torch.einsum("vd,bdij->bvij", _vertices(rG.shape[1]), rG)
+    return 0.5 * (S + S.transpose(-1, -2)) if sym else S
 
 
 def _weyl_upper(c: torch.Tensor, rG: torch.Tensor) -> torch.Tensor:
