@@ -83,18 +83,18 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
     P = problem.P_t
     gain = CROWN_GAIN
     rlo, rhi = _root(problem)
-    screen = True
+    plain_screen = True
     if crown and taylor is True and not direct_mixed(problem, pc):
         gain = estimate_crown_gain(problem.network, rlo, rhi)
     elif crown and taylor is True:
-        screen = plain_screen_pays(problem, lam, pc)
+        plain_screen = plain_screen_pays(problem, lam, pc)
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
         # boxes the plain interval bound already proves skip the Taylor / relaxation work
         # (where that screen closes boxes on this problem at all: `plain_screen_pays`)
         bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, taylor=taylor, crown=crown,
                              screen=0.0, crown_gain=gain, root_width=rhi - rlo, decide=True,
-                             plain_screen=screen)
+                             plain_screen=plain_screen)
         ub = to_lam_max_D(bb.upper, P, pc)
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         c = 0.5 * (lo + hi)

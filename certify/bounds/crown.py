@@ -149,15 +149,13 @@ def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: 
     zc = 0.5 * (lo + hi)
     r = up(torch.maximum(hi - zc, zc - lo))
     spec = net.spec(torch.float64)
-    if taylor or not crown:
-        arith = PairedArithmetic(zc, r, len(spec.layers) - 1)
-    else:
-        arith = IntervalArithmetic(zc, r)
+    paired = taylor or not crown  # without the queries the Taylor ranges are needed
+    arith = (PairedArithmetic(zc, r, len(spec.layers) - 1) if paired
+             else IntervalArithmetic(zc, r))
     ranges = _ForwardRanges(arith, spec, lo, hi, colt, crown, b0_slack)
     out = propagate(spec, arith, None, d, layer_hook=ranges)
-    if isinstance(arith, IntervalArithmetic):
-        return ForwardBounds(ranges.pres, ranges.tans, None, None, r, ranges.layers)
-    return ForwardBounds(ranges.pres, ranges.tans, out.value, out.jac, r, ranges.layers)
+    return ForwardBounds(ranges.pres, ranges.tans, out.value if paired else None,
+                         out.jac if paired else None, r, ranges.layers)
 
 
 def jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, cols: list[int],

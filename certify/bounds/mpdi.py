@@ -228,6 +228,14 @@ def estimate_crown_gain(net, root_lo: torch.Tensor, root_hi: torch.Tensor,
                      torch.tensor(gains, dtype=torch.float64))
 
 
+def _root_box(problem: Problem) -> torch.Tensor:
+    """The root box X x Y as [d, 2] (lo, hi) float64."""
+    import numpy as np
+
+    s = problem.system
+    return torch.as_tensor(np.concatenate([s.X, s.Y], 0), dtype=torch.float64)
+
+
 def plain_screen_pays(problem: Problem, lam: float, pc: Preconditioner, grid: int = 1024,
                       min_closed: float = 0.02) -> bool:
     """Whether the plain interval stage should screen the boxes before the linear bounds: it
@@ -241,10 +249,7 @@ def plain_screen_pays(problem: Problem, lam: float, pc: Preconditioner, grid: in
     deterministic in the problem, so every worker of a distributed proof chooses alike."""
     from certify.bnb import initial_grid
 
-    s = problem.system
-    import numpy as np
-
-    root = torch.as_tensor(np.concatenate([s.X, s.Y], 0), dtype=torch.float64)
+    root = _root_box(problem)
     boxes = initial_grid(root[:, 0], root[:, 1], grid)
     bb = mpdi_box_bounds(problem, boxes.lo, boxes.hi, lam, pc=pc, taylor=False)
     return float((bb.plain <= 0).double().mean()) >= min_closed
@@ -259,10 +264,7 @@ def choose_preconditioner(problem: Problem, lam: float, probes: int = 24,
     cands = candidate_preconditioners(problem.P_t)
     if len(cands) == 1:
         return cands[0]
-    s = problem.system
-    import numpy as np
-
-    root = torch.as_tensor(np.concatenate([s.X, s.Y], 0), dtype=torch.float64)
+    root = _root_box(problem)
     rlo, rhi = root[:, 0], root[:, 1]
     w = rhi - rlo
     g = torch.Generator().manual_seed(4321)
