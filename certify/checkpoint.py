@@ -26,7 +26,7 @@ import torch
 from certify.errors import CertifyError, CheckpointError
 from certify.network import GainNetwork
 from certify.problem import Problem
-from certify.system import System, validate_metric
+from certify.system import System, validate_lam, validate_metric
 
 FORMAT_NAME = "certify-checkpoint"
 FORMAT_VERSION = 1
@@ -110,8 +110,7 @@ def save(path: str | Path, *, system: System, network: GainNetwork, lam: float,
          P: Any = None, training: dict[str, Any] | None = None) -> str:
     """Write a checkpoint atomically; returns its sha256."""
     P_arr = validate_metric(system.P if P is None else P, system.n, "checkpoint")
-    if not lam > 0:
-        raise CertifyError(f"checkpoint: lam must be > 0; got {lam}")
+    lam = validate_lam(lam, "checkpoint: lam")
     state = {k: v.detach().to(torch.float64).clone() for k, v in network.state_dict().items()}
     payload = {
         "format": FORMAT_NAME,
@@ -290,11 +289,14 @@ def load(path: str | Path) -> Checkpoint:
     except CertifyError as exc:
         raise CheckpointError(str(exc)) from None
     lam = data["lam"]
-    if isinstance(lam, bool) or not isinstance(lam, (int, float)) or not np.isfinite(lam) \
-            or lam <= 0:
+    if not isinstance(lam, (int, float)):
         raise CheckpointError(f"checkpoint {path}: lam must be a finite number > 0; got {lam!r}")
+    try:
+        lam = validate_lam(lam, f"checkpoint {path}: lam")
+    except CertifyError as exc:
+        raise CheckpointError(str(exc)) from None
     training = data.get("training") or {}
-    return Checkpoint(problem=Problem(system=system, network=net, lam=float(lam), P=P),
+    return Checkpoint(problem=Problem(system=system, network=net, lam=lam, P=P),
                       path=str(path), sha256=sha256_file(path),
                       training=training if isinstance(training, dict) else {},
                       versions=dict(data.get("versions") or {}),

@@ -107,13 +107,11 @@ def cmd_check(args: argparse.Namespace) -> int:
     from certify.checks.metric import synthesize_metric
     from certify.checks.necessary import check_necessary
     from certify.results import Status, to_jsonable
-    from certify.system import load_system, parse_metric, validate_metric
+    from certify.system import load_system, parse_metric, validate_lam, validate_metric
 
     out = human_stream(args)
     system = load_system(args.system)
-    lam = system.lam if args.lam is None else args.lam
-    if not lam > 0:
-        raise CertifyError(f"--lam must be > 0; got {lam}")
+    lam = system.lam if args.lam is None else validate_lam(args.lam, "--lam")
     P = system.P if args.metric is None else validate_metric(
         parse_metric(args.metric, system.n), system.n, "--metric")
     result = check_necessary(system, P, lam)

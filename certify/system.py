@@ -80,6 +80,30 @@ def validate_metric(P: Any, n: int, where: str) -> np.ndarray:
     return arr
 
 
+#: the largest rate accepted: beyond it 2 lam P swamps Jf + dk/dx in float64 (their sum
+#: rounds to 2 lam P) and its entries can overflow, so no check could say anything about k
+MAX_LAM = 1e12
+
+
+def validate_lam(lam: Any, where: str) -> float:
+    """lam as a float: a finite number in (0, MAX_LAM] (else one `SpecError` line naming
+    `where`). Every entry point that takes a rate from the user (`--lam`, a spec, a
+    checkpoint) refuses the same values, so an infinite or absurd rate is bad input (exit 2),
+    not an internal error (2 lam P overflowing in the SDP) or an inconclusive run."""
+    if isinstance(lam, bool):
+        raise SpecError(f"{where} must be a finite number > 0; got {lam!r}")
+    try:
+        v = float(lam)
+    except (TypeError, ValueError):
+        raise SpecError(f"{where} must be a finite number > 0; got {lam!r}") from None
+    if not (np.isfinite(v) and v > 0):
+        raise SpecError(f"{where} must be a finite number > 0; got {lam!r}")
+    if v > MAX_LAM:
+        raise SpecError(f"{where} must be at most {MAX_LAM:g} (a larger rate swamps the "
+                        f"Jacobians in D in float64); got {lam!r}")
+    return v
+
+
 @dataclass(eq=False)
 class System:
     """A validated system spec. Build with `System.from_text` or `load_system`."""
@@ -139,8 +163,9 @@ class System:
         Y = _box(box["Y"], len(outputs), "Y", where)
         design = data.get("design", {})
         lam = design.get("lam", 1.0)
-        if isinstance(lam, bool) or not isinstance(lam, (int, float)) or not lam > 0:
-            raise SpecError(f"{where}: design lam must be a number > 0; got {lam!r}")
+        if isinstance(lam, bool) or not isinstance(lam, (int, float)):
+            raise SpecError(f"{where}: design lam must be a finite number > 0; got {lam!r}")
+        lam = validate_lam(lam, f"{where}: design lam")
         P = validate_metric(design.get("P", np.eye(len(states)).tolist()), len(states),
                             f"{where}: design")
         system = cls(

@@ -151,3 +151,21 @@ def test_check_exit_codes_follow_the_spec_as_given(tmp_path, capsys):
     assert code == 0, out
     code, _, _ = run_cli(capsys, "check", "vdp", "--no-synthesis")
     assert code == 1
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["check", "vdp", "--lam", "inf"], "--lam must be a finite number > 0; got inf"),
+    (["check", "vdp", "--lam", "nan"], "--lam must be a finite number > 0; got nan"),
+    (["check", "vdp", "--lam", "1e308"], "--lam must be at most 1e+12"),
+    (["train", "vdp", "--lam", "1e308", "-o", "{tmp}/m.ckpt"], "lam (--lam) must be a finite "
+                                                              "number in (0, 1e+12]"),
+])
+def test_absurd_rates_are_bad_input(tmp_path, capsys, argv, words):
+    """An infinite, NaN or overflowing rate is exit 2 with one line (it was exit 4: 2 lam P
+    overflowed inside the metric SDP), and nothing is written."""
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    code, out, err = run_cli(capsys, *argv)
+    assert code == 2, err
+    assert err.startswith("certify: error: ") and err.count("\n") == 1, err
+    assert words in err, err
+    assert list(tmp_path.iterdir()) == []

@@ -24,7 +24,7 @@ import numpy as np
 from certify import activations
 from certify.errors import CertifyError, SettingsError
 from certify.network import STRUCTURES
-from certify.system import System, validate_metric
+from certify.system import MAX_LAM, System, validate_metric
 
 LOSS_KINDS = ("minors", "eigen", "eigen_squared")
 DTYPES = ("float32", "float64")
@@ -116,8 +116,8 @@ def validate(c: TrainConfig) -> None:
         v = getattr(c, name)
         if not _is_real(v) or v < 0:
             raise _fail(name, "a finite number >= 0", v)
-    if c.lam is not None and (not _is_real(c.lam) or c.lam <= 0):
-        raise _fail("lam", "a finite number > 0", c.lam)
+    if c.lam is not None and (not _is_real(c.lam) or not 0 < c.lam <= MAX_LAM):
+        raise _fail("lam", f"a finite number in (0, {MAX_LAM:g}]", c.lam)
     if (not isinstance(c.hidden, tuple) or not c.hidden
             or any(not _is_int(h) or h < 1 for h in c.hidden)):
         raise _fail("hidden", "a non-empty list of positive layer widths, like 30,30,30",

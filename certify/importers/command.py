@@ -8,7 +8,6 @@ came from in its training record), `run` builds the same `Checkpoint` in memory.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -18,7 +17,7 @@ from certify.errors import CertifyError
 from certify.importers import ImportedModel, read_model
 from certify.importers.torch_model import is_torchscript
 from certify.problem import Problem
-from certify.system import System, load_system, parse_metric, validate_metric
+from certify.system import System, load_system, parse_metric, validate_lam, validate_metric
 
 MODEL_FLAGS = ("lam", "metric", "activation", "structure")
 
@@ -29,9 +28,7 @@ def imported_problem(args: argparse.Namespace, model_path: str
     system: System = load_system(args.system)
     model = read_model(model_path, system.n, system.p, activation=args.activation,
                        structure=args.structure)
-    lam = system.lam if args.lam is None else float(args.lam)
-    if not (math.isfinite(lam) and lam > 0):
-        raise CertifyError(f"--lam must be a finite number > 0; got {lam}")
+    lam = system.lam if args.lam is None else validate_lam(args.lam, "--lam")
     P = system.P if args.metric is None else validate_metric(
         parse_metric(args.metric, system.n), system.n, "--metric")
     return Problem(system=system, network=model.network(), lam=lam, P=P), model
