@@ -95,16 +95,23 @@ def test_check_finite_names_where_and_what():
     check_finite({"total": 1.0}, params, "step 2", grad=False)  # gradients not checked
 
 
+def _stiff_system(scale: float = 1e25):
+    """A spec whose Jacobian entry `scale` squares past the training dtype's range in the
+    MPDI loss (1e25: float32, 1e200: float64); rates large enough to do that are refused as
+    input (`certify.system.MAX_LAM`)."""
+    return linear_system(A=[[0.0, 1.0], [-scale, 0.0]], C=[[1.0, 0.0]], lam=0.5, name="stiff")
+
+
 def test_plain_training_stops_on_overflow_naming_the_iteration():
-    system = load_system("vdp")
+    system = _stiff_system()
     with pytest.raises(TrainingDiverged, match=r"adam iteration 0: the loss term mpdi is"):
-        train(system, make_config(system, "tiny", lam=1e30, points=50))
+        train(system, make_config(system, "tiny", points=50))
 
 
 def test_lbfgs_phase_is_checked_too():
-    system = load_system("vdp")
+    system = _stiff_system()
     with pytest.raises(TrainingDiverged, match=r"lbfgs iteration 0: the loss term mpdi is"):
-        train(system, make_config(system, "tiny", lam=1e30, points=50, adam_iters=0))
+        train(system, make_config(system, "tiny", points=50, adam_iters=0))
 
 
 def _tiny_cegis(**kw) -> CegisSettings:
@@ -143,8 +150,10 @@ def test_cegis_stops_on_a_nan_gradient_as_an_internal_error(monkeypatch):
 
 def test_cli_train_overflow_exits_2_with_one_line_and_no_checkpoint(tmp_path):
     out = tmp_path / "x.ckpt"
-    proc = subprocess.run([sys.executable, "-m", "certify", "train", "vdp", "--preset", "tiny",
-                           "--lam", "1e30", "--points", "50", "-o", str(out), "--quiet"],
+    spec = tmp_path / "stiff.toml"
+    spec.write_text(_stiff_system().source)
+    proc = subprocess.run([sys.executable, "-m", "certify", "train", str(spec), "--preset",
+                           "tiny", "--points", "50", "-o", str(out), "--quiet"],
                           capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
@@ -180,8 +189,10 @@ def test_cli_certified_with_a_metric_trains_from_the_zero_gain(monkeypatch, caps
 def test_cli_certified_overflow_exits_2_and_writes_nothing(monkeypatch, capsys, tmp_path):
     _small_certified(monkeypatch)
     out = tmp_path / "m.ckpt"
-    code, _, err = run_cli(capsys, "train", "vdp", "--preset", "certified", "--metric",
-                           "[[1,0],[0,1]]", "--lam", "1e39", "--points", "64", "--hidden", "6",
+    spec = tmp_path / "stiff.toml"
+    spec.write_text(_stiff_system(1e200).source)
+    code, _, err = run_cli(capsys, "train", str(spec), "--preset", "certified", "--metric",
+                           "[[1,0],[0,1]]", "--points", "64", "--hidden", "6",
                            "--adam-iters", "5", "--curvature-weight", "0", "-o", str(out),
                            "--quiet")
     assert code == 2
