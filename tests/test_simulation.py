@@ -295,7 +295,9 @@ xhat0 = [0.0, 0.0, 0.0]
 
 def test_doubled_runs_share_the_batch_and_equal_separate_integrations():
     """The 2 dt runs ride in the dt batch (no extra right-hand-side calls) and give the same
-    numbers, bit for bit, as integrating them on their own."""
+    numbers as integrating them on their own, up to the rounding of the network's matrix
+    products (BLAS may take another kernel for another batch size: bit-equal on some CPUs,
+    not on all)."""
     from certify.integrate import simulate_doubled
 
     vdp = load_system("vdp")
@@ -313,10 +315,13 @@ def test_doubled_runs_share_the_batch_and_equal_separate_integrations():
         del vdp.f_and_h
     assert len(calls) == 4 * 200  # one f (and h) call per stage, the doubled runs included
     alone = simulate(vdp, net, x0, xh, dt=0.01, steps=200, noise=noise)
-    assert torch.equal(fine.x, alone.x) and torch.equal(fine.xhat, alone.xhat)
+    same = dict(rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(fine.x, alone.x, **same)
+    torch.testing.assert_close(fine.xhat, alone.xhat, **same)
     ref = simulate(vdp, net, x0[[0, 2]], xh[[0, 2]], dt=0.02, steps=60,
                    noise=noise[:120:2][:, [0, 2]])
-    assert torch.equal(coarse.x, ref.x) and torch.equal(coarse.xhat, ref.xhat)
+    torch.testing.assert_close(coarse.x, ref.x, **same)
+    torch.testing.assert_close(coarse.xhat, ref.xhat, **same)
 
 
 def test_starts_keep_the_plant_in_X_with_small_errors_in_the_P_norm():
