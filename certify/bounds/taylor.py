@@ -20,11 +20,10 @@ import torch
 
 from certify.activations import Activation
 from certify.activations.tanh import d2tanh_enclosure
+from certify.bounds.decide import decide_affine_family, vertex_matrices
 from certify.bounds.eigen import (
     MAX_VERTEX_DIM,
-    _vertices,
     hertz_upper,
-    lam_max_at_most,
     lam_max_upper_point,
     rho_upper,
     vertex_max_upper,
@@ -340,7 +339,7 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
     # the vertex matrices; the Cholesky decision reads their lower triangles only (as LAPACK),
     # which enclose D's like the whole matrices do, so there they are built unsymmetrised and
     # only for the boxes that need them (below)
-    S = _vertex_matrices(A.c, rG, sym=True) if vertex and not decide_lower else None
+    S = vertex_matrices(A.c, rG, sym=True) if vertex and not decide_lower else None
     rr = rho_upper(rem)
     decided = None
     if vertex and level is not None and n >= 4:
@@ -349,16 +348,8 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
         if parts:  # the vertex part itself is wanted (where the linear bounds are tried)
             lv, decided = vertex_max_upper(S, t, step=rr + 1e-3 * (1.0 + abs(lvl)))
         else:
-            # Weyl's bound first (one eigenproblem per box, which the boxes the vertices do not
-            # decide need anyway, for their rank): where it decides, no vertex tests
-            lv = _weyl_upper(A.c, rG)
-            decided = lv <= t
-            need = torch.nonzero(~decided).squeeze(-1)
-            if len(need):
-                Sn = _vertex_matrices(A.c[need], rG[need], sym=False)
-                vert = lam_max_at_most(Sn, t[need, None].expand(len(need), Sn.shape[1]))
-                hit = need[vert.all(-1)]
-                decided[hit] = True
+            # Weyl, the vertices, then the box's own congruence (`certify.bounds.decide`)
+            decided, lv = decide_affine_family(A.c, rG, rem, rr, lvl)
             lv = torch.where(decided, t, lv)
     elif S is not None:
         lv = lam_max_upper_point(S).amax(-1)
@@ -378,23 +369,3 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
     if parts:  # also the vertex (affine) part alone: a prediction of what tighter remainders
         return bound, score, lv  # could reach
     return bound, score
-
-
-
-def _vertex_matrices(c: torch.Tensor, rG: torch.Tensor, sym: bool) -> torch.Tensor:
-    """c + sum_m v_m rG_m at the 2^d vertices v of [-1, 1]^d: [B, 2^d, n, n] (float; the
-    caller's remainder covers the rounding); `sym`: symmetrised, else as computed (for
-    consumers of the lower triangle only)."""
-    S = c[:, None] + torch.einsum("vd,bdij->bvij", _vertices(rG.shape[1]), rG)
-    return 0.5 * (S + S.transpose(-1, -2)) if sym else S
-
-
-def _weyl_upper(c: torch.Tensor, rG: torch.Tensor) -> torch.Tensor:
-    """Upper bound of lam_max(sym(c) + sum_m v_m rG_m) over v in [-1, 1]^d: lam_max(sym(c))
-    + sum_m ||rG_m||_F (Weyl; the spectral norm is at most the Frobenius norm), rounded up.
-    c [B, n, n], rG [B, d, n, n]; the float errors of sym(c) and of the vertex sums are
-    those `tm_lam_upper`'s remainder already covers."""
-    d = rG.shape[1]
-    lc = lam_max_upper_point(0.5 * (c + c.transpose(-1, -2)))
-    fro = torch.linalg.matrix_norm(rG).sum(-1)
-    return up(lc + up(fro * (1.0 + 2.0 * gamma(d * rG.shape[-1] ** 2 + 2))))
