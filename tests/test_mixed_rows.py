@@ -46,11 +46,11 @@ def test_mixed_rows_contain_sampled_values(act: str, seed: int, depth: int, g: f
     dz = z - 0.5 * (lo + hi)[:, None]
     tol = 1e-13 * (1 + want.abs())
     fb = forward_bounds(net, lo, hi, cols=cols)
-    le = mixed_jacobian_crown(net, lo, hi, cols, R, fb)
+    le, _ = mixed_jacobian_crown(net, lo, hi, cols, R, fb)
     low = torch.einsum("bmjd,bsd->bsmj", le.gl, dz) + le.cl[:, None]
     upp = torch.einsum("bmjd,bsd->bsmj", le.gu, dz) + le.cu[:, None]
     assert bool((low <= want + tol).all()) and bool((want <= upp + tol).all())
-    tm = network_crown_mixed_jacobian(net, lo, hi, cols, R)
+    tm, _ = network_crown_mixed_jacobian(net, lo, hi, cols, R)
     lin = tm.c[:, None] + torch.einsum("bmjd,bsd->bsmj", tm.g, dz)
     assert bool(((want - lin).abs() <= tm.e[:, None] + tol).all())
 
@@ -66,7 +66,7 @@ def test_contraction_tm_contains_He_PJ(seed: int, n: int, cond: float, scale: fl
     c = 2 * torch.rand(5, d, generator=gen, dtype=F64) - 1
     lo, hi = c - scale, c + scale
     r = torch.maximum(hi - c, c - lo)
-    A = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam)
+    A, _ = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam)
     z = _points(lo, hi, 150, seed).reshape(-1, d)
     J = closed_loop_jacobian(prob.system, prob.network, z[:, :n], z[:, n:])
     P = prob.P_t
@@ -89,7 +89,7 @@ def test_mixing_before_bounding_is_tighter_than_after() -> None:
     cols = [0, 1, 2, 3]
     _, jt, _ = network_crown_tms(net, lo, hi, cols)
     after = R.abs() @ jt.e[..., cols]
-    mixed = network_crown_mixed_jacobian(net, lo, hi, cols, R).e
+    mixed = network_crown_mixed_jacobian(net, lo, hi, cols, R)[0].e
     ra = rho_upper(0.5 * (after + after.transpose(1, 2)))
     rm = rho_upper(0.5 * (mixed + mixed.transpose(1, 2)))
     assert float((rm / ra).median()) < 0.95

@@ -95,9 +95,11 @@ class _Layer:
         return self.s.mag().unsqueeze(-1) * _mag(self.tan)[..., cols]
 
     def col_consts(self, cols: torch.Tensor) -> tuple:
-        """(st, SA, MQ, WKQ), each [B, 1, J, h], for the McCormick planes of s * t^j: the
-        slope on t, the slope on pre through s, the intercept midpoint and its radius with the
-        rounding slack gamma K_Q folded in."""
+        """(st, SA, MQ, WKQ, WQ), each [B, 1, J, h], for the McCormick planes of s * t^j: the
+        slope on t, the slope on pre through s, the intercept midpoint, its radius with the
+        rounding slack gamma K_Q folded in, and the radius alone: Q = s * t^j lies within WQ
+        of MQ + SA pre + st t^j for every point of the box (the relaxation error, the same
+        for every query)."""
         key = tuple(int(c) for c in cols)
         if self.a_s is None:
             rs = relax_slope(self.act, self.pre.lo, self.pre.hi)
@@ -125,13 +127,13 @@ class _Layer:
                 + mq.abs() + wq + SA.abs() * (2 * self.pmag + self.b.abs()[None, None, None]
                                               + self.Wx) + MQ.abs() + WQ
             WKQ = up(WQ + self.gk * up(KQ * (1 + 8 * U)))
-            self._cols[key] = (st, SA, MQ, WKQ)
+            self._cols[key] = (st, SA, MQ, WKQ, WQ)
         return self._cols[key]
 
 
 def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
               LQ: torch.Tensor | None, bias: torch.Tensor, cols: torch.Tensor,
-              lo: torch.Tensor, hi: torch.Tensor
+              lo: torch.Tensor, hi: torch.Tensor, top_apart: bool = False
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Backward pass from coefficients on a_{top-1} (La) and on Q_{top-1}^j (LQ; None for
     value-only queries), both [B, R, J, h], plus a constant `bias` [B, R, J], down to z:
@@ -145,7 +147,12 @@ def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
 
     Slack: gamma_{2h+8} |L| . K per layer (folded into the intercept radii) covers every
     elementwise product, every sum of at most 2h bias terms and the products L @ W
-    (gamma_{h+2} |L| |W| |x|); each update of the running sums adds gamma_4 (|S| + T)."""
+    (gamma_{h+2} |L| |W| |x|); each update of the running sums adds gamma_4 (|S| + T).
+
+    top_apart (derivative queries, La None): the relaxation errors of the products Q at layer
+    top - 1, sum_k |LQ_k| WQ_k, are left out of the intercepts (their rounding slack stays
+    in): the caller accounts for them as LQ . eps with |eps| <= WQ, one eps for all queries
+    (`certify.bounds.mixed.TopLayerRemainder`)."""
     B, d = lo.shape
     zc = 0.5 * (lo + hi)
     # internal layout [B, J, R, h]: the intercept sums over h are then batched matrix-vector
@@ -167,9 +174,11 @@ def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
             s_term = dot(La, col(lay.m_a))
             t_term = dot(La.abs(), col(lay.wk_a))
         if LQ is not None:
-            st, SA, MQ, WKQ = lay.col_consts(cols)
+            st, SA, MQ, WKQ, WQ = lay.col_consts(cols)
             q_pre = LQ * sw(SA)
             Lpre = q_pre if La is None else Lpre + q_pre
+            if top_apart and li == top - 1:  # only the rounding slack: the caller has WQ
+                WKQ = up(WKQ - WQ)
             qs, qt = dot(LQ, col(MQ)), dot(LQ.abs(), col(WKQ))
             s_term = qs if La is None else s_term + qs
             t_term = qt if La is None else t_term + qt

@@ -11,6 +11,8 @@ Rounding: R W_H is a float product whose error is bounded with gamma_k |.| and a
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from certify.bounds.crown import (
@@ -28,15 +30,29 @@ from certify.network import GainNetwork
 U = 2.0**-53
 
 
+@dataclass
+class TopLayerRemainder:
+    """The relaxation errors of the last hidden layer's products kept as a product: the exact
+    R dN/dz lies within the linear enclosure plus C eps, C = R W_H [m, h] (the float product
+    the backward pass used), eps [B, h, J] one matrix for all rows with |eps[b, k, j]| <=
+    w[b, j, k] (`_Layer.col_consts`' WQ). Bounding C eps entrywise (sum_k |C_ik| w_jk) loses
+    the signs of C; `certify.bounds.structured` keeps them."""
+
+    C: torch.Tensor  # [m, h]
+    w: torch.Tensor  # [B, J, h]
+
+
 def mixed_jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
-                         cols: list[int], rows: torch.Tensor, fb: ForwardBounds
-                         ) -> LinearEnclosure:
+                         cols: list[int], rows: torch.Tensor, fb: ForwardBounds,
+                         top_apart: bool = False
+                         ) -> tuple[LinearEnclosure, TopLayerRemainder | None]:
     """Linear lower/upper bounds of (R dN/dz)_{ij} over each box, R = `rows` [m, out] a point
     matrix, j in cols -> [B, m, J]: the backward passes start from the rows of R W_H, so
     the cancellations between the outputs that R mixes are kept (bounding dN/dz and then
     multiplying by |R| loses them). R W_H is a float product: its error, at most
     gamma_{out+2} |R| |W_H| entrywise, times |Q_{H-1}^j| (forward magnitudes), widens both
-    lines, rounded up."""
+    lines, rounded up. top_apart: the last hidden layer's relaxation errors are left out of
+    the lines and returned as a `TopLayerRemainder` (else None)."""
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     B, d = lo.shape
@@ -49,39 +65,50 @@ def mixed_jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
     J = len(cols)
     LQ = _queries(RW, J, B)
     Lz, cl, cu = _backward(fb.layers, len(fb.layers), None, LQ,
-                           torch.zeros(B, m, J, dtype=torch.float64), colt, lo, hi)
+                           torch.zeros(B, m, J, dtype=torch.float64), colt, lo, hi,
+                           top_apart=top_apart)
     qm = fb.layers[-1].qmag(colt)  # [B, h, J]
     h = qm.shape[1]
     slack = up(torch.einsum("mh,bhj->bmj", delta, qm) * (1.0 + gamma(h + 2)) + TINY)
-    return LinearEnclosure(gl=Lz, cl=down(cl - slack), gu=Lz, cu=up(cu + slack))
+    le = LinearEnclosure(gl=Lz, cl=down(cl - slack), gu=Lz, cu=up(cu + slack))
+    if not top_apart:
+        return le, None
+    WQ = fb.layers[-1].col_consts(colt)[4][:, 0]  # [B, J, h]
+    return le, TopLayerRemainder(RW, WQ)
 
 
 def network_crown_mixed_jacobian(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
-                                 cols: list[int], rows: torch.Tensor) -> TM:
+                                 cols: list[int], rows: torch.Tensor, top_apart: bool = False
+                                 ) -> tuple[TM, TopLayerRemainder | None]:
     """TM of R dN/dz[:, cols] over each box [B, m, J] (R = `rows` [m, out]) from the linear
     bounds with the mixed rows (`mixed_jacobian_crown`) on forward ranges without Taylor
-    models (`forward_bounds(taylor=False)`). R times the forward Taylor model, which this
+    models (`forward_bounds(taylor=False)`), and (top_apart) the last hidden layer's
+    relaxation errors apart, as there. R times the forward Taylor model, which this
     used to take entry by entry where tighter, was never the tighter one in whole proofs
     (0 of 4k-1.3M entries on the 2x10 chains with n = 2, 3, 4, 6 and the 3x30 Van der Pol
     instance) and propagating it was the forward pass's largest cost."""
     fb = forward_bounds(net, lo, hi, cols=cols, crown=True, taylor=False)
-    return to_tm(mixed_jacobian_crown(net, lo, hi, cols, rows, fb), fb.r)
+    le, top = mixed_jacobian_crown(net, lo, hi, cols, rows, fb, top_apart=top_apart)
+    return to_tm(le, fb.r), top
 
 
 def contraction_tm_mixed(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: torch.Tensor,
-                         lam: float) -> TM:
+                         lam: float, top_apart: bool = False
+                         ) -> tuple[TM, TopLayerRemainder | None]:
     """TM of A = He{P J} + 2 lam P over each box for the congruence M = I (pc.kind "none")
     and a direct network: He{P (Jf - K dh/dx)} + 2 lam P from the Taylor models
     (`jcl_taylor` with the network's Jacobian left out, then `tm_congruence`, whose Q = I P
-    encloses P), plus He{P dN/dx} from `network_crown_mixed_jacobian` with R = P exactly."""
+    encloses P), plus He{P dN/dx} from `network_crown_mixed_jacobian` with R = P exactly.
+    top_apart: the last hidden layer's relaxation errors are not in the TM's remainder; A
+    lies within the TM plus He{C eps} (the returned `TopLayerRemainder`; else None)."""
     n = problem.n
     rest = contraction_rest(problem, pc, lo, hi, r, lam)
-    Nt = network_crown_mixed_jacobian(problem.network, lo, hi, list(range(n)),
-                                      problem.P_t)  # [B, n, n]
+    Nt, top = network_crown_mixed_jacobian(problem.network, lo, hi, list(range(n)),
+                                           problem.P_t, top_apart=top_apart)  # [B, n, n]
     c = 0.5 * (Nt.c + Nt.c.transpose(1, 2))
     g = 0.5 * (Nt.g + Nt.g.transpose(1, 2))
     e = 0.5 * up(Nt.e + Nt.e.transpose(1, 2))
-    return tm_add(rest, tm_absorb(c, g, up(e), r, 2), r)
+    return tm_add(rest, tm_absorb(c, g, up(e), r, 2), r), top
 
 
 def contraction_rest(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: torch.Tensor,

@@ -24,6 +24,9 @@ from certify.intervals import Interval, imul, up
 from certify.problem import Problem
 
 DIRECT_MIXED = True  # with M = I and a direct network: skip the Taylor stage (see below)
+#: the mixed stage keeps the last hidden layer's relaxation errors as a matrix
+#: (`certify.bounds.structured`); False: entry by entry, as before (for comparisons)
+STRUCTURED_TOP = True
 CROWN_GAIN = 100.0  # remainder reduction assumed when choosing boxes for the linear bounds
 
 #: boxes per stage since import (diagnostics for bench/prove_suite.py; never read by proofs)
@@ -150,14 +153,18 @@ def _mixed_stage(problem: Problem, pc: Preconditioner, lo: torch.Tensor, hi: tor
                  r: torch.Tensor, lam: float, screen: float | None, decide: bool
                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """(bound, Taylor split score) of the boxes from the mixed-row linear bounds
-    (`certify.bounds.mixed.contraction_tm_mixed`), decided against the level (screen, else 0)
-    when `decide`."""
+    (`certify.bounds.mixed.contraction_tm_mixed`; the last hidden layer's errors as a matrix,
+    `certify.bounds.structured`), decided against the level (screen, else 0) when
+    `decide`."""
     from certify.bounds.mixed import contraction_tm_mixed
+    from certify.bounds.structured import loewner_upper
 
     level = 0.0 if screen is None else screen
     STAGE_COUNTS["crown"] += lo.shape[0]
-    bound, score = tm_lam_upper(contraction_tm_mixed(problem, pc, lo, hi, r, lam), r,
-                                level=level if decide else None)
+    A, top = contraction_tm_mixed(problem, pc, lo, hi, r, lam, top_apart=STRUCTURED_TOP)
+    if top is not None:
+        A = loewner_upper(A, top, level)
+    bound, score = tm_lam_upper(A, r, level=level if decide else None)
     STAGE_COUNTS["crown_closed"] += int((bound <= level).sum())
     return bound, score
 
@@ -171,7 +178,7 @@ def crown_contraction_tm(problem: Problem, pc: Preconditioner, lo: torch.Tensor,
     if pc.kind == "none" and net.structure == "direct":
         from certify.bounds.mixed import contraction_tm_mixed
 
-        return contraction_tm_mixed(problem, pc, lo, hi, r, lam)
+        return contraction_tm_mixed(problem, pc, lo, hi, r, lam)[0]
     from certify.bounds.crown import network_crown_tms
 
     net_tms = network_crown_tms(net, lo, hi, list(range(problem.n)), value=problem.structural)

@@ -1,0 +1,117 @@
+"""The last hidden layer's relaxation errors as a matrix (`certify.bounds.structured`): the
+enclosure with those errors apart plus He{C eps} holds at sampled points, the Loewner upper
+model bounds v^T D v for every sampled v (the eigenvectors of D included), and it decides
+boxes the entrywise remainder cannot."""
+
+from __future__ import annotations
+
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from certify import activations
+from certify.bounds.crown import forward_bounds
+from certify.bounds.mixed import contraction_tm_mixed, mixed_jacobian_crown
+from certify.bounds.preconditioner import diagonal_preconditioner
+from certify.bounds.structured import loewner_upper
+from certify.bounds.taylor import tm_lam_upper
+from certify.kernels import closed_loop_jacobian
+
+from .test_crown import _boxes, _net, _points
+from .test_preconditioner_choice import _problem
+
+F64 = torch.float64
+
+
+@settings(max_examples=4, deadline=None)
+@given(seed=st.integers(0, 10_000), act=st.sampled_from(activations.names()),
+       depth=st.integers(1, 3), scale=st.sampled_from([1e-3, 0.05, 0.5]), m=st.integers(1, 4))
+def test_errors_apart_plus_C_eps_contain_sampled_rows(seed: int, act: str, depth: int,
+                                                      scale: float, m: int) -> None:
+    """With top_apart, R dN/dz - (linear lines) = C eps + (what the lines still carry): for
+    every sampled point and every row, the distance to the lines' band is at most
+    sum_k |C_ik| w_jk (the errors apart cannot exceed their bound)."""
+    d = 4
+    net = _net(seed, d, depth, 6, 2.0, act)
+    gen = torch.Generator().manual_seed(seed + 5)
+    R = torch.randn(m, d - 1, generator=gen, dtype=F64) * 3.0
+    lo, hi = _boxes(seed, 8, d, scale)
+    cols = list(range(d - 1))
+    z = _points(lo, hi, 100, seed)
+    B, S, _ = z.shape
+    _, jac = net.forward_with_jacobian(z.reshape(-1, d))
+    want = torch.einsum("mo,soj->smj", R, jac[..., cols]).reshape(B, S, m, len(cols))
+    dz = z - 0.5 * (lo + hi)[:, None]
+    fb = forward_bounds(net, lo, hi, cols=cols)
+    le, top = mixed_jacobian_crown(net, lo, hi, cols, R, fb, top_apart=True)
+    low = torch.einsum("bmjd,bsd->bsmj", le.gl, dz) + le.cl[:, None]
+    upp = torch.einsum("bmjd,bsd->bsmj", le.gu, dz) + le.cu[:, None]
+    outside = torch.maximum(low - want, want - upp).clamp_min(0.0)
+    allowed = torch.einsum("mk,bjk->bmj", top.C.abs(), top.w)[:, None]
+    assert bool((outside <= allowed + 1e-13 * (1 + want.abs())).all())
+    full, none = mixed_jacobian_crown(net, lo, hi, cols, R, fb)
+    assert none is None
+    assert bool((le.cu - le.cl <= full.cu - full.cl + 1e-12).all())  # the lines are narrower
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(2, 4), cond=st.sampled_from([2.0, 30.0]),
+       scale=st.sampled_from([0.0, 1e-3, 0.05, 0.3]))
+def test_loewner_model_bounds_every_sampled_quadratic_form(seed: int, n: int, cond: float,
+                                                           scale: float) -> None:
+    """For sampled points z and vectors v (random, and the eigenvectors of D(z)):
+    v^T D(z) v <= v^T (c + g . dz) v + |v|^T e |v| for the upper model (c + W, g, e)."""
+    prob = _problem(seed, n, cond)
+    pc = diagonal_preconditioner(prob.P_t, torch.ones(n, dtype=F64), "none")
+    d = n + 1
+    gen = torch.Generator().manual_seed(seed + 3)
+    c = 2 * torch.rand(5, d, generator=gen, dtype=F64) - 1
+    lo, hi = c - scale, c + scale
+    r = torch.maximum(hi - c, c - lo)
+    A, top = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam, top_apart=True)
+    U = loewner_upper(A, top)
+    z = _points(lo, hi, 80, seed).reshape(-1, d)
+    J = closed_loop_jacobian(prob.system, prob.network, z[:, :n], z[:, n:])
+    P = prob.P_t
+    D = (0.5 * (P @ J + (P @ J).transpose(1, 2)) + 2 * prob.lam * P).reshape(5, -1, n, n)
+    dz = z.reshape(5, -1, d) - c[:, None]
+    M = U.c[:, None] + torch.einsum("bijd,bsd->bsij", U.g, dz)
+    v = torch.cat([torch.randn(5, D.shape[1], 16, n, generator=gen, dtype=F64),
+                   torch.linalg.eigh(D).eigenvectors.transpose(-1, -2),
+                   torch.linalg.eigh(D - M).eigenvectors.transpose(-1, -2)], 2)
+    lhs = torch.einsum("bsvi,bsij,bsvj->bsv", v, D, v)
+    rhs = torch.einsum("bsvi,bsij,bsvj->bsv", v, M, v) \
+        + torch.einsum("bsvi,bij,bsvj->bsv", v.abs(), U.e, v.abs())
+    assert bool((lhs <= rhs + 1e-12 * (1 + lhs.abs())).all())
+
+
+def test_matrix_errors_decide_boxes_the_entrywise_remainder_cannot() -> None:
+    """A 4-state chain with a 6x5 tanh network (gain 2) and a metric of condition 30, boxes
+    of radius 0.1, a level between the boxes' sampled maxima: the upper model decides
+    strictly more boxes than the entrywise remainder, and none whose
+    sampled lam_max exceeds the level."""
+    import certify.bounds.mpdi as mpdi
+
+    prob = _problem(3, 4, 30.0)
+    pc = diagonal_preconditioner(prob.P_t, torch.ones(4, dtype=F64), "none")
+    gen = torch.Generator().manual_seed(0)
+    c = 1.6 * torch.rand(256, 5, generator=gen, dtype=F64) - 0.8
+    lo, hi = c - 0.1, c + 0.1
+    r = torch.full_like(lo, 0.1)
+    A, top = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam, top_apart=True)
+    A0, _ = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam)
+    # the level: between the boxes' sampled maxima, so that some boxes must not be decided
+    z = _points(lo, hi, 64, 1).reshape(-1, 5)
+    J = closed_loop_jacobian(prob.system, prob.network, z[:, :4], z[:, 4:])
+    P = prob.P_t
+    D = 0.5 * (P @ J + (P @ J).transpose(1, 2)) + 2 * prob.lam * P
+    sampled = torch.linalg.eigvalsh(D)[:, -1].reshape(256, -1).amax(1)
+    level = float(sampled.quantile(0.8)) + 0.05
+    plain, _ = tm_lam_upper(A0, r, level=level)
+    structured, _ = tm_lam_upper(loewner_upper(A, top, level), r, level=level)
+    lvl = level - 1e-12 * (1 + abs(level))
+    n_plain, n_struct = int((plain == lvl).sum()), int((structured == lvl).sum())
+    assert n_struct > n_plain, (n_plain, n_struct)
+    assert bool((sampled[structured == lvl] <= lvl).all())
+    assert bool((sampled > lvl).any())
+    assert mpdi.STRUCTURED_TOP  # the prover's mixed stage uses the matrix form
