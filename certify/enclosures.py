@@ -18,13 +18,20 @@ box (`certify.bounds.mpdi.mpdi_box_bounds`), the smallest sound bound kept:
   computation graph with sound relaxations of tanh, tanh' and McCormick products
   (`bounds.relax`): per Jacobian entry, linear lower and upper functions of z, turned into a
   Taylor model and kept entry by entry where their remainder is smaller; tried where the
-  Taylor model failed but a remainder shrunk by the network's measured gain would pass.
+  Taylor model failed but a remainder shrunk by the network's measured gain would pass;
+- with M = I and a direct network, the mixed rows P dN/dz in one backward pass
+  (`bounds.mixed`), the last hidden layer's relaxation errors kept as a matrix P W_H eps
+  and bounded in the Loewner order, x^T He{P W_H eps} x <= x^T W x
+  (`bounds.structured`): the centre c + W of an upper model of A, not an entrywise
+  remainder.
 
 Eigenvalue bounds of interval matrices (`bounds.eigen`): exact closed form for n <= 2, else
 the smallest of centre + radius (Weyl, Collatz-Wielandt), Gershgorin and the sign-pattern
 vertex bound (Hertz) for n <= 6. In a decision (the MPDI proof, `mpdi_box_bounds(decide=True)`)
 the vertex matrices of n >= 4 are tested against the level by a certified Cholesky
-factorisation (`bounds.eigen.lam_max_at_most`) instead of eigenvalues.
+factorisation (`bounds.eigen.lam_max_at_most`) instead of eigenvalues, after Weyl's bound and
+one test of the vertex most likely to fail, and again after a congruence by the box's own
+room (lvl I - c)^(-1/2) where the remainder failed them (`bounds.decide`).
 
 M is the identity for P = I; otherwise M ~ L^-1 (P = L L^T, computed in floating point and
 then used as an exact matrix: by Sylvester's law of inertia D <= 0 iff M D M^T <= 0 for every

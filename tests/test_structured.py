@@ -13,7 +13,7 @@ from certify import activations
 from certify.bounds.crown import forward_bounds
 from certify.bounds.mixed import contraction_tm_mixed, mixed_jacobian_crown
 from certify.bounds.preconditioner import diagonal_preconditioner
-from certify.bounds.structured import loewner_upper
+from certify.bounds.structured import entrywise, loewner_upper
 from certify.bounds.taylor import tm_lam_upper
 from certify.kernels import closed_loop_jacobian
 
@@ -60,7 +60,8 @@ def test_errors_apart_plus_C_eps_contain_sampled_rows(seed: int, act: str, depth
 def test_loewner_model_bounds_every_sampled_quadratic_form(seed: int, n: int, cond: float,
                                                            scale: float) -> None:
     """For sampled points z and vectors v (random, and the eigenvectors of D(z)):
-    v^T D(z) v <= v^T (c + g . dz) v + |v|^T e |v| for the upper model (c + W, g, e)."""
+    v^T D(z) v <= v^T (c + g . dz) v + |v|^T e |v| for the upper model (c + W, g, e); the
+    entrywise form of the same errors contains D(z) entry by entry."""
     prob = _problem(seed, n, cond)
     pc = diagonal_preconditioner(prob.P_t, torch.ones(n, dtype=F64), "none")
     d = n + 1
@@ -79,6 +80,10 @@ def test_loewner_model_bounds_every_sampled_quadratic_form(seed: int, n: int, co
     v = torch.cat([torch.randn(5, D.shape[1], 16, n, generator=gen, dtype=F64),
                    torch.linalg.eigh(D).eigenvectors.transpose(-1, -2),
                    torch.linalg.eigh(D - M).eigenvectors.transpose(-1, -2)], 2)
+    # the same errors entry by entry: an entrywise enclosure of D again
+    E = entrywise(A, top)
+    lin = E.c[:, None] + torch.einsum("bijd,bsd->bsij", E.g, dz)
+    assert bool(((D - lin).abs() <= E.e[:, None] + 1e-13 * (1 + D.abs())).all())
     lhs = torch.einsum("bsvi,bsij,bsvj->bsv", v, D, v)
     rhs = torch.einsum("bsvi,bsij,bsvj->bsv", v, M, v) \
         + torch.einsum("bsvi,bij,bsvj->bsv", v.abs(), U.e, v.abs())

@@ -63,6 +63,18 @@ def loewner_upper(A: TM, top: TopLayerRemainder, level: float = 0.0) -> TM:
     return TM(c, A.g, e)
 
 
+def entrywise(A: TM, top: TopLayerRemainder) -> TM:
+    """The same errors entry by entry: A's remainder plus He{|C| w^T}, (|C| w^T)_ij =
+    sum_k |C_ik| w_jk, rounded up (an entrywise enclosure again; for n <= 3, where Hertz's
+    vertex bound treats an entrywise remainder exactly, it can beat the matrix form)."""
+    C, w = top.C.to(torch.float64), top.w.to(torch.float64)
+    h = C.shape[1]
+    E = torch.einsum("ik,bjk->bij", C.abs(), w)
+    gk = gamma(h + 4)
+    e = up((A.e + 0.5 * (E + E.transpose(1, 2))) * (1.0 + 2.0 * gk) + TINY)
+    return TM(A.c, A.g, e)
+
+
 def _balance(c: torch.Tensor, C: torch.Tensor, w: torch.Tensor, s: torch.Tensor,
              level: float) -> torch.Tensor:
     """a_k > 0 per box [B, h] (module docstring: the room R = level I - sym(c), clamped
