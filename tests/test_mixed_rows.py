@@ -55,10 +55,18 @@ def test_mixed_rows_contain_sampled_values(act: str, seed: int, depth: int, g: f
     assert bool(((want - lin).abs() <= tm.e[:, None] + tol).all())
 
 
-@settings(max_examples=8, deadline=None)
-@given(seed=st.integers(0, 10_000), n=st.integers(2, 4), cond=st.sampled_from([2.0, 30.0]),
-       scale=st.sampled_from([0.0, 1e-3, 0.05, 0.3]))
-def test_contraction_tm_contains_He_PJ(seed: int, n: int, cond: float, scale: float) -> None:
+def sampled_D(prob, z: torch.Tensor) -> torch.Tensor:
+    """He{P J} + 2 lam P (He{X} = (X + X^T) / 2, as the bounds) at points z [S, d]."""
+    n = prob.n
+    J = closed_loop_jacobian(prob.system, prob.network, z[:, :n], z[:, n:])
+    P = prob.P_t
+    return 0.5 * (P @ J + (P @ J).transpose(1, 2)) + 2 * prob.lam * P
+
+
+def mixed_case(seed: int, n: int, cond: float, scale: float, points: int) -> tuple:
+    """A chain problem (`_problem`) with the congruence M = I, 5 boxes of radius `scale`
+    around random centres c, and D sampled at `points` points per box: (prob, pc, lo, hi, r,
+    D [5, S, n, n], dz [5, S, d] the points less their box centre)."""
     prob = _problem(seed, n, cond)
     pc = diagonal_preconditioner(prob.P_t, torch.ones(n, dtype=F64), "none")
     d = n + 1
@@ -66,13 +74,18 @@ def test_contraction_tm_contains_He_PJ(seed: int, n: int, cond: float, scale: fl
     c = 2 * torch.rand(5, d, generator=gen, dtype=F64) - 1
     lo, hi = c - scale, c + scale
     r = torch.maximum(hi - c, c - lo)
-    A, _ = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam)
-    z = _points(lo, hi, 150, seed).reshape(-1, d)
-    J = closed_loop_jacobian(prob.system, prob.network, z[:, :n], z[:, n:])
-    P = prob.P_t
-    D = 0.5 * (P @ J + (P @ J).transpose(1, 2)) + 2 * prob.lam * P
-    D = D.reshape(5, -1, n, n)
+    z = _points(lo, hi, points, seed).reshape(-1, d)
+    D = sampled_D(prob, z).reshape(5, -1, n, n)
     dz = z.reshape(5, -1, d) - c[:, None]
+    return prob, pc, lo, hi, r, D, dz
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(2, 4), cond=st.sampled_from([2.0, 30.0]),
+       scale=st.sampled_from([0.0, 1e-3, 0.05, 0.3]))
+def test_contraction_tm_contains_He_PJ(seed: int, n: int, cond: float, scale: float) -> None:
+    prob, pc, lo, hi, r, D, dz = mixed_case(seed, n, cond, scale, 150)
+    A, _ = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam)
     lin = A.c[:, None] + torch.einsum("bijd,bsd->bsij", A.g, dz)
     assert bool(((D - lin).abs() <= A.e[:, None] + 1e-13 * (1 + D.abs())).all())
 

@@ -15,9 +15,9 @@ from certify.bounds.mixed import contraction_tm_mixed, mixed_jacobian_crown
 from certify.bounds.preconditioner import diagonal_preconditioner
 from certify.bounds.structured import entrywise, loewner_upper
 from certify.bounds.taylor import tm_lam_upper
-from certify.kernels import closed_loop_jacobian
 
 from .test_crown import _boxes, _net, _points
+from .test_mixed_rows import mixed_case, sampled_D
 from .test_preconditioner_choice import _problem
 
 F64 = torch.float64
@@ -62,20 +62,10 @@ def test_loewner_model_bounds_every_sampled_quadratic_form(seed: int, n: int, co
     """For sampled points z and vectors v (random, and the eigenvectors of D(z)):
     v^T D(z) v <= v^T (c + g . dz) v + |v|^T e |v| for the upper model (c + W, g, e); the
     entrywise form of the same errors contains D(z) entry by entry."""
-    prob = _problem(seed, n, cond)
-    pc = diagonal_preconditioner(prob.P_t, torch.ones(n, dtype=F64), "none")
-    d = n + 1
-    gen = torch.Generator().manual_seed(seed + 3)
-    c = 2 * torch.rand(5, d, generator=gen, dtype=F64) - 1
-    lo, hi = c - scale, c + scale
-    r = torch.maximum(hi - c, c - lo)
+    prob, pc, lo, hi, r, D, dz = mixed_case(seed, n, cond, scale, 80)
+    gen = torch.Generator().manual_seed(seed + 4)
     A, top = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam, top_apart=True)
     U = loewner_upper(A, top)
-    z = _points(lo, hi, 80, seed).reshape(-1, d)
-    J = closed_loop_jacobian(prob.system, prob.network, z[:, :n], z[:, n:])
-    P = prob.P_t
-    D = (0.5 * (P @ J + (P @ J).transpose(1, 2)) + 2 * prob.lam * P).reshape(5, -1, n, n)
-    dz = z.reshape(5, -1, d) - c[:, None]
     M = U.c[:, None] + torch.einsum("bijd,bsd->bsij", U.g, dz)
     v = torch.cat([torch.randn(5, D.shape[1], 16, n, generator=gen, dtype=F64),
                    torch.linalg.eigh(D).eigenvectors.transpose(-1, -2),
@@ -106,10 +96,7 @@ def test_matrix_errors_decide_boxes_the_entrywise_remainder_cannot() -> None:
     A, top = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam, top_apart=True)
     A0, _ = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam)
     # the level: between the boxes' sampled maxima, so that some boxes must not be decided
-    z = _points(lo, hi, 64, 1).reshape(-1, 5)
-    J = closed_loop_jacobian(prob.system, prob.network, z[:, :4], z[:, 4:])
-    P = prob.P_t
-    D = 0.5 * (P @ J + (P @ J).transpose(1, 2)) + 2 * prob.lam * P
+    D = sampled_D(prob, _points(lo, hi, 64, 1).reshape(-1, 5))
     sampled = torch.linalg.eigvalsh(D)[:, -1].reshape(256, -1).amax(1)
     level = float(sampled.quantile(0.8)) + 0.05
     plain, _ = tm_lam_upper(A0, r, level=level)
