@@ -288,11 +288,8 @@ def load(path: str | Path) -> Checkpoint:
         P = validate_metric(torch.as_tensor(data["P"]).numpy(), system.n, f"checkpoint {path}")
     except CertifyError as exc:
         raise CheckpointError(str(exc)) from None
-    lam = data["lam"]
-    if not isinstance(lam, (int, float)):
-        raise CheckpointError(f"checkpoint {path}: lam must be a finite number > 0; got {lam!r}")
     try:
-        lam = validate_lam(lam, f"checkpoint {path}: lam")
+        lam = validate_lam(data["lam"], f"checkpoint {path}: lam")
     except CertifyError as exc:
         raise CheckpointError(str(exc)) from None
     training = data.get("training") or {}

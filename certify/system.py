@@ -90,12 +90,9 @@ def validate_lam(lam: Any, where: str) -> float:
     `where`). Every entry point that takes a rate from the user (`--lam`, a spec, a
     checkpoint) refuses the same values, so an infinite or absurd rate is bad input (exit 2),
     not an internal error (2 lam P overflowing in the SDP) or an inconclusive run."""
-    if isinstance(lam, bool):
+    if isinstance(lam, bool) or not isinstance(lam, (int, float)):  # not "2.5", not True
         raise SpecError(f"{where} must be a finite number > 0; got {lam!r}")
-    try:
-        v = float(lam)
-    except (TypeError, ValueError):
-        raise SpecError(f"{where} must be a finite number > 0; got {lam!r}") from None
+    v = float(lam)
     if not (np.isfinite(v) and v > 0):
         raise SpecError(f"{where} must be a finite number > 0; got {lam!r}")
     if v > MAX_LAM:
@@ -163,8 +160,6 @@ class System:
         Y = _box(box["Y"], len(outputs), "Y", where)
         design = data.get("design", {})
         lam = design.get("lam", 1.0)
-        if isinstance(lam, bool) or not isinstance(lam, (int, float)):
-            raise SpecError(f"{where}: design lam must be a finite number > 0; got {lam!r}")
         lam = validate_lam(lam, f"{where}: design lam")
         P = validate_metric(design.get("P", np.eye(len(states)).tolist()), len(states),
                             f"{where}: design")

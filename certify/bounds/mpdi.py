@@ -19,7 +19,7 @@ from certify.bounds.preconditioner import (
     make_preconditioner,
 )
 from certify.bounds.split import split_score
-from certify.bounds.taylor import jcl_taylor, tm_congruence, tm_lam_upper
+from certify.bounds.taylor import HERTZ_MAX_N, jcl_taylor, tm_congruence, tm_lam_upper
 from certify.intervals import Interval, imul, up
 from certify.problem import Problem
 
@@ -167,7 +167,7 @@ def _mixed_stage(problem: Problem, pc: Preconditioner, lo: torch.Tensor, hi: tor
         bound, score = tm_lam_upper(A, r, level=dlevel)
     else:
         bound, score = tm_lam_upper(loewner_upper(A, top, level), r, level=dlevel)
-        if problem.n <= 3:
+        if problem.n <= HERTZ_MAX_N:
             # Hertz's bound (n <= 3) is exact for an entrywise remainder: there the entrywise
             # form can win (2x10 and 3x30 Van der Pol: 13-27% more boxes with the matrix form
             # alone); both come from the same backward pass, the smaller bound is kept

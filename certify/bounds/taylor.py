@@ -45,6 +45,9 @@ from certify.system_enclosures import (
 )
 
 U = 2.0**-53
+#: up to this n, `tm_lam_upper` also takes Hertz's vertex bound (the remainder entrywise,
+#: exactly: 2^(n-1) sign patterns per vertex)
+HERTZ_MAX_N = 3
 
 
 @dataclass
@@ -358,7 +361,7 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
     bound = up(lv + rr)
     if decided is not None:
         bound = torch.where(decided, torch.full_like(bound, lvl), bound)
-    if S is not None and n <= 3:
+    if S is not None and n <= HERTZ_MAX_N:
         hz = hertz_upper(S, rem.unsqueeze(1).expand_as(S)).amax(-1)
         bound = torch.where(torch.isnan(bound) | torch.isnan(hz), bound + hz,
                             torch.minimum(bound, hz))
