@@ -94,11 +94,13 @@ def initial_grid(lo: torch.Tensor, hi: torch.Tensor, target: int) -> Box:
     """Split the root box [d] into about `target` equal boxes (more cuts on wider sides)."""
     d = lo.shape[0]
     width = (hi - lo).double()
-    cuts = torch.ones(d, dtype=torch.long)
+    sides = width.cpu()  # the cut counts are chosen on the CPU
+    cuts = torch.ones(d, dtype=torch.long, device="cpu")
     while int(cuts.prod()) * 2 <= max(target, 1):
-        i = int(torch.argmax(width / cuts))
+        i = int(torch.argmax(sides / cuts))
         cuts[i] *= 2
-    axes = [torch.linspace(0.0, 1.0, int(c) + 1, dtype=torch.float64) for c in cuts]
+    axes = [torch.linspace(0.0, 1.0, int(c) + 1, dtype=torch.float64, device=lo.device)
+            for c in cuts]
     los = torch.cartesian_prod(*[a[:-1] for a in axes]).reshape(-1, d)
     his = torch.cartesian_prod(*[a[1:] for a in axes]).reshape(-1, d)
     blo = lo + los * width
@@ -106,7 +108,8 @@ def initial_grid(lo: torch.Tensor, hi: torch.Tensor, target: int) -> Box:
     # exact shared faces and the exact root faces
     blo = torch.where(los == 0, lo.expand_as(blo), blo)
     bhi = torch.where(his == 1, hi.expand_as(bhi), bhi)
-    depth = torch.full((blo.shape[0],), int(torch.log2(cuts.double()).sum()), dtype=torch.long)
+    depth = torch.full((blo.shape[0],), int(torch.log2(cuts.double()).sum()), dtype=torch.long,
+                       device=lo.device)
     return Box(blo, bhi, depth)
 
 
@@ -120,7 +123,7 @@ PIPELINE_LAG = 2
 def split(box: Box, dims: torch.Tensor) -> Box:
     """Bisect each box along dims [N]; the two halves share the (float) midpoint exactly."""
     N = len(box)
-    ar = torch.arange(N)
+    ar = torch.arange(N, device=box.lo.device)
     mid = 0.5 * (box.lo[ar, dims] + box.hi[ar, dims])
     lo1, hi1 = box.lo.clone(), box.hi.clone()
     lo2, hi2 = box.lo.clone(), box.hi.clone()
@@ -201,7 +204,7 @@ def branch_and_bound(
         lo2, hi2 = lo[:, px], hi[:, px]
         leaves_lo.append(lo2)
         leaves_hi.append(hi2)
-        leaves_st.append(torch.full((len(lo),), status, dtype=torch.int8))
+        leaves_st.append(torch.full((len(lo),), status, dtype=torch.int8, device=lo.device))
         leaves_area.append((hi2 - lo2).prod(-1))
         # keep memory bounded: prune the smallest proved leaves beyond 20x the cap
         if sum(len(a) for a in leaves_area) > 20 * max(keep_leaves, 1):
@@ -253,7 +256,7 @@ def branch_and_bound(
         if threshold is not None and best > threshold and stop_on_violation:
             violated = True
 
-    frontier = Frontier(d)
+    frontier = Frontier(d, device=root_lo.device)
     rounds = RoundPipeline(evaluate, executor, remote)
     in_flight: deque[Box] = deque()  # the boxes of each round in flight, oldest first
     scanned_level = -math.inf  # the frontier holds no box closed at this level

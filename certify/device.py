@@ -1,11 +1,22 @@
 """The torch device the numeric kernels run on (`--device`, `[tool.certify] device`).
 
-`cpu` is the default. `cuda` runs the MPDI grid sweep and the adversarial falsifier in float64
-on the GPU (`Problem.on` moves the network and P; points are made on the device). The
-branch-and-bound bounds still run on the CPU: the enclosure code makes CPU tensors. Their
-outward rounding would carry over unchanged (`torch.nextafter` is elementwise and exact on
-CUDA as on the CPU), so moving them is plumbing. Not benchmarked on a GPU. Asking for `cuda`
-where torch sees no CUDA device is bad input: one line, exit 2, before any work.
+`cpu` is the default. `cuda` runs the MPDI grid sweep, the adversarial falsifier and the MPDI
+proof's branch and bound in float64 on the GPU (`Problem.on` moves the network and P; points,
+boxes and every tensor of the enclosures are made on the device of their inputs, which
+`tests/test_device_follow.py` checks on the CPU by making the default device `meta`). The
+rate, residual and Lipschitz side proofs stay on the CPU.
+
+The outward rounding carries over unchanged: `torch.nextafter` is exact on CUDA as on the
+CPU; +, -, *, / and sqrt are IEEE round-to-nearest there too (a fused multiply-add rounds
+once, so it errs less, not more); CUDA's double-precision libm (tanh, exp, log: 1 ulp; sin,
+cos, tan, pow, hypot: 2 ulps, CUDA C Programming Guide, "Mathematical Functions") stays inside
+the 4-ulp widening of `certify.intervals.ROUNDING`; Higham's gamma_k bounds of matrix products
+and sums hold for any summation order, so cuBLAS's blocking is covered; the eigenvalue margins
+need only a backward-stable symmetric eigensolver (cuSOLVER's, as LAPACK's) and the certified
+Cholesky test only a Cholesky with the standard error bound.
+
+A GPU pays for many boxes per round: `proof_batch` raises the round size there. Asking for
+`cuda` where torch sees no CUDA device is bad input: one line, exit 2, before any work.
 """
 
 from __future__ import annotations
@@ -37,6 +48,16 @@ def resolve_device(name: str | None) -> torch.device:
                                 "device(s) here")
         return dev
     return torch.device("cpu")
+
+
+#: boxes per branch-and-bound round of the MPDI proof, by device type (a GPU evaluates a round
+#: of many boxes in about the time of a few; the CPU's best is near the default)
+PROOF_BATCH = {"cpu": 1024, "cuda": 16384}
+
+
+def proof_batch(device: torch.device) -> int:
+    """Boxes per round of the MPDI proof on `device` (`PROOF_BATCH`; 1024 elsewhere)."""
+    return PROOF_BATCH.get(torch.device(device).type, 1024)
 
 
 def describe(device: torch.device) -> str:

@@ -73,8 +73,8 @@ def screen_tolerance(fn: ScoreFn, screen: ScoreFn, lo: torch.Tensor, hi: torch.T
     """The re-check band: 8x the largest |screen - fn| seen on random points (plus a floor);
     and the fraction of those points that would fall in the band or above the threshold."""
     gen = torch.Generator().manual_seed(seed + 7919)  # on the CPU: the same on every device
-    pts = lo + (hi - lo) * torch.rand(samples, len(lo), generator=gen,
-                                      dtype=torch.float64).to(lo.device)
+    pts = lo + (hi - lo) * torch.rand(samples, len(lo), generator=gen, dtype=torch.float64,
+                                      device="cpu").to(lo.device)
     exact = fn(pts)
     approx = screen(pts).to(torch.float64)
     ok = torch.isfinite(exact) & torch.isfinite(approx)
@@ -223,7 +223,7 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
     seeds, _ = _distinct_top(cand_pts, cand_vals, lo_t, hi_t, max(1, starts // 2), 0.02)
     n_rand = max(0, starts - len(seeds))
     rand = lo_t + (hi_t - lo_t) * torch.rand(n_rand, len(shape), generator=gen,
-                                             dtype=torch.float64).to(device)
+                                             dtype=torch.float64, device="cpu").to(device)
     x = torch.cat([seeds, rand]) if starts > 0 else seeds[:0]
     history: list[float] = []
     if len(x) and steps > 0:

@@ -26,16 +26,18 @@ class Frontier:
     #: compact only past this many used slots (and more than half of them dead)
     COMPACT_MIN = 4096
 
-    def __init__(self, d: int, capacity: int = 4096, with_score: bool = True) -> None:
+    def __init__(self, d: int, capacity: int = 4096, with_score: bool = True,
+                 device: torch.device | str = "cpu") -> None:
         self.d = d
         self.used = 0  # slots written since the last compaction
         self.count = 0  # live boxes
-        self.lo = torch.empty(capacity, d, dtype=torch.float64)
-        self.hi = torch.empty(capacity, d, dtype=torch.float64)
-        self.depth = torch.empty(capacity, dtype=torch.long)
-        self.ub = torch.empty(capacity, dtype=torch.float64)
-        self.alive = torch.zeros(capacity, dtype=torch.bool)
-        self.score: torch.Tensor | None = (torch.empty(capacity, d, dtype=torch.float64)
+        f64 = dict(dtype=torch.float64, device=device)
+        self.lo = torch.empty(capacity, d, **f64)
+        self.hi = torch.empty(capacity, d, **f64)
+        self.depth = torch.empty(capacity, dtype=torch.long, device=device)
+        self.ub = torch.empty(capacity, **f64)
+        self.alive = torch.zeros(capacity, dtype=torch.bool, device=device)
+        self.score: torch.Tensor | None = (torch.empty(capacity, d, **f64)
                                            if with_score else None)
 
     def __len__(self) -> int:
@@ -72,7 +74,7 @@ class Frontier:
         if nearest_half and len(live) > k:
             kw = (k + 1) // 2
             worst = torch.topk(key, kw).indices
-            others = torch.ones(len(live), dtype=torch.bool)
+            others = torch.ones(len(live), dtype=torch.bool, device=live.device)
             others[worst] = False
             others = torch.nonzero(others).squeeze(1)
             near = others[torch.topk(key[others], k - kw, largest=False).indices]
@@ -135,6 +137,6 @@ class Frontier:
             if buf is None:
                 continue
             grown = (torch.zeros if name == "alive" else torch.empty)(
-                (new, *buf.shape[1:]), dtype=buf.dtype)
+                (new, *buf.shape[1:]), dtype=buf.dtype, device=buf.device)
             grown[:self.used] = buf[:self.used]
             setattr(self, name, grown)

@@ -47,18 +47,28 @@ def gamma(k: int) -> float:
     return (k * U / (1.0 - k * U)) * (1.0 + 1e-12)
 
 
-_NEG_INF_T = torch.tensor(-_POS_INF, dtype=torch.float64)
-_POS_INF_T = torch.tensor(_POS_INF, dtype=torch.float64)
+_INFS: dict[tuple[torch.device, torch.dtype], tuple[torch.Tensor, torch.Tensor]] = {}
+
+
+def _infs(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(-inf, +inf) as 0-d tensors on x's device and of its dtype, made once per device:
+    `torch.nextafter` on a GPU takes no CPU scalar tensor."""
+    key = (x.device, x.dtype)
+    pair = _INFS.get(key)
+    if pair is None:
+        pair = _INFS[key] = (torch.tensor(-_POS_INF, dtype=x.dtype, device=x.device),
+                             torch.tensor(_POS_INF, dtype=x.dtype, device=x.device))
+    return pair
 
 
 def down(x: torch.Tensor) -> torch.Tensor:
     """One ulp towards -inf (covers a round-to-nearest error)."""
-    return torch.nextafter(x, _NEG_INF_T)
+    return torch.nextafter(x, _infs(x)[0])
 
 
 def up(x: torch.Tensor) -> torch.Tensor:
     """One ulp towards +inf."""
-    return torch.nextafter(x, _POS_INF_T)
+    return torch.nextafter(x, _infs(x)[1])
 
 
 def widen_down(x: torch.Tensor, ulps: int = LIBM_ULPS) -> torch.Tensor:

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import torch
 
 from certify.gain import gain_at_points
+from certify.linalg import eigvalsh
 from certify.network import GainNetwork
 from certify.system import System
 
@@ -52,10 +53,10 @@ def lam_max(S: torch.Tensor) -> torch.Tensor:
         return 0.5 * (a + c) + torch.hypot(0.5 * (a - c), b)
     finite = torch.isfinite(S).all(dim=-1).all(dim=-1)
     if bool(finite.all()):
-        return torch.linalg.eigvalsh(S)[..., -1]
+        return eigvalsh(S)[..., -1]
     # LAPACK fails on NaN/Inf input: evaluate the finite ones, NaN for the rest
     safe = torch.where(finite[..., None, None], S, torch.zeros_like(S))
-    return torch.where(finite, torch.linalg.eigvalsh(safe)[..., -1],
+    return torch.where(finite, eigvalsh(safe)[..., -1],
                        torch.full_like(S[..., 0, 0], float("nan")))
 
 

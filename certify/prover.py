@@ -62,19 +62,23 @@ class RateOutcome:
 
 
 def _root(problem: Problem) -> tuple[torch.Tensor, torch.Tensor]:
+    """The root box X x Y as (lo, hi) [d] float64 on the problem's device."""
     s = problem.system
     box = np.concatenate([s.X, s.Y], 0)
-    t = torch.as_tensor(box, dtype=torch.float64)
+    t = torch.as_tensor(box, dtype=torch.float64, device=problem.device)
     return t[:, 0].clone(), t[:, 1].clone()
 
 
-def _seed_box(seeds: object | None, d: int) -> Box | None:
+def _seed_box(seeds: object | None, d: int, device: str = "cpu") -> Box | None:
     if seeds is None:
         return None
-    pts = torch.as_tensor(np.asarray(seeds, dtype=np.float64), dtype=torch.float64)
+    if isinstance(seeds, torch.Tensor):
+        seeds = seeds.detach().cpu()
+    pts = torch.as_tensor(np.asarray(seeds, dtype=np.float64), dtype=torch.float64,
+                          device=device)
     if pts.ndim != 2 or pts.shape[1] != d or pts.shape[0] == 0:
         return None
-    return Box(pts, pts.clone(), torch.zeros(pts.shape[0], dtype=torch.long))
+    return Box(pts, pts.clone(), torch.zeros(pts.shape[0], dtype=torch.long, device=device))
 
 
 def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bool | str = True,
@@ -135,8 +139,11 @@ def mpdi_box_chunk(payload: dict, lo: torch.Tensor, hi: torch.Tensor) -> BoxEval
 def _mpdi_remote(problem: Problem, lam: float, taylor: bool | str, crown: bool,
                  executor: object) -> tuple | None:
     """(chunk_fn, payload) for an executor whose work runs in other processes (a Dask cluster,
-    even of one worker), else None (evaluate in process)."""
+    even of one worker), else None (evaluate in process). A problem on a GPU is bounded in
+    process, on that GPU (the workers would rebuild it on their CPUs)."""
     if not (getattr(executor, "remote", False) or getattr(executor, "workers", 1) > 1):
+        return None
+    if torch.device(problem.device).type != "cpu":
         return None
     from certify.executor import payload_key
     from certify.remote import problem_payload
@@ -173,7 +180,8 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
     out = branch_and_bound(
         lo, hi, _mpdi_evaluator(problem, lam, pc, taylor, crown), threshold=0.0, seconds=seconds,
         max_boxes=max_boxes, batch=batch, progress=progress, task="mpdi proof",
-        seeds=_seed_box(seeds, lo.shape[0]), keep_leaves=keep_leaves, executor=executor,
+        seeds=_seed_box(seeds, lo.shape[0], problem.device), keep_leaves=keep_leaves,
+        executor=executor,
         remote=_mpdi_remote(problem, lam, taylor, crown, executor))
     cex = None
     if out.best_point is not None:
@@ -246,7 +254,7 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     out = branch_and_bound(lo, hi, evaluate, threshold=None, tol=tol, rel_tol=rel_tol,
                            seconds=seconds, max_boxes=max_boxes, batch=batch,
                            progress=progress, task="rate proof", coarse_after=coarse_after,
-                           seeds=_seed_box(seeds, lo.shape[0]))
+                           seeds=_seed_box(seeds, lo.shape[0], problem.device))
     lower = -out.upper / 2.0 if math.isfinite(out.upper) else None
     worst = None
     upper_sampled = -out.lower / 2.0 if math.isfinite(out.lower) else float("inf")
@@ -254,7 +262,7 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
         pt = out.best_point
         worst = Counterexample(xhat=pt[:n].tolist(), y=pt[n:].tolist(), value=upper_sampled)
     if lower is not None:
-        lower = float(torch.nextafter(torch.tensor(lower), torch.tensor(-math.inf)))
+        lower = math.nextafter(lower, -math.inf)
     return RateOutcome(lower=lower, upper_sampled=upper_sampled, stats=out.stats, worst=worst)
 
 

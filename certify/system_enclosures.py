@@ -103,7 +103,7 @@ def hessian_f_point(system: Any, x: torch.Tensor) -> torch.Tensor:
 def pad_y(iv: Interval, p: int) -> Interval:
     """Derivatives in xhat [..., n] as derivatives in z = (xhat, y) [..., n + p] (exact zero
     columns for y: f and h do not depend on y)."""
-    z = torch.zeros(*iv.lo.shape[:-1], p, dtype=iv.lo.dtype)
+    z = torch.zeros(*iv.lo.shape[:-1], p, dtype=iv.lo.dtype, device=iv.lo.device)
     return Interval(torch.cat([iv.lo, z], -1), torch.cat([iv.hi, z], -1))
 
 
@@ -111,5 +111,5 @@ def residual_jacobian(Hx: Interval) -> Interval:
     """dr/dz = (-dh/dxhat | I) [B, p, n + p] for r = y - h(xhat), from Hx = dh/dxhat
     [B, p, n] (negation and the identity are exact)."""
     B, p, _ = Hx.lo.shape
-    eye = torch.eye(p, dtype=Hx.lo.dtype).expand(B, p, p)
+    eye = torch.eye(p, dtype=Hx.lo.dtype, device=Hx.lo.device).expand(B, p, p)
     return Interval(torch.cat([-Hx.hi, eye], -1), torch.cat([-Hx.lo, eye], -1))

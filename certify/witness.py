@@ -81,11 +81,16 @@ def rayleigh_lower(A: Interval) -> torch.Tensor:
     q = torch.where(num > 0, down(num / nhi), down(num / nlo.clamp_min(1e-300)))
     q = torch.where(nlo > 0, q, torch.full_like(q, -math.inf))
     best = torch.maximum(best, q)
-    return torch.where(ok, best, torch.full((B,), _NAN, dtype=_F64))
+    return torch.where(ok, best, torch.full((B,), _NAN, dtype=_F64, device=best.device))
 
 
-def _point_box(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    z = torch.as_tensor(z, dtype=_F64).detach()
+def _point_box(z: torch.Tensor, device: torch.device | str | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Degenerate boxes [z, z] (float64) on `device` (default: z's own, or the CPU)."""
+    if isinstance(z, torch.Tensor):
+        z = z.detach().to(dtype=_F64, device=device or z.device)
+    else:
+        z = torch.as_tensor(np.asarray(z, dtype=np.float64), dtype=_F64, device=device or "cpu")
     if z.ndim == 1:
         z = z[None]
     return z, z.clone()
@@ -95,7 +100,7 @@ def closed_loop_interval(problem, z: torch.Tensor) -> Interval:
     """Enclosure of J_cl = Jf(xhat) + dk/dxhat(xhat, y) at points z = (xhat, y) [B, n+p]."""
     from certify.enclosures import gain_enclosure, iadd
 
-    lo, hi = _point_box(z)
+    lo, hi = _point_box(z, problem.device)
     g, _ = gain_enclosure(problem.system, problem.network, lo, hi, order=1)
     return iadd(g.jf, g.dk_dx)
 
@@ -105,7 +110,7 @@ def d_interval(P: torch.Tensor, J: Interval, lam: float) -> Interval:
     from certify.enclosures import const_lam, iadd, isym
 
     B = J.lo.shape[0]
-    P = torch.as_tensor(P, dtype=_F64)
+    P = torch.as_tensor(P, dtype=_F64, device=J.lo.device)
     Pb = Interval(P.expand(B, *P.shape), P.expand(B, *P.shape))
     S = isym(imatmul(Pb, J))
     if lam == 0:
@@ -168,7 +173,7 @@ def dk_dy_norm_lower(problem, z: torch.Tensor) -> torch.Tensor:
     with u the top right singular vector of the midpoint."""
     from certify.enclosures import gain_enclosure
 
-    lo, hi = _point_box(z)
+    lo, hi = _point_box(z, problem.device)
     g, _ = gain_enclosure(problem.system, problem.network, lo, hi, order=1)
     J = g.dk_dy  # [B, n, p]
     ok = _finite_rows(J)
@@ -201,13 +206,14 @@ def manifold_lower(system, P: np.ndarray | torch.Tensor, lam: float, x: torch.Te
 
     x, _ = _point_box(x)
     B, n = x.shape
-    Pt = torch.as_tensor(np.asarray(P, dtype=np.float64), dtype=_F64)
+    Pt = (P.to(dtype=_F64, device=x.device) if isinstance(P, torch.Tensor)
+          else torch.as_tensor(np.asarray(P, dtype=np.float64), dtype=_F64, device=x.device))
     jf = Interval(*jacobian_f_enclosure(system, x, x))
     S = d_interval(Pt, jf, lam)
     Jh = Interval(*jacobian_h_enclosure(system, x, x))  # [B, p, n]
     p = Jh.lo.shape[1]
     if p >= n:
-        return torch.full((B,), -math.inf, dtype=_F64)
+        return torch.full((B,), -math.inf, dtype=_F64, device=x.device)
     ok = _finite_rows(S) & _finite_rows(Jh)
     Smid = torch.where(ok[:, None, None], 0.5 * (S.lo + S.hi), torch.zeros_like(S.lo))
     Jmid = torch.where(ok[:, None, None], 0.5 * (Jh.lo + Jh.hi), torch.zeros_like(Jh.lo))
@@ -247,9 +253,10 @@ def manifold_witness_lower(system, P: np.ndarray, lam: float, x: torch.Tensor) -
     (then x is no witness on the output manifold)."""
     from certify.system_enclosures import h_enclosure
 
-    x = torch.as_tensor(x, dtype=_F64).reshape(1, -1)
+    x, _ = _point_box(x)
+    x = x.reshape(1, -1)
     hl, hh = h_enclosure(system, x, x)
-    Y = torch.as_tensor(system.Y, dtype=_F64)
+    Y = torch.as_tensor(system.Y, dtype=_F64, device=x.device)
     if not bool(((hl >= Y[:, 0]) & (hh <= Y[:, 1])).all()):
         return _NAN
     return float(manifold_lower(system, P, lam, x)[0])

@@ -115,7 +115,7 @@ class _ForwardRanges:
         piv = Interval(torch.maximum(piv.lo, lowv[..., 0]), torch.minimum(piv.hi, highv[..., 0]))
         if len(colt) > 0:
             # tangent queries on t_L^j = W_L[i] Q_{L-1}^j, rows [B, d, m] here
-            zero = torch.zeros(B, m, len(colt), dtype=torch.float64)
+            zero = torch.zeros(B, m, len(colt), dtype=torch.float64, device=lo.device)
             lowt, hight = _concretize(*_backward(self.layers, li, None,
                                                  _queries(W, len(colt), B), zero, colt, lo,
                                                  hi), r)
@@ -145,7 +145,8 @@ def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: 
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     B, d = lo.shape
-    colt = torch.arange(d) if cols is None else torch.as_tensor(cols, dtype=torch.long)
+    colt = (torch.arange(d, device=lo.device) if cols is None
+            else torch.as_tensor(cols, dtype=torch.long, device=lo.device))
     zc = 0.5 * (lo + hi)
     r = up(torch.maximum(hi - zc, zc - lo))
     spec = net.spec(torch.float64)
@@ -166,11 +167,12 @@ def jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, cols: l
     B, d = lo.shape
     WH = net.weights()[-1][0].to(torch.float64)
     out = WH.shape[0]
-    colt = torch.as_tensor(cols, dtype=torch.long)
+    colt = torch.as_tensor(cols, dtype=torch.long, device=lo.device)
     J = len(cols)
     LQ = _queries(WH, J, B)
     Lz, cl, cu = _backward(fb.layers, len(fb.layers), None, LQ,
-                           torch.zeros(B, out, J, dtype=torch.float64), colt, lo, hi)
+                           torch.zeros(B, out, J, dtype=torch.float64, device=lo.device), colt,
+                           lo, hi)
     return LinearEnclosure(gl=Lz, cl=cl, gu=Lz, cu=cu)
 
 
@@ -185,7 +187,7 @@ def value_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, fb: Forwar
     La = _queries(WH, 1, B)
     bias = bH[None, :, None].expand(B, out, 1)
     Lz, cl, cu = _backward(fb.layers, len(fb.layers), La, None, bias,
-                           torch.zeros(1, dtype=torch.long), lo, hi)
+                           torch.zeros(1, dtype=torch.long, device=lo.device), lo, hi)
     return LinearEnclosure(gl=Lz[..., 0, :], cl=cl[..., 0], gu=Lz[..., 0, :], cu=cu[..., 0])
 
 
@@ -197,7 +199,7 @@ def network_crown_tms(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, cols
     bound propagation's, where that has the smaller remainder."""
     fb = forward_bounds(net, lo, hi, cols=cols, crown=crown_intermediate)
     jt = to_tm(jacobian_crown(net, lo, hi, cols, fb), fb.r)  # [B, out, J]
-    colt = torch.as_tensor(cols, dtype=torch.long)
+    colt = torch.as_tensor(cols, dtype=torch.long, device=lo.device)
     base = fb.jac_tm
     sub = TM(base.c[..., colt], base.g[..., colt, :], base.e[..., colt])
     best = tm_tighter(sub, jt)

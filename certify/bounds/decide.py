@@ -30,6 +30,7 @@ import torch
 
 from certify.bounds.eigen import _vertices, lam_max_at_most, lam_max_upper_point, rho_upper
 from certify.intervals import TINY, down, gamma, up
+from certify.linalg import eigh
 
 
 def decide_affine_family(c: torch.Tensor, rG: torch.Tensor, rem: torch.Tensor,
@@ -76,7 +77,7 @@ def vertex_test(c: torch.Tensor, rG: torch.Tensor, t: torch.Tensor, worst: torch
     """Whether lam_max(c + sum_m v_m rG_m) <= t is proved at every vertex v (certified
     Cholesky tests of the lower triangles), the vertex `worst` [B, d] tested first: a box
     that fails there needs no other test."""
-    out = torch.zeros(c.shape[0], dtype=torch.bool)
+    out = torch.zeros(c.shape[0], dtype=torch.bool, device=c.device)
     first = lam_max_at_most(c + torch.einsum("bd,bdij->bij", worst, rG), t)
     need = torch.nonzero(first).squeeze(-1)
     if len(need):
@@ -89,7 +90,7 @@ def vertex_matrices(c: torch.Tensor, rG: torch.Tensor, sym: bool) -> torch.Tenso
     """c + sum_m v_m rG_m at the 2^d vertices v of [-1, 1]^d: [B, 2^d, n, n] (float; the
     caller's remainder covers the rounding); `sym`: symmetrised, else as computed (for
     consumers of the lower triangle only)."""
-    S = c[:, None] + torch.einsum("vd,bdij->bvij", _vertices(rG.shape[1]), rG)
+    S = c[:, None] + torch.einsum("vd,bdij->bvij", _vertices(rG.shape[1], rG.device), rG)
     return 0.5 * (S + S.transpose(-1, -2)) if sym else S
 
 
@@ -100,9 +101,9 @@ def likely_worst_vertex(c: torch.Tensor, rG: torch.Tensor) -> torch.Tensor:
     Weyl bound leaves fail at many vertices (2x10 chains: 82% of them at n = 6, half at
     n = 4), and those need only this test. c [B, n, n], rG [B, d, n, n] -> [B, d]."""
     try:
-        u = torch.linalg.eigh(0.5 * (c + c.transpose(-1, -2))).eigenvectors[..., -1]  # [B, n]
+        u = eigh(0.5 * (c + c.transpose(-1, -2)))[1][..., -1]  # [B, n]
     except RuntimeError:  # LAPACK did not converge: any vertex is a valid first guess
-        return torch.ones(rG.shape[:2], dtype=c.dtype)
+        return torch.ones(rG.shape[:2], dtype=c.dtype, device=c.device)
     q = torch.einsum("bi,bdij,bj->bd", u, rG, u)
     return torch.where(q >= 0, 1.0, -1.0).to(c.dtype)
 
@@ -133,13 +134,13 @@ def _congruence(c: torch.Tensor, rG: torch.Tensor, rem: torch.Tensor, lvl: float
     (module docstring), so that A <= lvl I on the box follows from the transformed family
     being <= 0. None where LAPACK's eigh fails."""
     n = c.shape[-1]
-    eye = torch.eye(n, dtype=c.dtype)
+    eye = torch.eye(n, dtype=c.dtype, device=c.device)
     c = _lower_sym(c)
     rG = _lower_sym(rG)
     cs = c - lvl * eye
     shift_err = gamma(2) * (c.abs() + abs(lvl)) * eye  # one rounding on the diagonal
     try:
-        ev, Q = torch.linalg.eigh(-cs)
+        ev, Q = eigh(-cs)
     except RuntimeError:
         return None
     ev = torch.maximum(ev, ev[..., -1:].abs() * 1e-12 + TINY)

@@ -13,6 +13,7 @@ import torch
 
 from certify.bounds.interval_ops import nan_min
 from certify.intervals import TINY, Interval, down, gamma, up, widen_up
+from certify.linalg import eigvalsh
 
 U = 2.0**-53
 MAX_VERTEX_DIM = 8  # beyond 2^8 vertices per box, the first-order term joins the remainder
@@ -60,9 +61,9 @@ def lam_max_at_most(S: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     is assumed (as everywhere in `certify.intervals.ROUNDING`)."""
     n = S.shape[-1]
     S = S.to(torch.float64)
-    t = torch.as_tensor(t, dtype=torch.float64).expand(S.shape[:-2])
+    t = torch.as_tensor(t, dtype=torch.float64, device=S.device).expand(S.shape[:-2])
     if S.numel() == 0:
-        return torch.zeros(S.shape[:-2], dtype=torch.bool)
+        return torch.zeros(S.shape[:-2], dtype=torch.bool, device=S.device)
     diag = torch.diagonal(S, dim1=-2, dim2=-1)
     xd = down(t[..., None] - diag)  # [..., n]
     pos = xd.clamp_min(0.0)
@@ -112,7 +113,7 @@ def _lam_max_upper_lapack(S: torch.Tensor) -> torch.Tensor:
     n = S.shape[-1]
     bad = ~torch.isfinite(S).reshape(*S.shape[:-2], -1).all(-1)
     S = torch.where(bad[..., None, None], torch.zeros_like(S), S)  # LAPACK refuses NaN
-    ev = torch.linalg.eigvalsh(S)[..., -1]
+    ev = eigvalsh(S)[..., -1]
     norm = torch.linalg.matrix_norm(S)  # Frobenius
     margin = 8.0 * (n + 1) * U * up(norm * (1.0 + 4.0 * n * U)) + TINY
     out = up(ev + margin)
@@ -224,17 +225,18 @@ def _interval_eig_bound(A: Interval, gersh: torch.Tensor) -> torch.Tensor:
 
 
 MAX_HERTZ_DIM = 6  # 2^(n-1) eigenproblems per matrix
-_SIGNS: dict[int, torch.Tensor] = {}
+_SIGNS: dict[tuple[int, torch.device], torch.Tensor] = {}
 
 
-def _sign_patterns(n: int) -> torch.Tensor:
-    """z in {+-1}^n with z_1 = 1: [2^(n-1), n]."""
-    if n not in _SIGNS:
-        idx = torch.arange(2 ** (n - 1))
-        bits = (idx[:, None] >> torch.arange(n - 1)[None, :]) & 1
-        z = torch.cat([torch.ones(len(idx), 1), 1.0 - 2.0 * bits], 1)
-        _SIGNS[n] = z.to(torch.float64)
-    return _SIGNS[n]
+def _sign_patterns(n: int, device: torch.device) -> torch.Tensor:
+    """z in {+-1}^n with z_1 = 1: [2^(n-1), n] on `device` (cached per device)."""
+    key = (n, torch.device(device))
+    if key not in _SIGNS:
+        idx = torch.arange(2 ** (n - 1), device="cpu")
+        bits = (idx[:, None] >> torch.arange(n - 1, device="cpu")[None, :]) & 1
+        z = torch.cat([torch.ones(len(idx), 1, device="cpu"), 1.0 - 2.0 * bits], 1)
+        _SIGNS[key] = z.to(dtype=torch.float64, device=device)
+    return _SIGNS[key]
 
 
 def hertz_upper(C: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
@@ -255,7 +257,7 @@ def hertz_upper(C: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
                            up(torch.maximum(C[..., 0, 1].abs(), C[..., 1, 0].abs())
                               + torch.maximum(R[..., 0, 1], R[..., 1, 0])),
                            up(C[..., 1, 1] + R[..., 1, 1]))
-    Z = _sign_patterns(n)  # [V, n]
+    Z = _sign_patterns(n, C.device)  # [V, n]
     zz = Z[:, :, None] * Z[:, None, :]  # [V, n, n]
     M = C.unsqueeze(-3) + zz * R.unsqueeze(-3)  # [..., V, n, n]
     lm = lam_max_upper_point(M).amax(-1)
@@ -266,7 +268,7 @@ def hertz_upper(C: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
 def gershgorin_upper(A: Interval) -> torch.Tensor:
     n = A.lo.shape[-1]
     mag = torch.maximum(A.lo.abs(), A.hi.abs())
-    eye = torch.eye(n, dtype=torch.bool)
+    eye = torch.eye(n, dtype=torch.bool, device=mag.device)
     off = torch.where(eye, torch.zeros_like(mag), mag).sum(-1)
     off = up(off * (1.0 + 2.0 * gamma(n)) + n * TINY)
     diag = torch.diagonal(A.hi, dim1=-2, dim2=-1)
@@ -281,7 +283,7 @@ def rho_upper(R: torch.Tensor, iters: int = 8) -> torch.Tensor:
     n = R.shape[-1]
     if n <= 2 and torch.equal(R, R.transpose(-1, -2)):
         return lam_max_upper_point(R).clamp_min(0.0)
-    u = torch.ones(*R.shape[:-1], 1, dtype=R.dtype)
+    u = torch.ones(*R.shape[:-1], 1, dtype=R.dtype, device=R.device)
     for _ in range(iters):
         u = R @ u
         u = u / u.amax(-2, keepdim=True).clamp_min(1e-300)
@@ -293,15 +295,17 @@ def rho_upper(R: torch.Tensor, iters: int = 8) -> torch.Tensor:
 
 
 
-_VERTEX_CACHE: dict[int, torch.Tensor] = {}
+_VERTEX_CACHE: dict[tuple[int, torch.device], torch.Tensor] = {}
 
 
-def _vertices(d: int) -> torch.Tensor:
-    if d not in _VERTEX_CACHE:
-        idx = torch.arange(2**d)
-        bits = (idx[:, None] >> torch.arange(d)[None, :]) & 1
-        _VERTEX_CACHE[d] = (2.0 * bits - 1.0).to(torch.float64)  # [V, d]
-    return _VERTEX_CACHE[d]
+def _vertices(d: int, device: torch.device | str = "cpu") -> torch.Tensor:
+    """The 2^d vertices of [-1, 1]^d: [V, d] float64 on `device` (cached per device)."""
+    key = (d, torch.device(device))
+    if key not in _VERTEX_CACHE:
+        idx = torch.arange(2**d, device="cpu")
+        bits = (idx[:, None] >> torch.arange(d, device="cpu")[None, :]) & 1
+        _VERTEX_CACHE[key] = (2.0 * bits - 1.0).to(dtype=torch.float64, device=device)
+    return _VERTEX_CACHE[key]
 
 
 def taylor_upper(Ac: Interval, dA: Interval, zr: torch.Tensor
@@ -327,7 +331,7 @@ def taylor_upper(Ac: Interval, dA: Interval, zr: torch.Tensor
     rem = Cr + (zr4 * R).sum(1)
     rem = up(rem * (1.0 + g) + g * absum * (1.0 + g) + (d + 2) * TINY)
     if d <= MAX_VERTEX_DIM:
-        V = _vertices(d)  # [V, d]
+        V = _vertices(d, rG.device)  # [V, d]
         S = C0[:, None] + torch.einsum("vd,bdij->bvij", V, rG)  # [B, V, n, n]
         S = 0.5 * (S + S.transpose(-1, -2))
         lv = lam_max_upper_point(S).amax(-1)

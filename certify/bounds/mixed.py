@@ -61,11 +61,12 @@ def mixed_jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
     m, out = R.shape
     RW = R @ WH
     delta = up(gamma(out + 2) * (R.abs() @ WH.abs()) * (1.0 + 4 * U))  # [m, h]
-    colt = torch.as_tensor(cols, dtype=torch.long)
+    colt = torch.as_tensor(cols, dtype=torch.long, device=lo.device)
     J = len(cols)
     LQ = _queries(RW, J, B)
     Lz, cl, cu = _backward(fb.layers, len(fb.layers), None, LQ,
-                           torch.zeros(B, m, J, dtype=torch.float64), colt, lo, hi,
+                           torch.zeros(B, m, J, dtype=torch.float64, device=lo.device), colt,
+                           lo, hi,
                            top_apart=top_apart)
     qm = fb.layers[-1].qmag(colt)  # [B, h, J]
     h = qm.shape[1]
@@ -118,9 +119,9 @@ def contraction_rest(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: torch.T
     system, net = problem.system, problem.network
     n = problem.n
     B, d = lo.shape
-    z = torch.zeros(B, n, dtype=torch.float64)
-    val = TM(z, torch.zeros(B, n, d, dtype=torch.float64), z)
-    jac0 = TM(torch.zeros(B, n, d, dtype=torch.float64),
-              torch.zeros(B, n, d, d, dtype=torch.float64),
-              torch.zeros(B, n, d, dtype=torch.float64))
+    f64 = dict(dtype=torch.float64, device=lo.device)
+    z = torch.zeros(B, n, **f64)
+    val = TM(z, torch.zeros(B, n, d, **f64), z)
+    jac0 = TM(torch.zeros(B, n, d, **f64), torch.zeros(B, n, d, d, **f64),
+              torch.zeros(B, n, d, **f64))
     return tm_congruence(pc, jcl_taylor(system, net, lo, hi, net_tms=(val, jac0, r)), lam, r)

@@ -102,7 +102,8 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     # stage 1: plain intervals (screen); stage 2: forward Taylor models; stage 3 (crown): the
     # backward linear bounds, only where stage 2 failed while its affine (vertex) part alone
     # would pass, i.e. where a tighter remainder can decide the box
-    work = torch.ones(B, dtype=torch.bool) if screen is None else ~(plain <= screen)
+    work = (torch.ones(B, dtype=torch.bool, device=lo.device) if screen is None
+            else ~(plain <= screen))
     decide_level = (0.0 if screen is None else screen) if decide else None
     STAGE_COUNTS["boxes"] += B
     tay = torch.full_like(plain, float("inf"))
@@ -129,7 +130,7 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
             if isinstance(crown_gain, CrownGain):
                 # the box's radius relative to the root's width (no root: the smallest scale)
                 rel = ((wr / root_width).amax(-1) if root_width is not None
-                       else torch.zeros(len(wr), dtype=torch.float64))
+                       else torch.zeros(len(wr), dtype=torch.float64, device=wr.device))
                 gain = crown_gain.at(rel)
             again = ~(t_w <= level) & (lv + (t_w - lv) / gain <= level)
             if screen is None:
@@ -231,7 +232,7 @@ def estimate_crown_gain(net, root_lo: torch.Tensor, root_hi: torch.Tensor,
     d = root_lo.shape[0]
     g = torch.Generator().manual_seed(1234)
     w = (root_hi - root_lo).to(torch.float64)
-    u = torch.rand(probes, d, generator=g, dtype=torch.float64)
+    u = torch.rand(probes, d, generator=g, dtype=torch.float64, device="cpu").to(w.device)
     cols = list(range(d))
     gains = []
     for s in scales:
@@ -242,8 +243,8 @@ def estimate_crown_gain(net, root_lo: torch.Tensor, root_hi: torch.Tensor,
         ratio = (fb.jac_tm.e / e_cr.clamp_min(1e-300)).flatten()
         ratio = ratio[torch.isfinite(ratio)]
         gains.append(float(ratio.median().clamp(2.0, 1e6)) if len(ratio) else CROWN_GAIN)
-    return CrownGain(torch.tensor(scales, dtype=torch.float64),
-                     torch.tensor(gains, dtype=torch.float64))
+    return CrownGain(torch.tensor(scales, dtype=torch.float64, device=w.device),
+                     torch.tensor(gains, dtype=torch.float64, device=w.device))
 
 
 def _root_box(problem: Problem) -> torch.Tensor:
@@ -251,7 +252,8 @@ def _root_box(problem: Problem) -> torch.Tensor:
     import numpy as np
 
     s = problem.system
-    return torch.as_tensor(np.concatenate([s.X, s.Y], 0), dtype=torch.float64)
+    return torch.as_tensor(np.concatenate([s.X, s.Y], 0), dtype=torch.float64,
+                           device=problem.device)
 
 
 def plain_screen_pays(problem: Problem, lam: float, pc: Preconditioner, grid: int = 1024,
@@ -286,7 +288,8 @@ def choose_preconditioner(problem: Problem, lam: float, probes: int = 24,
     rlo, rhi = root[:, 0], root[:, 1]
     w = rhi - rlo
     g = torch.Generator().manual_seed(4321)
-    u = torch.rand(probes, len(w), generator=g, dtype=torch.float64)
+    # drawn on the CPU (the same probes, so the same choice, on every device)
+    u = torch.rand(probes, len(w), generator=g, dtype=torch.float64, device="cpu").to(w.device)
     los, his = [], []
     for sc in scales:
         c = rlo + w * (sc + (1 - 2 * sc) * u)

@@ -20,6 +20,7 @@ no assumption on how accurately M inverts L).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -47,7 +48,7 @@ class Preconditioner:
 def make_preconditioner(P: torch.Tensor) -> Preconditioner:
     P = P.to(torch.float64)
     n = P.shape[0]
-    eye = torch.eye(n, dtype=torch.float64)
+    eye = torch.eye(n, dtype=torch.float64, device=P.device)
     if torch.equal(P, eye):
         return Preconditioner(True, eye, point(eye), point(eye), 1.0, 1.0, 1.0, 1.0,
                               "identity")
@@ -57,13 +58,12 @@ def make_preconditioner(P: torch.Tensor) -> Preconditioner:
     C = imatmul(Q, point(M.T))
     dev = Interval(C.lo - eye, C.hi - eye)
     e = float(rho_upper(torch.maximum(dev.lo.abs(), dev.hi.abs())))
-    c_min = float(down(torch.tensor(1.0 - e, dtype=torch.float64)))
-    c_max = float(up(torch.tensor(1.0 + e, dtype=torch.float64)))
+    c_min = math.nextafter(1.0 - e, -math.inf)  # scalars: one ulp outward, as down / up
+    c_max = math.nextafter(1.0 + e, math.inf)
     p_max = float(lam_max_upper_point(P))  # >= lam_max(P)
     p_min = float(-lam_max_upper_point(-P))  # <= lam_min(P)
-    pos = float(up(torch.tensor(p_max / c_min, dtype=torch.float64))) if c_min > 0 \
-        else float("inf")
-    neg = max(0.0, float(down(torch.tensor(p_min / c_max, dtype=torch.float64))))
+    pos = math.nextafter(p_max / c_min, math.inf) if c_min > 0 else float("inf")
+    neg = max(0.0, math.nextafter(p_min / c_max, -math.inf))
     return Preconditioner(False, M, Q, C, c_min, c_max, pos, neg)
 
 
@@ -88,7 +88,8 @@ def candidate_preconditioners(P: torch.Tensor) -> list[Preconditioner]:
     if first.identity:
         return [first]
     n = P.shape[0]
-    return [first, diagonal_preconditioner(P, torch.ones(n, dtype=torch.float64), "none"),
+    return [first, diagonal_preconditioner(P, torch.ones(n, dtype=torch.float64, device=P.device),
+                                                   "none"),
             diagonal_preconditioner(P, P.diagonal().rsqrt())]
 
 

@@ -88,8 +88,8 @@ def _const_f(kind: str, lo: float, hi: float) -> tuple[float, float]:
     sliver), computed once and cached."""
     key = (kind, lo, hi)
     if key not in _CONSTS:
-        lt = torch.tensor([lo], dtype=torch.float64)
-        ht = lt if lo == hi else torch.tensor([hi], dtype=torch.float64)
+        lt = torch.tensor([lo], dtype=torch.float64, device="cpu")
+        ht = lt if lo == hi else torch.tensor([hi], dtype=torch.float64, device="cpu")
         f = (tanh_enclosure if kind == "tanh" else dtanh_enclosure)(Interval(lt, ht))
         _CONSTS[key] = (float(f.lo[0]), float(f.hi[0]))
     return _CONSTS[key]

@@ -91,11 +91,11 @@ def residual_box_upper_crown(system: System, net: GainNetwork, lo: torch.Tensor,
     n = system.n
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
-    zero = torch.zeros(1, n, dtype=torch.float64)
+    zero = torch.zeros(1, n, dtype=torch.float64, device=lo.device)
     C = system.jac_h(zero)[0].to(torch.float64)  # [p, n], constant for linear h
     h0 = system.h(zero)[0].to(torch.float64)
-    A = torch.cat([torch.eye(n, dtype=torch.float64), C], 0)
-    a = torch.cat([torch.zeros(n, dtype=torch.float64), h0])
+    A = torch.cat([torch.eye(n, dtype=torch.float64, device=lo.device), C], 0)
+    a = torch.cat([torch.zeros(n, dtype=torch.float64, device=lo.device), h0])
     if bool(h0.abs().max() > 0) or not bool(torch.equal(C, C.round())):
         # a non-integer C or an offset: the exact composition needs the sympy values; keep
         # the interval bound (the built-ins and benchmarks have y = x1)
@@ -187,7 +187,7 @@ def _tm_frobenius_upper(c: torch.Tensor, g: torch.Tensor, e: torch.Tensor, r: to
         return up(torch.sqrt(up((mag * mag).sum((-1, -2)) * (1.0 + 2.0 * gamma(size + 1)))))
     gr = g * rr  # one rounding per product, covered by the gamma below
     err = up((c.abs() + gr.abs().sum(-1)) * gamma(d + 2))  # [B, n, p]
-    lin = c[:, None] + torch.einsum("bijd,vd->bvij", gr, _vertices(d))  # [B, V, n, p]
+    lin = c[:, None] + torch.einsum("bijd,vd->bvij", gr, _vertices(d, gr.device))  # [B, V, n, p]
     mag = lin.abs() + err[:, None]
     sq = up((mag * mag).sum((-1, -2)) * (1.0 + 2.0 * gamma(size + 1)))
     lin_norm = up(torch.sqrt(sq.amax(1)))

@@ -38,6 +38,7 @@ import torch
 from certify.bounds.mixed import TopLayerRemainder
 from certify.bounds.taylor import TM
 from certify.intervals import TINY, gamma, up
+from certify.linalg import eigh
 
 
 def loewner_upper(A: TM, top: TopLayerRemainder, level: float = 0.0) -> TM:
@@ -81,13 +82,13 @@ def _balance(c: torch.Tensor, C: torch.Tensor, w: torch.Tensor, s: torch.Tensor,
     positive definite); 1 where it is not finite or LAPACK fails (any positive a is
     sound)."""
     B, h = s.shape
-    ones = torch.ones(B, h, dtype=torch.float64)
+    ones = torch.ones(B, h, dtype=torch.float64, device=s.device)
     ok = torch.isfinite(c).flatten(1).all(-1) & torch.isfinite(w).flatten(1).all(-1)
     if not bool(ok.any()):
         return ones
     try:
-        eye = torch.eye(c.shape[-1], dtype=torch.float64)
-        ev, Q = torch.linalg.eigh(level * eye - 0.5 * (c[ok] + c[ok].transpose(-1, -2)))
+        eye = torch.eye(c.shape[-1], dtype=torch.float64, device=c.device)
+        ev, Q = eigh(level * eye - 0.5 * (c[ok] + c[ok].transpose(-1, -2)))
     except RuntimeError:
         return ones
     ev = torch.maximum(ev, ev[:, -1:].abs() * 1e-9 + 1e-300)

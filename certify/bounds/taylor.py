@@ -207,7 +207,7 @@ def tm_add(a: TM, b: TM, r: torch.Tensor) -> TM:
 
 
 def tm_point(x: torch.Tensor, d: int) -> TM:
-    z = torch.zeros(*x.shape, d, dtype=x.dtype)
+    z = torch.zeros(*x.shape, d, dtype=x.dtype, device=x.device)
     return TM(x, z, torch.zeros_like(x))
 
 

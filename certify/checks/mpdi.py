@@ -63,7 +63,8 @@ def sound_counterexamples(problem: Problem, candidates: list[Counterexample],
     that bound recorded; the others are near-ties (float error could make them look > 0)."""
     if not candidates:
         return []
-    z = torch.tensor([[*c.xhat, *c.y] for c in candidates], dtype=torch.float64)
+    z = torch.tensor([[*c.xhat, *c.y] for c in candidates], dtype=torch.float64,
+                     device=problem.device)
     bounds = mpdi_lower(problem, z, lam).tolist()
     for c, b in zip(candidates, bounds):
         c.sound_bound = float(b)
@@ -128,9 +129,13 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
                      f"{cex[0].sound_bound:.3g}); "
                      f"{100 * search.above_fraction:.3g}% of {search.grid_points} grid points "
                      "violate it"), **common)
-    seeds = torch.as_tensor(search.top_points, dtype=torch.float64)
-    outcome = prove_mpdi(problem, seconds=settings.proof_seconds, max_boxes=settings.max_boxes,
-                         progress=progress, seeds=seeds)
+    from certify.device import proof_batch, resolve_device
+
+    device = resolve_device(settings.device)  # the proof's boxes live and are bounded there
+    seeds = torch.as_tensor(search.top_points, dtype=torch.float64, device="cpu")
+    outcome = prove_mpdi(problem.on(device), seconds=settings.proof_seconds,
+                         max_boxes=settings.max_boxes, progress=progress, seeds=seeds,
+                         batch=proof_batch(device))
     if figures is not None and getattr(outcome, "boxes", None):
         figures["proof_boxes"] = outcome.boxes
         figures["proof_history"] = outcome.stats.volume_history

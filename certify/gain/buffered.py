@@ -36,20 +36,22 @@ class ChunkBuffers:
         self.R = self.C * (2 if with_bc else 1)  # value rows: collocation (+ BC) points
         self.Z = Z
         rows, dt = self.R + m * self.C, Z.dtype
-        self.pre = [torch.empty(self.R, widths[1], dtype=dt)]  # layer 0: value rows only
+        dev = Z.device
+        self.pre = [torch.empty(self.R, widths[1], dtype=dt, device=dev)]  # layer 0: value rows
         self.X: list[torch.Tensor] = [Z]
-        self.S: list[torch.Tensor] = [torch.empty(0)]
-        self.G = [torch.empty(self.R, widths[1], dtype=dt)]
-        self.GX: list[torch.Tensor] = [torch.empty(0)]
+        self.S: list[torch.Tensor] = [torch.empty(0, device=dev)]
+        self.G = [torch.empty(self.R, widths[1], dtype=dt, device=dev)]
+        self.GX: list[torch.Tensor] = [torch.empty(0, device=dev)]
         for i in range(1, len(widths) - 1):
-            self.X.append(torch.empty(rows, widths[i], dtype=dt))
-            self.S.append(torch.empty(self.R, widths[i], dtype=dt))
-            self.pre.append(torch.empty(rows, widths[i + 1], dtype=dt))
-            self.G.append(torch.empty(rows, widths[i + 1], dtype=dt))
-            self.GX.append(torch.empty(rows, widths[i], dtype=dt))
-        self.gs = [torch.empty(self.C, w, dtype=dt) for w in widths]
-        self.ones = torch.ones(self.R, dtype=dt)
-        self.grads = [torch.empty(b, a, dtype=dt) if k == 0 else torch.empty(b, dtype=dt)
+            self.X.append(torch.empty(rows, widths[i], dtype=dt, device=dev))
+            self.S.append(torch.empty(self.R, widths[i], dtype=dt, device=dev))
+            self.pre.append(torch.empty(rows, widths[i + 1], dtype=dt, device=dev))
+            self.G.append(torch.empty(rows, widths[i + 1], dtype=dt, device=dev))
+            self.GX.append(torch.empty(rows, widths[i], dtype=dt, device=dev))
+        self.gs = [torch.empty(self.C, w, dtype=dt, device=dev) for w in widths]
+        self.ones = torch.ones(self.R, dtype=dt, device=dev)
+        self.grads = [torch.empty(b, a, dtype=dt, device=dev) if k == 0
+                      else torch.empty(b, dtype=dt, device=dev)
                       for a, b in zip(widths[:-1], widths[1:]) for k in (0, 1)]
 
 

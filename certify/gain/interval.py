@@ -48,7 +48,8 @@ class IntervalArithmetic:
         return pre, T
 
     def zero_second(self, pre: Interval, J: int, m: int) -> Interval:
-        zero = torch.zeros(pre.lo.shape[0], J * m, pre.lo.shape[1], dtype=pre.lo.dtype)
+        zero = torch.zeros(pre.lo.shape[0], J * m, pre.lo.shape[1], dtype=pre.lo.dtype,
+                           device=pre.lo.device)
         return Interval(zero, zero)
 
     def activate(self, act: Activation, pre: Interval, layer: int, order: int

@@ -57,13 +57,14 @@ class TaylorArithmetic:
         """pre = W z + b (z = zc + I (z - zc), exact), T = W[:, :m] as constant models."""
         zc, r = self.zc, self.r
         B, d = zc.shape
-        eye = torch.eye(d, dtype=zc.dtype).expand(B, d, d)
+        eye = torch.eye(d, dtype=zc.dtype, device=zc.device).expand(B, d, d)
         pre = tm_linear(TM(zc, eye, torch.zeros_like(zc)), W.T, b, r)  # [B, h]
         if not m:
             return pre, None
         h = W.shape[0]
-        T = TM(W[:, :m].T.expand(B, m, h), torch.zeros(B, m, h, d, dtype=zc.dtype),
-               torch.zeros(B, m, h, dtype=zc.dtype))
+        like = dict(dtype=zc.dtype, device=zc.device)
+        T = TM(W[:, :m].T.expand(B, m, h), torch.zeros(B, m, h, d, **like),
+               torch.zeros(B, m, h, **like))
         return pre, T
 
     def activate(self, act: Activation, pre: TM, layer: int, order: int
