@@ -104,7 +104,11 @@ def main() -> None:
     ap.add_argument("--prover", default="default", choices=["default", "taylor", "plain"],
                     help="taylor: the pre-issue-9 prover (interval + Taylor models)")
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--batch", type=int, default=1024, help="boxes per B&B round")
+    ap.add_argument("--batch", type=int, default=None,
+                    help="boxes per B&B round (default: certify.device.proof_batch, 1024 on "
+                         "the CPU)")
+    ap.add_argument("--device", default="cpu",
+                    help="torch device of the proof's boxes and bounds (cpu, cuda)")
     ap.add_argument("--workers", type=int, default=1,
                     help="Dask LocalCluster worker processes for the prover (1: serial, in "
                          "process); the stage counts then stay in the workers, and the "
@@ -115,6 +119,15 @@ def main() -> None:
                          "before/after runs side by side")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    from certify.device import describe, resolve_device
+
+    device = resolve_device(args.device)
+    try:
+        from certify.device import proof_batch
+    except ImportError:  # --code: a checkout from before the proof ran on a GPU
+        def proof_batch(_device):
+            return 1024
+    batch = args.batch or proof_batch(device)
     executor = None
     if args.workers > 1:
         from certify.executor import DaskExecutor
@@ -135,18 +148,21 @@ def main() -> None:
                         spec = InstanceSpec(depth, width, g, n, margin, seed)
                         t = time.perf_counter()
                         prob, info = _cached_instance(spec, cache)
+                        prob = prob.on(device)
                         setup = time.perf_counter() - t
                         rec = {"instance": spec.name, "family": f"{fam}-g{g:g}-n{n}-m{margin:g}",
                                "prover": args.prover, "code": args.code or "this",
-                               "workers": args.workers,
+                               "workers": args.workers, "device": describe(device),
+                               "batch": batch,
                                "load": round(os.getloadavg()[0], 2),
                                "lam": prob.lam, "sampled_max": info["sampled_max"],
                                "setup_seconds": round(setup, 2)}
                         rec.update(_run(prob, args.seconds, args.max_boxes, taylor, crown,
-                                        args.batch, executor))
+                                        batch, executor))
                         if not args.no_baseline:
                             bs = args.baseline_seconds or args.seconds
-                            rec["baseline"] = _run(prob, bs, args.max_boxes, False)
+                            rec["baseline"] = _run(prob, bs, args.max_boxes, False,
+                                                   batch=batch)
                         print(json.dumps(rec), flush=True)
                         rows.setdefault(rec["family"], []).append(rec)
     for fam, rs in rows.items():
