@@ -49,7 +49,7 @@ def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 
     if problem.structural:
         return 0.0, None, ProofStats(rounding="structural network: k(x, h(x)) = 0 exactly")
     s = problem.system
-    X = torch.as_tensor(s.X, dtype=torch.float64)
+    X = torch.as_tensor(s.X, dtype=torch.float64, device=problem.device)
 
     level = _Level(rel_tol, 1e-12)
 
@@ -63,7 +63,7 @@ def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 
     out = branch_and_bound(X[:, 0].clone(), X[:, 1].clone(), evaluate, threshold=None,
                            rel_tol=rel_tol, tol=1e-12, seconds=seconds, max_boxes=max_boxes,
                            batch=batch, progress=progress, task="residual bound", project=None,
-                           seeds=_seed_box(seeds, X.shape[0]))
+                           seeds=_seed_box(seeds, X.shape[0], problem.device))
     upper = out.upper if math.isfinite(out.upper) else None
     worst = out.best_point.tolist() if out.best_point is not None else None
     return upper, worst, out.stats

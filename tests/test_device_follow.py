@@ -110,3 +110,24 @@ def test_mpdi_check_grid_ascent_and_proof_follow_the_device(above: bool) -> None
     assert plain.status.value == ("VIOLATED" if above else "PROVED")
     assert (followed.status, followed.upper, followed.lower) == \
         (plain.status, plain.upper, plain.lower)
+
+
+@pytest.mark.parametrize("structure", ["direct", "structural"])
+def test_side_proofs_make_every_tensor_on_their_problems_device(structure: str) -> None:
+    """The residual and dk/dy bounds (`certify.side_proofs`, on settings.device in `certify
+    run`): the same bounds under `meta`, with seeds for the residual as the check gives."""
+    from certify.problem import Problem
+    from certify.side_proofs import bound_dk_dy, bound_residual
+
+    from .conftest import random_network
+
+    base = _problem(2, 2, 8.0)
+    net = random_network(2, 1, structure=structure, seed=4, scale=0.5)
+    prob = Problem(base.system, net, base.lam, base.P)
+    plain = (bound_residual(prob, seconds=1e9, max_boxes=4000, seeds=[[0.1, -0.2]])[0],
+             bound_dk_dy(prob, seconds=1e9, max_boxes=4000))
+    with default_device_meta():
+        followed = (bound_residual(prob, seconds=1e9, max_boxes=4000, seeds=[[0.1, -0.2]])[0],
+                    bound_dk_dy(prob, seconds=1e9, max_boxes=4000))
+    assert plain[1] is not None and (structure == "structural") == (plain[0] == 0.0)
+    assert followed == plain

@@ -239,9 +239,9 @@ class AffineInputNetwork:
     def spec(self, dtype: torch.dtype | None = None) -> GainSpec:
         """The composed MLP for `propagate` (float64; `dtype` is accepted for the
         `GainNetwork.spec` signature): its output as a `direct` gain with n = out, p = 0."""
-        out = self._weights[-1][0].shape[0]
-        return GainSpec(out, 0, tuple(self._weights), self.act, "direct",
-                        torch.zeros(out, 0, dtype=torch.float64))
+        W_out = self._weights[-1][0]
+        return GainSpec(W_out.shape[0], 0, tuple(self._weights), self.act, "direct",
+                        torch.zeros(W_out.shape[0], 0, dtype=torch.float64, device=W_out.device))
 
 
 def to_tm(le: LinearEnclosure, r: torch.Tensor) -> TM:

@@ -238,7 +238,9 @@ class LipschitzCheck(Check):
         from certify.side_proofs import bound_dk_dy
 
         s = context.settings
-        local = bound_dk_dy(context.problem, seconds=s.lipschitz_seconds,
+        from certify.device import on_settings_device
+
+        local = bound_dk_dy(on_settings_device(context.problem, s), seconds=s.lipschitz_seconds,
                             max_boxes=s.max_boxes)
         return check_lipschitz(context.problem, s, progress=context.progress,
                                local_upper=local)

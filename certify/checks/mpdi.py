@@ -78,11 +78,11 @@ def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | Non
     The grid is swept with a float32 copy of the kernel as a screen; every point that could be
     above 0 and every top candidate is re-evaluated in float64 (see `maximize_over_box`).
     """
-    from certify.device import resolve_device
+    from certify.device import on_settings_device, resolve_device
     from certify.executor import current_executor
 
     device = resolve_device(settings.device)
-    problem = problem.on(device)  # the grid and the ascent run on settings.device
+    problem = on_settings_device(problem, settings)  # the grid and the ascent run there
     lo, hi = joint_box(problem)
     exact = GridKernel(problem, lam)
     screen = GridKernel(problem, lam, dtype=torch.float32) if settings.float32_screen else None
@@ -129,13 +129,13 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
                      f"{cex[0].sound_bound:.3g}); "
                      f"{100 * search.above_fraction:.3g}% of {search.grid_points} grid points "
                      "violate it"), **common)
-    from certify.device import proof_batch, resolve_device
+    from certify.device import on_settings_device, proof_batch, resolve_device
 
-    device = resolve_device(settings.device)  # the proof's boxes live and are bounded there
     seeds = torch.as_tensor(search.top_points, dtype=torch.float64, device="cpu")
-    outcome = prove_mpdi(problem.on(device), seconds=settings.proof_seconds,
+    # the proof's boxes live and are bounded on settings.device, in rounds of its size
+    outcome = prove_mpdi(on_settings_device(problem, settings), seconds=settings.proof_seconds,
                          max_boxes=settings.max_boxes, progress=progress, seeds=seeds,
-                         batch=proof_batch(device))
+                         batch=proof_batch(resolve_device(settings.device)))
     if figures is not None and getattr(outcome, "boxes", None):
         figures["proof_boxes"] = outcome.boxes
         figures["proof_history"] = outcome.stats.volume_history

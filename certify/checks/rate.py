@@ -64,15 +64,18 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
         witnessed = is_witness(sign_lower, strict=False)
     proved_lower = problem.lam if mpdi is not None and mpdi.status == Status.PROVED else None
     if prove and search.nonfinite == 0 and sampled_upper > 0:
+        from certify.device import on_settings_device
         from certify.prover import prove_rate
 
         # the grid's worst point seeds the closing level: with it the proof stops at the
         # precision the report prints (RATE_REL_TOL) in about half the boxes an unseeded
         # proof needs for 1e-3 (vdp_certified: 5.6k vs 11.7k boxes); where that precision
         # is dear (bounds of first order: vdp_lmi needs 178k boxes), the tolerance relaxes
-        # to 1e-3 after RATE_FINE_BOXES boxes
+        # to 1e-3 after RATE_FINE_BOXES boxes. On settings.device, in rounds of the CPU's
+        # size: the same boxes and bound on every device (up to the last bits of rounding)
         seeds = [[*worst_cex.xhat, *worst_cex.y]] if worst_cex is not None else None
-        outcome = prove_rate(problem, seconds=settings.rate_seconds, max_boxes=settings.max_boxes,
+        outcome = prove_rate(on_settings_device(problem, settings), seconds=settings.rate_seconds,
+                             max_boxes=settings.max_boxes,
                              progress=progress, seeds=seeds, rel_tol=RATE_REL_TOL,
                              coarse_after=(RATE_FINE_BOXES, 1e-3))
         if outcome.lower is not None and outcome.lower == outcome.lower:

@@ -46,7 +46,10 @@ def check_residual(problem: Problem, settings: VerifySettings, *,
     from certify.side_proofs import bound_residual
 
     worst = search.best_point.tolist()
-    upper, _, _ = bound_residual(problem, seconds=settings.residual_seconds,
+    from certify.device import on_settings_device
+
+    upper, _, _ = bound_residual(on_settings_device(problem, settings),
+                                 seconds=settings.residual_seconds,
                                  max_boxes=settings.max_boxes, seeds=[worst])
     # the reported eps_bar >= value is a SOUND lower bound at the worst point found
     sound = float(residual_lower(problem, torch.as_tensor(worst, dtype=torch.float64)[None])[0])
