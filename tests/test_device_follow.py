@@ -131,3 +131,20 @@ def test_side_proofs_make_every_tensor_on_their_problems_device(structure: str) 
                     bound_dk_dy(prob, seconds=1e9, max_boxes=4000))
     assert plain[1] is not None and (structure == "structural") == (plain[0] == 0.0)
     assert followed == plain
+
+
+def test_a_gpu_gets_a_larger_box_budget_unless_one_is_named(tmp_path, monkeypatch) -> None:
+    """With device cuda the default box budget scales with the GPU's rounds; a budget named
+    in the options or in [tool.certify] is kept (settings only: no GPU needed)."""
+    from certify.config import load_settings
+    from certify.settings import GPU_MAX_BOXES, VerifySettings
+
+    monkeypatch.chdir(tmp_path)
+    cpu, _ = load_settings({})
+    gpu, _ = load_settings({"device": "cuda"})
+    named, _ = load_settings({"device": "cuda:0", "max_boxes": 5000})
+    assert cpu.max_boxes == VerifySettings().max_boxes < gpu.max_boxes == GPU_MAX_BOXES
+    assert named.max_boxes == 5000
+    (tmp_path / "pyproject.toml").write_text('[tool.certify]\ndevice = "cuda"\nmax_boxes = 7\n')
+    from_file, _ = load_settings({})
+    assert (from_file.device, from_file.max_boxes) == ("cuda", 7)
