@@ -31,6 +31,23 @@ if TYPE_CHECKING:
 CHUNKS_PER_WORKER = 1  # one task per worker per round: fewest round trips
 
 
+def evaluate_in_halves_on_oom(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval],
+                              lo: torch.Tensor, hi: torch.Tensor) -> list[BoxEval]:
+    """[evaluate(lo, hi)], or, where the GPU runs out of memory on the round, its halves in
+    turn (halved again as needed, down to one box): the same boxes in the same order, so the
+    same bounds, from smaller pieces. A round of many boxes on a GPU with little memory (a
+    laptop's, a wide network) then runs slower instead of ending the check in ERROR."""
+    try:
+        return [evaluate(lo, hi)]
+    except torch.cuda.OutOfMemoryError:
+        if len(lo) < 2:
+            raise
+        torch.cuda.empty_cache()  # what the failed attempt cached goes back to the device
+        m = len(lo) // 2
+        return (evaluate_in_halves_on_oom(evaluate, lo[:m], hi[:m])
+                + evaluate_in_halves_on_oom(evaluate, lo[m:], hi[m:]))
+
+
 class _LocalRound:
     """A round evaluated in this process when collected (the serial path)."""
 
@@ -42,7 +59,7 @@ class _LocalRound:
         assert self._args is not None, "collected twice"
         evaluate, lo, hi = self._args
         self._args = None
-        return [evaluate(lo, hi)]
+        return evaluate_in_halves_on_oom(evaluate, lo, hi)
 
     def cancel(self) -> None:
         self._args = None

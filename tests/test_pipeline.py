@@ -198,3 +198,32 @@ def test_a_stopped_run_merges_what_it_dispatched():
         assert hit.violated and not hit.complete and hit.lower > 0
         assert hit.upper >= DIM - 2.9 and hit.upper >= hit.lower
         assert hit.leaves["status"].count("violated") == 1
+
+
+@pytest.mark.parametrize("offset", [3.05, 2.95])
+def test_rounds_too_large_for_the_gpu_run_in_halves_with_the_same_outcome(offset):
+    """A round the device has no memory for (simulated: more than 12 boxes at once) is
+    evaluated in halves, in order: the outcome is the one of a run that never ran out."""
+    refused, done = [], []
+
+    def small_gpu(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+        if len(lo) > 12:
+            refused.append(len(lo))
+            raise torch.cuda.OutOfMemoryError("CUDA out of memory (simulated)")
+        done.append(len(lo))
+        return sine_eval(offset, lo, hi)
+
+    plain = _sine_bnb(offset, max_boxes=3000)
+    halved = branch_and_bound(*ROOT, small_gpu, threshold=0.0, seconds=1e9, batch=32,
+                              max_boxes=3000)
+    _same(plain, halved)
+    assert max(refused) == 64 and max(done) <= 12  # rounds of 2 x 32 children, halved
+    assert sum(done) == halved.stats.boxes_processed
+
+
+def test_one_box_the_gpu_cannot_hold_is_an_error_not_a_verdict():
+    def no_memory(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+        raise torch.cuda.OutOfMemoryError("CUDA out of memory (simulated)")
+
+    with pytest.raises(torch.cuda.OutOfMemoryError):
+        branch_and_bound(*ROOT, no_memory, threshold=0.0, seconds=1e9, batch=32)
