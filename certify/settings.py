@@ -29,7 +29,7 @@ class VerifySettings:
     adversarial_steps: int = 100
     top_counterexamples: int = 5
     proof_seconds: float = 60.0  # branch-and-bound budget for the MPDI proof
-    max_boxes: int = 2_000_000  # branch-and-bound budget in sub-boxes (GPU_MAX_BOXES on cuda)
+    max_boxes: int = 2_000_000  # B&B budget in sub-boxes (GPU_MAX_BOXES: see make_settings)
     rate_seconds: float = 20.0  # branch-and-bound budget for the proved lam_cert
     residual_seconds: float = 10.0
     lipschitz_seconds: float = 10.0

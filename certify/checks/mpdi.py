@@ -102,11 +102,14 @@ def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | Non
 def check_mpdi(problem: Problem, settings: VerifySettings, *,
                progress: Progress | None = None,
                figures: dict[str, Any] | None = None) -> MpdiResult:
-    """Decide D <= 0 over X x Y at the problem's lam and P."""
+    """Decide D <= 0 over X x Y at the problem's lam and P (on settings.device: the grid, the
+    ascent, the sound re-check of candidates and the proof)."""
+    from certify.device import on_settings_device, proof_batch, resolve_device
     from certify.prover import prove_mpdi
 
     progress = progress or NullProgress()
     t0 = time.perf_counter()
+    problem = on_settings_device(problem, settings)  # one copy for every step below
     n = problem.n
     search = falsify_mpdi(problem, settings, progress=progress)
     worst = counterexamples_from(search, n)[:1]
@@ -129,12 +132,10 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
                      f"{cex[0].sound_bound:.3g}); "
                      f"{100 * search.above_fraction:.3g}% of {search.grid_points} grid points "
                      "violate it"), **common)
-    from certify.device import on_settings_device, proof_batch, resolve_device
-
     seeds = torch.as_tensor(search.top_points, dtype=torch.float64, device="cpu")
     # the proof's boxes live and are bounded on settings.device, in rounds of its size
-    outcome = prove_mpdi(on_settings_device(problem, settings), seconds=settings.proof_seconds,
-                         max_boxes=settings.max_boxes, progress=progress, seeds=seeds,
+    outcome = prove_mpdi(problem, seconds=settings.proof_seconds, max_boxes=settings.max_boxes,
+                         progress=progress, seeds=seeds,
                          batch=proof_batch(resolve_device(settings.device)))
     if figures is not None and getattr(outcome, "boxes", None):
         figures["proof_boxes"] = outcome.boxes
