@@ -66,8 +66,7 @@ def mixed_jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
     LQ = _queries(RW, J, B)
     Lz, cl, cu = _backward(fb.layers, len(fb.layers), None, LQ,
                            torch.zeros(B, m, J, dtype=torch.float64, device=lo.device), colt,
-                           lo, hi,
-                           top_apart=top_apart)
+                           lo, hi, top_apart=top_apart)
     qm = fb.layers[-1].qmag(colt)  # [B, h, J]
     h = qm.shape[1]
     slack = up(torch.einsum("mh,bhj->bmj", delta, qm) * (1.0 + gamma(h + 2)) + TINY)

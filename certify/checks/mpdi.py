@@ -78,11 +78,11 @@ def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | Non
     The grid is swept with a float32 copy of the kernel as a screen; every point that could be
     above 0 and every top candidate is re-evaluated in float64 (see `maximize_over_box`).
     """
-    from certify.device import on_settings_device, resolve_device
+    from certify.device import resolve_device
     from certify.executor import current_executor
 
     device = resolve_device(settings.device)
-    problem = on_settings_device(problem, settings)  # the grid and the ascent run there
+    problem = problem.on(device)  # the grid and the ascent run there (no copy if already)
     lo, hi = joint_box(problem)
     exact = GridKernel(problem, lam)
     screen = GridKernel(problem, lam, dtype=torch.float32) if settings.float32_screen else None
@@ -104,7 +104,7 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
                figures: dict[str, Any] | None = None) -> MpdiResult:
     """Decide D <= 0 over X x Y at the problem's lam and P (on settings.device: the grid, the
     ascent, the sound re-check of candidates and the proof)."""
-    from certify.device import on_settings_device, proof_batch, resolve_device
+    from certify.device import on_settings_device, proof_batch
     from certify.prover import prove_mpdi
 
     progress = progress or NullProgress()
@@ -136,7 +136,7 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
     # the proof's boxes live and are bounded on settings.device, in rounds of its size
     outcome = prove_mpdi(problem, seconds=settings.proof_seconds, max_boxes=settings.max_boxes,
                          progress=progress, seeds=seeds,
-                         batch=proof_batch(resolve_device(settings.device)))
+                         batch=proof_batch(problem.device))
     if figures is not None and getattr(outcome, "boxes", None):
         figures["proof_boxes"] = outcome.boxes
         figures["proof_history"] = outcome.stats.volume_history
