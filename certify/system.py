@@ -13,6 +13,7 @@ import functools
 import json
 import re
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -24,7 +25,7 @@ import torch
 
 from certify.domain import check_domain
 from certify.errors import SettingsError, SpecError
-from certify.expr import CompiledRows, compile_torch_rows, parse_expression
+from certify.expr import CompiledRows, compile_numpy_rows, compile_torch_rows, parse_expression
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -204,15 +205,26 @@ class System:
         return all(sympy.diff(e, s) == 0 for e in self.jh_expr for s in self.symbols)
 
     # ----- batched point evaluation ------------------------------------------------------
-    def _rows(self, key: str) -> CompiledRows:
-        """The generated evaluator of expression list `key` (built on first use)."""
-        fn = self._compiled.get(key)
+    def _rows(self, key: str, numpy: bool = False) -> CompiledRows:
+        """The generated evaluator of expression list `key` (built on first use); `numpy`:
+        the NumPy form (`certify.expr.compile_numpy_rows`)."""
+        name = key + (":numpy" if numpy else "")
+        fn = self._compiled.get(name)
         if fn is None:
             exprs = {"f": self.f_expr, "h": self.h_expr, "fh": [*self.f_expr, *self.h_expr],
                      "jf": list(self.jf_expr), "jh": list(self.jh_expr)}[key]
-            fn = self._compiled[key] = compile_torch_rows(exprs, self.symbols,
-                                                          f"{self.name} {key}")
+            compile_rows = compile_numpy_rows if numpy else compile_torch_rows
+            fn = self._compiled[name] = compile_rows(exprs, self.symbols, f"{self.name} {key}")
         return fn
+
+    def array_rows(self, key: str) -> Callable[[np.ndarray], np.ndarray]:
+        """The NumPy evaluator of "f" or "fh" (= [f, h]) on float64 arrays [B, n]: the
+        integrator's right-hand side (`certify.integrate`), where each call is a few rows
+        and NumPy's per-call cost is a quarter of torch's. No shape check (the caller's
+        shapes are fixed)."""
+        if key not in ("f", "fh"):
+            raise ValueError(f"array_rows evaluates 'f' or 'fh'; got {key!r}")
+        return self._rows(key, numpy=True)
 
     def _eval(self, key: str, x: torch.Tensor) -> torch.Tensor:
         if x.ndim != 2 or x.shape[1] != self.n:

@@ -230,6 +230,23 @@ def test_point_values_module_and_autograd(name: str, dtype: torch.dtype) -> None
     assert act.f(xd).dtype == dtype
 
 
+@pytest.mark.parametrize("name", NAMES)
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(-800.0, 800.0, allow_nan=False), min_size=1, max_size=40))
+def test_numpy_form_equals_the_torch_form(name: str, values: list[float]) -> None:
+    """`f_array` (the simulation's NumPy form) gives `f`'s values to a few ulps, also far in
+    the tails (no overflow to NaN), on float64 arrays of any shape."""
+    import numpy as np
+
+    act = get(name)
+    x = np.array(values, dtype=np.float64).reshape(-1, 1)
+    with np.errstate(all="raise", under="ignore"):
+        got = act.f_array(x)
+    assert isinstance(got, np.ndarray) and got.shape == x.shape and got.dtype == np.float64
+    want = act.f(torch.from_numpy(x))
+    torch.testing.assert_close(torch.from_numpy(got), want, rtol=4e-15, atol=1e-300)
+
+
 @pytest.mark.parametrize("name, why", [("relu", "jumps at 0"), ("ReLU", "jumps at 0"),
                                        ("leaky_relu", "jumps"), ("LeakyReLU", "jumps"),
                                        ("hardtanh", "jumps at -1 and 1"), ("selu", "jumps")])

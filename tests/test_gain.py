@@ -76,7 +76,7 @@ def test_gain_and_jacobians_match_an_independent_autograd_reference(system3, act
         torch.testing.assert_close(terms.dk_dx[i], jx, rtol=1e-10, atol=1e-12)
         torch.testing.assert_close(terms.dk_dy[i], jy, rtol=1e-10, atol=1e-12)
     sim = GainFunction(system3, net)(x, y)
-    torch.testing.assert_close(sim, terms.k, rtol=1e-13, atol=1e-14)
+    torch.testing.assert_close(torch.from_numpy(sim), terms.k, rtol=1e-13, atol=1e-14)
     torch.testing.assert_close(net(torch.cat([x, y], 1)),
                                propagate(net.spec(), COLUMNS, torch.cat([x, y], 1), 0).value)
 

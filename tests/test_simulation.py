@@ -116,7 +116,9 @@ def test_gain_function_matches_kernel(system3, structure):
     xh = torch.rand(17, 3, generator=gen, dtype=torch.float64) * 2 - 1
     y = torch.rand(17, 2, generator=gen, dtype=torch.float64) * 2 - 1
     want = gain_terms(system3, net, xh, y, with_dy=False).k
-    torch.testing.assert_close(GainFunction(system3, net)(xh, y), want, rtol=1e-13, atol=1e-13)
+    got = GainFunction(system3, net)(xh, y)
+    assert isinstance(got, np.ndarray) and got.shape == (17, 3)
+    torch.testing.assert_close(torch.from_numpy(got), want, rtol=1e-13, atol=1e-13)
 
 
 # ----- the check -----------------------------------------------------------------------
@@ -306,13 +308,18 @@ def test_doubled_runs_share_the_batch_and_equal_separate_integrations():
     xh = 0.9 * x0
     noise = bounded_noise(200, 3, 1, 0.15, 0.01, seed=1)
     calls = []
-    fh = vdp.f_and_h
-    vdp.f_and_h = lambda s: (calls.append(1), fh(s))[1]
+    rows = vdp.array_rows
+
+    def counted(key):
+        fn = rows(key)
+        return (lambda s: (calls.append(1), fn(s))[1]) if key == "fh" else fn
+
+    vdp.array_rows = counted
     try:
         fine, coarse = simulate_doubled(vdp, net, x0, xh, dt=0.01, steps=200, noise=noise,
                                         doubled=[0, 2], doubled_steps=60)
     finally:
-        del vdp.f_and_h
+        del vdp.array_rows
     assert len(calls) == 4 * 200  # one f (and h) call per stage, the doubled runs included
     alone = simulate(vdp, net, x0, xh, dt=0.01, steps=200, noise=noise)
     same = dict(rtol=1e-12, atol=1e-12)
@@ -382,9 +389,10 @@ def test_vdp_certified_runs_stay_valid_beyond_a_time_constant():
 
 @pytest.mark.parametrize("structure,p", [("structural", 1), ("structural", 2), ("direct", 1),
                                          ("direct", 2)])
-def test_simulation_gain_equals_the_general_point_evaluation_bit_for_bit(structure, p):
-    """The simulation's leaner value-only arithmetic gives exactly the floats of
-    `certify.gain.gain_value` with the general row arithmetic (the one every kernel uses)."""
+def test_simulation_gain_equals_the_general_point_evaluation(structure, p):
+    """The simulation's NumPy value arithmetic gives the floats of `certify.gain.gain_value`
+    with the general torch row arithmetic (the one every kernel uses) up to the libraries'
+    rounding of the products and tanh: a few ulps."""
     from certify.gain import gain_value
     from certify.integrate import GainFunction
 
@@ -399,4 +407,5 @@ def test_simulation_gain_equals_the_general_point_evaluation_bit_for_bit(structu
     with torch.no_grad():
         ref = gain_value(net.spec(torch.float64, detach=True), system, xhat, y)
         got = GainFunction(system, net)(xhat, y)
-    assert torch.equal(got, ref)
+    assert isinstance(got, np.ndarray)
+    torch.testing.assert_close(torch.from_numpy(got), ref, rtol=1e-14, atol=1e-15)

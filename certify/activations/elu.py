@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -35,6 +36,9 @@ class ELU(Activation):
 
     def f(self, x: torch.Tensor) -> torch.Tensor:
         return torch.where(x > 0, x, torch.expm1(torch.clamp_max(x, 0.0)))
+
+    def f_array(self, x: np.ndarray) -> np.ndarray:
+        return np.where(x > 0, x, np.expm1(np.minimum(x, 0.0)))
 
     def d1(self, x: torch.Tensor) -> torch.Tensor:
         return torch.where(x > 0, torch.ones_like(x), torch.exp(torch.clamp_max(x, 0.0)))

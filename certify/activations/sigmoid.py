@@ -9,10 +9,18 @@ Slopes lie in (0, 1/4]; |f'''| <= 1/8.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
-from certify.activations.base import Activation, Critical, inc, scale, sigmoid_iv
+from certify.activations.base import (
+    Activation,
+    Critical,
+    inc,
+    scale,
+    sigmoid_array,
+    sigmoid_iv,
+)
 from certify.intervals import Interval
 
 
@@ -30,6 +38,9 @@ class Sigmoid(Activation):
 
     def f(self, x: torch.Tensor) -> torch.Tensor:
         return torch.sigmoid(x)
+
+    def f_array(self, x: np.ndarray) -> np.ndarray:
+        return sigmoid_array(x)
 
     def d1(self, x: torch.Tensor) -> torch.Tensor:
         return torch.sigmoid(x) * torch.sigmoid(-x)

@@ -10,10 +10,18 @@ outward-rounded +, * on the point x. Critical points (mpmath, 25 digits): f at
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
-from certify.activations.base import Activation, Critical, inc, scale, sigmoid_iv
+from certify.activations.base import (
+    Activation,
+    Critical,
+    inc,
+    scale,
+    sigmoid_array,
+    sigmoid_iv,
+)
 from certify.intervals import Interval
 
 _D1_MIN = "-0.09983932012886691695818492"
@@ -35,6 +43,9 @@ class SiLU(Activation):
 
     def f(self, x: torch.Tensor) -> torch.Tensor:
         return x * torch.sigmoid(x)
+
+    def f_array(self, x: np.ndarray) -> np.ndarray:
+        return x * sigmoid_array(x)
 
     def d1(self, x: torch.Tensor) -> torch.Tensor:
         return torch.sigmoid(x) * (1.0 + x * torch.sigmoid(-x))

@@ -9,6 +9,7 @@ nn.Softplus switches to x above a threshold, which is not exact, so it is not us
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from certify.activations.base import Activation, Critical, dec, inc, sigmoid_iv
@@ -23,6 +24,9 @@ class Softplus(Activation):
 
     def f(self, x: torch.Tensor) -> torch.Tensor:
         return torch.clamp_min(x, 0.0) + torch.log1p(torch.exp(-x.abs()))
+
+    def f_array(self, x: np.ndarray) -> np.ndarray:
+        return np.maximum(x, 0.0) + np.log1p(np.exp(-np.abs(x)))
 
     def d1(self, x: torch.Tensor) -> torch.Tensor:
         return torch.sigmoid(x)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -93,6 +94,9 @@ class Tanh(Activation):
 
     def f(self, x: torch.Tensor) -> torch.Tensor:
         return torch.tanh(x)
+
+    def f_array(self, x: np.ndarray) -> np.ndarray:
+        return np.tanh(x)
 
     def d1(self, x: torch.Tensor) -> torch.Tensor:
         t = torch.tanh(x)

@@ -85,6 +85,10 @@ class Arithmetic(Protocol):
 class PointCompose:
     """`compose` primitives on point tensors in the row layout."""
 
+    def inputs(self, xhat: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """The network's input z = (xhat, y) [B, n + p]."""
+        return torch.cat([xhat, y], dim=1)
+
     def cols(self, x: torch.Tensor, start: int, stop: int) -> torch.Tensor:
         return x[..., start:stop]
 

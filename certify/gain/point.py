@@ -32,7 +32,7 @@ def gain_at_points(spec: GainSpec, system: Any, xhat: torch.Tensor, y: torch.Ten
 def gain_value(spec: GainSpec, system: Any, xhat: torch.Tensor, y: torch.Tensor,
                h_xhat: torch.Tensor | None = None, arith: Any = ROWS) -> torch.Tensor:
     """k(xhat, y) [B, n] alone (no derivatives); `h_xhat` = h(xhat) when already known."""
-    net = propagate(spec, arith, torch.cat([xhat, y], dim=1), 0)
+    net = propagate(spec, arith, arith.inputs(xhat, y), 0)
     r = None
     if spec.needs_h:
         r = y - (system.h(xhat) if h_xhat is None else h_xhat)
