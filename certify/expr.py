@@ -309,9 +309,10 @@ def compile_numpy_rows(exprs: Sequence[sympy.Expr], symbols: Sequence[sympy.Symb
     """`compile_torch_rows` on float64 NumPy arrays (the simulation's right-hand side: an
     integrator step calls it on a few rows, where NumPy's per-call cost is a quarter of
     torch's). The same tape; the values agree with the torch form up to the libraries'
-    last-ulp differences in sin, exp, ... (IEEE + - * / give the same floats)."""
+    last-ulp differences in powers, sin, exp, ... (tested on random specs). The result is
+    a transposed view ([B, k], column-major): one copy of the columns, no `np.stack`."""
     return _compile_rows(exprs, symbols, label, _NUMPY_LIBRARY,
-                         lambda x: list(x.T), lambda cols: np.stack(cols, axis=-1))
+                         lambda x: list(x.T), lambda cols: np.array(cols).T)  # [B, k] view
 
 
 def _compile_rows(exprs: Sequence[sympy.Expr], symbols: Sequence[sympy.Symbol], label: str,
