@@ -192,3 +192,41 @@ def test_side_bounds_with_crown_contain_points(act: str, seed: int, scale: float
     k = gain_terms(s, net, xz, s.h(xz)).k
     res = k.norm(dim=-1).reshape(8, -1).amax(1)
     assert bool((res <= ub_r * (1 + 1e-12) + 1e-300).all())
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-4, 1e-2, 0.1, 0.5]))
+def test_residual_norm_bound_holds_at_every_vertex_and_beats_the_entrywise_bound(
+        seed: int, scale: float) -> None:
+    """The residual's linear-bound norm is the vertex maximum of its linear part
+    (`_tm_frobenius_upper` on k as an [n, 1] matrix): it contains ||k(x, h(x))|| at all
+    four corners and at random points of each box, and is never above the entrywise bound
+    (each component at its own worst vertex), which it replaced."""
+    from certify.bounds.crown import AffineInputNetwork, forward_bounds, to_tm, value_crown
+    from certify.bounds.side import _tm_mag, residual_box_upper_crown
+    from certify.intervals import gamma, up
+    from certify.kernels import gain_terms
+
+    torch.manual_seed(seed)
+    s = load_system("vdp")
+    net = GainNetwork(2, 1, (9, 9), activation="tanh").double()
+    gen = torch.Generator().manual_seed(seed)
+    X = torch.as_tensor(s.X)
+    c = X[:, 0] + torch.rand(16, 2, generator=gen, dtype=F64) * (X[:, 1] - X[:, 0])
+    lo, hi = c - scale, c + scale
+    corners = torch.tensor([[0.0, 0.0], [0.0, 1.0], [1.0, 0.0], [1.0, 1.0]], dtype=F64)
+    u = torch.cat([corners.expand(16, 4, 2), torch.rand(16, 60, 2, generator=gen, dtype=F64)], 1)
+    x = (lo[:, None] + (hi - lo)[:, None] * u).reshape(-1, 2)
+    k = gain_terms(s, net, x, s.h(x), with_dy=False).k
+    worst = k.norm(dim=-1).reshape(16, -1).amax(1)
+    ub, _ = residual_box_upper_crown(s, net, lo, hi)
+    assert bool((worst <= ub * (1 + 1e-12)).all())
+    # the entrywise form, as before
+    A = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 0.0]], dtype=F64)
+    vnet = AffineInputNetwork(net, A, torch.zeros(3, dtype=F64))
+    fb = forward_bounds(vnet, lo, hi, cols=[], crown=True,
+                        b0_slack=vnet.first_layer_slack(lo, hi), taylor=False)
+    vt = to_tm(value_crown(vnet, lo, hi, fb), fb.r)
+    mag = _tm_mag(vt.c, vt.g, vt.e, fb.r.unsqueeze(1))
+    entrywise = up(torch.sqrt(up((mag * mag).sum(-1) * (1.0 + 2.0 * gamma(3)))))
+    assert bool((ub <= entrywise).all())

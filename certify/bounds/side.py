@@ -108,7 +108,11 @@ def residual_box_upper_crown(system: System, net: GainNetwork, lo: torch.Tensor,
                         b0_slack=vnet.first_layer_slack(lo, hi), taylor=False)
     vt = to_tm(value_crown(vnet, lo, hi, fb), fb.r)
     mag = _tm_mag(vt.c, vt.g, vt.e, fb.r.unsqueeze(1))
-    tight = up(torch.sqrt(up((mag * mag).sum(-1) * (1.0 + 2.0 * gamma(n + 1)))))
+    entrywise = up(torch.sqrt(up((mag * mag).sum(-1) * (1.0 + 2.0 * gamma(n + 1)))))
+    # the norm's maximum over the vertices of the linear part (an excess quadratic in the box
+    # size, where the entrywise bound's is linear): k as an [n, 1] matrix
+    joint = _tm_frobenius_upper(vt.c[..., None], vt.g[:, :, None, :], vt.e[..., None], fb.r)
+    tight = torch.minimum(entrywise, joint)
     return torch.where(torch.isnan(tight), norm, torch.minimum(norm, tight)), cen
 
 
