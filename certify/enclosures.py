@@ -72,8 +72,10 @@ from certify.bounds.preconditioner import (  # noqa: F401
     to_lam_max_D,
 )
 from certify.bounds.side import (  # noqa: F401
+    IntervalDkDy,
     dk_dy_box_upper,
     dk_dy_box_upper_crown,
+    dk_dy_interval,
     manifold_enclosure,
     residual_box_upper,
     residual_box_upper_crown,

@@ -17,8 +17,8 @@ import torch
 
 from certify.bnb import BoxEval, branch_and_bound
 from certify.enclosures import (
-    dk_dy_box_upper,
     dk_dy_box_upper_crown,
+    dk_dy_interval,
     manifold_enclosure,
     residual_box_upper,
     residual_box_upper_crown,
@@ -56,7 +56,7 @@ def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
         ub, cen = residual_box_upper(s, problem.network, lo, hi)
         ub = level.tighten(ub, cen, lambda m: residual_box_upper_crown(
-            s, problem.network, lo[m], hi[m])[0])
+            s, problem.network, lo[m], hi[m], interval=(ub[m], cen[m]))[0])
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         return BoxEval(upper=ub, centre_value=cen, score=None)
 
@@ -79,11 +79,12 @@ def bound_dk_dy(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_0
     level = _Level(rel_tol, 1e-12)
 
     def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
-        ub, cen = dk_dy_box_upper(problem.system, problem.network, blo, bhi)
+        iv = dk_dy_interval(problem.system, problem.network, blo, bhi)
         # where the interval bound is above the closing level: linear bounds (direct
-        # networks) or Taylor models (structural ones)
-        ub = level.tighten(ub, cen, lambda m: dk_dy_box_upper_crown(
-            problem.system, problem.network, blo[m], bhi[m])[0])
+        # networks) or Taylor models (structural ones), reusing the interval enclosure
+        ub = level.tighten(iv.upper, iv.centre, lambda m: dk_dy_box_upper_crown(
+            problem.system, problem.network, blo[m], bhi[m], interval=iv[m])[0])
+        cen = iv.centre
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         return BoxEval(upper=ub, centre_value=cen, score=None)
 

@@ -5,6 +5,8 @@ Rounding as in `certify.intervals.ROUNDING`; norms of entry magnitudes carry a g
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from certify.bounds.eigen import lam_max_upper_interval
@@ -57,8 +59,22 @@ def residual_box_upper(system: System, net: GainNetwork, lo: torch.Tensor, hi: t
     return norm, cen
 
 
-def dk_dy_box_upper(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
+@dataclass
+class IntervalDkDy:
+    """The interval bound of ||dk/dy||_2 over z-boxes: `upper` [B], the float value at the
+    centres `centre` [B], and the entry magnitudes `mag` [B, n, p] it came from (the
+    tightened bounds reuse them instead of enclosing the gain again)."""
+
+    upper: torch.Tensor
+    centre: torch.Tensor
+    mag: torch.Tensor
+
+    def __getitem__(self, mask: torch.Tensor) -> IntervalDkDy:
+        return IntervalDkDy(self.upper[mask], self.centre[mask], self.mag[mask])
+
+
+def dk_dy_interval(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor
+                   ) -> IntervalDkDy:
     """Upper bound of ||dk/dy||_2 (via Frobenius of the entry magnitudes) over z-boxes."""
     gb, _ = gain_enclosure(system, net, lo, hi)
     zc = 0.5 * (lo + hi).to(torch.float64)
@@ -66,7 +82,14 @@ def dk_dy_box_upper(system: System, net: GainNetwork, lo: torch.Tensor, hi: torc
     mag = torch.maximum(gb.dk_dy.lo.abs(), gb.dk_dy.hi.abs())
     nrm = up(torch.sqrt(up((mag * mag).sum((-1, -2)) * (1.0 + 2.0 * gamma(mag[0].numel() + 1)))))
     cen = torch.linalg.matrix_norm(gc.dk_dy.mid(), ord=2)
-    return nrm, cen
+    return IntervalDkDy(nrm, cen, mag)
+
+
+def dk_dy_box_upper(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(upper bound of ||dk/dy||_2, its centre value) over z-boxes (`dk_dy_interval`)."""
+    iv = dk_dy_interval(system, net, lo, hi)
+    return iv.upper, iv.centre
 
 
 
@@ -78,17 +101,20 @@ def _tm_mag(c: torch.Tensor, g: torch.Tensor, e: torch.Tensor, r: torch.Tensor) 
 
 
 def residual_box_upper_crown(system: System, net: GainNetwork, lo: torch.Tensor,
-                             hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                             hi: torch.Tensor,
+                             interval: tuple[torch.Tensor, torch.Tensor] | None = None
+                             ) -> tuple[torch.Tensor, torch.Tensor]:
     """`residual_box_upper` tightened by linear bound propagation (direct network, linear h):
     g(x) = k(x, h(x)) = N(A x + a) with A = [I; C], a = [0; h(0)] (the K term vanishes), the
     composition done on the first layer with its rounding carried as a slack; per component
     the smaller of the two magnitude bounds. The forward pass keeps no Taylor models
     (`forward_bounds(taylor=False)`): with them the bound was within 3e-12 relative (512
     boxes at each of 4 radii on examples/vdp.ckpt and the 5x30, 3x30, 2x10 n = 2 and n = 4
-    benchmark instances), and they cost 5% of the residual proof."""
+    benchmark instances), and they cost 5% of the residual proof. `interval`: the
+    `residual_box_upper` of these boxes when the caller has it (not computed again)."""
     from certify.bounds.crown import AffineInputNetwork, forward_bounds, to_tm, value_crown
 
-    norm, cen = residual_box_upper(system, net, lo, hi)
+    norm, cen = residual_box_upper(system, net, lo, hi) if interval is None else interval
     if net.structure != "direct" or not system.h_is_linear:
         return norm, cen
     n = system.n
@@ -116,19 +142,23 @@ def residual_box_upper_crown(system: System, net: GainNetwork, lo: torch.Tensor,
     return torch.where(torch.isnan(tight), norm, torch.minimum(norm, tight)), cen
 
 
-def dk_dy_box_upper_crown(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor
+def dk_dy_box_upper_crown(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
+                          interval: IntervalDkDy | None = None
                           ) -> tuple[torch.Tensor, torch.Tensor]:
     """`dk_dy_box_upper` tightened by linear bound propagation of dN/dy (direct network):
     dk/dy = dN/dy + K, its norm bounded by `_tm_frobenius_upper` and by the entrywise
     smaller of the linear and interval magnitudes; the smallest per box. A structural
     network (no linear bounds here) gets `dk_dy_box_upper_taylor`. The forward pass keeps no
     Taylor models (`forward_bounds(taylor=False)`): with them the bound was within 3e-15
-    relative (the instances of `residual_box_upper_crown`), and they cost 15% of the proof."""
+    relative (the instances of `residual_box_upper_crown`), and they cost 15% of the proof.
+    `interval`: the `dk_dy_interval` of these boxes when the caller has it (the gain is then
+    not enclosed again: that was 20% of examples/vdp.ckpt's dk/dy proof)."""
     from certify.bounds.crown import forward_bounds, jacobian_crown, to_tm
 
     if net.structure != "direct":
-        return dk_dy_box_upper_taylor(system, net, lo, hi)
-    nrm, cen = dk_dy_box_upper(system, net, lo, hi)
+        return dk_dy_box_upper_taylor(system, net, lo, hi, interval)
+    iv = dk_dy_interval(system, net, lo, hi) if interval is None else interval
+    nrm, cen = iv.upper, iv.centre
     n, p = system.n, system.p
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
@@ -139,8 +169,7 @@ def dk_dy_box_upper_crown(system: System, net: GainNetwork, lo: torch.Tensor, hi
     ck = jt.c + K  # float sum: its error is at most u |c + K|, added to e
     e = up(jt.e + 2.0 * 2.0**-53 * ck.abs())
     mag = _tm_mag(ck, jt.g, e, fb.r[:, None, None, :])
-    gb, _ = gain_enclosure(system, net, lo, hi)
-    mag = torch.minimum(mag, torch.maximum(gb.dk_dy.lo.abs(), gb.dk_dy.hi.abs()))
+    mag = torch.minimum(mag, iv.mag)
     entrywise = up(torch.sqrt(up((mag * mag).sum((-1, -2))
                                  * (1.0 + 2.0 * gamma(mag[0].numel() + 1)))))
     tight = torch.minimum(entrywise, _tm_frobenius_upper(ck, jt.g, e, fb.r))
@@ -148,13 +177,16 @@ def dk_dy_box_upper_crown(system: System, net: GainNetwork, lo: torch.Tensor, hi
 
 
 def dk_dy_box_upper_taylor(system: System, net: GainNetwork, lo: torch.Tensor,
-                           hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                           hi: torch.Tensor, interval: IntervalDkDy | None = None
+                           ) -> tuple[torch.Tensor, torch.Tensor]:
     """`dk_dy_box_upper` tightened by first-order Taylor models of dk/dy (any structure):
     `certify.bounds.taylor.gain_taylor`'s model (float errors already in its remainder)
-    bounded by `_tm_frobenius_upper`; the smaller of that and the interval bound per box."""
+    bounded by `_tm_frobenius_upper`; the smaller of that and the interval bound per box
+    (`interval`: as in `dk_dy_box_upper_crown`)."""
     from certify.bounds.taylor import gain_taylor
 
-    nrm, cen = dk_dy_box_upper(system, net, lo, hi)
+    iv = dk_dy_interval(system, net, lo, hi) if interval is None else interval
+    nrm, cen = iv.upper, iv.centre
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     zc = 0.5 * (lo + hi)
