@@ -65,28 +65,40 @@ def _random_expression(rng: random.Random, depth: int) -> str:
     return f"{rng.choice(FUNCS)}({_random_expression(rng, depth - 1)})"
 
 
-def test_random_specs_rows_equal_single_expressions_and_the_tree_walk() -> None:
-    """Random whitelisted expressions and their derivatives (sign, general powers): one tape
-    for all rows gives the bits of one tape per expression, and both agree with the plain
-    tree walk `evaluate` (which folds no constants) to rounding, NaN where it is NaN."""
-    rng = random.Random(7)
-    gen = torch.Generator().manual_seed(7)
-    pts = 2.0 * torch.randn(300, 3, generator=gen, dtype=torch.float64)
-    pts[:4] = 0.0  # poles and 0**negative: inf / nan paths
-    cols = list(pts.unbind(1))
+def _random_specs(seed: int, count: int, rows: int):
+    """(points [rows, 3], then `count` times (expressions e and de/dx, de/dy, de/dz, their
+    torch tape's values [rows, 4])): random whitelisted expressions that compile (sympy
+    writes some derivatives with functions outside the table (atan2) or complex constants
+    (log of a negative number): refused at build time, skipped). The first 4 points are 0:
+    poles and 0**negative, the inf / nan paths."""
+    rng = random.Random(seed)
+    gen = torch.Generator().manual_seed(seed)
+    pts = 2.0 * torch.randn(rows, 3, generator=gen, dtype=torch.float64)
+    pts[:4] = 0.0
+    yield pts
     tried = 0
-    while tried < 100:
+    while tried < count:
         try:
             e = parse_expression(_random_expression(rng, rng.randint(1, 4)), NAMES)
         except Exception:
             continue
         exprs = [e, *(sympy.diff(e, s) for s in (X, Y, Z))]
-        try:  # sympy writes some derivatives with functions outside the table (atan2) or
-            # complex constants (log of a negative number): refused at build time
-            rows = compile_torch_rows(exprs, [X, Y, Z])(pts)
+        try:
+            values = compile_torch_rows(exprs, [X, Y, Z])(pts)
         except (SpecError, TypeError):
             continue
         tried += 1
+        yield exprs, values
+
+
+def test_random_specs_rows_equal_single_expressions_and_the_tree_walk() -> None:
+    """Random whitelisted expressions and their derivatives (sign, general powers): one tape
+    for all rows gives the bits of one tape per expression, and both agree with the plain
+    tree walk `evaluate` (which folds no constants) to rounding, NaN where it is NaN."""
+    specs = _random_specs(7, 100, 300)
+    pts = next(specs)
+    cols = list(pts.unbind(1))
+    for exprs, rows in specs:
         assert rows.shape == (300, 4)
         for i, ex in enumerate(exprs):
             one = torch.as_tensor(compile_torch(ex, [X, Y, Z])(cols), dtype=torch.float64)
@@ -105,27 +117,14 @@ def test_numpy_rows_agree_with_torch_rows_on_random_specs() -> None:
 
     from certify.expr import compile_numpy_rows
 
-    rng = random.Random(11)
-    gen = torch.Generator().manual_seed(11)
-    pts = 2.0 * torch.randn(200, 3, generator=gen, dtype=torch.float64)
-    pts[:4] = 0.0
-    tried = 0
-    while tried < 60:
-        try:
-            e = parse_expression(_random_expression(rng, rng.randint(1, 4)), NAMES)
-        except Exception:
-            continue
-        exprs = [e, *(sympy.diff(e, s) for s in (X, Y, Z))]
-        try:
-            want = compile_torch_rows(exprs, [X, Y, Z])(pts)
-        except (SpecError, TypeError):
-            continue
-        tried += 1
+    specs = _random_specs(11, 60, 200)
+    pts = next(specs)
+    for exprs, want in specs:
         with np.errstate(all="ignore"):
             got = torch.from_numpy(compile_numpy_rows(exprs, [X, Y, Z])(pts.numpy()))
         assert got.shape == want.shape
-        assert torch.equal(torch.isnan(got), torch.isnan(want)), e
-        assert torch.equal(torch.isinf(got), torch.isinf(want)), e
+        assert torch.equal(torch.isnan(got), torch.isnan(want)), exprs[0]
+        assert torch.equal(torch.isinf(got), torch.isinf(want)), exprs[0]
         ok = torch.isfinite(want) & (want.abs() < 1e200)
         torch.testing.assert_close(got[ok], want[ok], rtol=1e-12, atol=1e-14)
 
