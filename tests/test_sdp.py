@@ -144,6 +144,27 @@ def test_check_lipschitz_direct_and_structural():
     assert "not applicable" in rs.message
 
 
+@pytest.mark.parametrize("structure", ["direct", "structural"])
+def test_networks_without_hidden_layers_get_sound_lipschitz_bounds(structure):
+    """N(z) = W0 z + b (no hidden layer, no activation): for the direct form k is affine in
+    y and L = ||W0y + K||_2 exactly (closed form); the structural bound reads |G| from W0
+    and the box, not from the activation's range. Small weights used to expose the old
+    reading of W0 as a hidden layer followed by an output layer W0 (naive ||W0y|| ||W0||,
+    below the true constant when ||W0|| < 1)."""
+    net = random_network(2, 1, hidden=(), seed=3, structure=structure, scale=0.1)
+    with torch.no_grad():
+        net.K.zero_()
+    pr = _problem(net)
+    r = check_lipschitz(pr, sample_points=2000)
+    assert r.status is Status.PROVED
+    assert r.sampled <= r.value * (1 + 1e-12) and r.sampled <= r.naive * (1 + 1e-12)
+    if structure == "direct":
+        W = net.layers[0].weight.detach().numpy()
+        exact = np.linalg.norm(W[:, 2:], 2)
+        assert r.which == "lipsdp" and r.lipsdp == pytest.approx(exact, rel=1e-11)
+        assert r.sampled == pytest.approx(exact, rel=1e-9)
+
+
 def test_lipschitz_metric_weighted_variant():
     P = np.array([[4.0, 1.0], [1.0, 2.0]])
     pr = _problem(random_network(2, 1, hidden=(6, 5), seed=10), P=P)

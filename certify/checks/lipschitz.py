@@ -36,8 +36,11 @@ _ROUND_UP = 1.0 + 1e-12  # covers the SVD's relative error in a product of a few
 
 
 def mlp_in_y(net: GainNetwork, n: int) -> tuple[list[np.ndarray], np.ndarray]:
-    """The MLP with xhat frozen: [W0y, W1, ..., W_{H-1}] and W_out (numpy float64)."""
+    """The MLP with xhat frozen: [W0y, W1, ..., W_{H-1}] and W_out (numpy float64); for a
+    network without hidden layers (N affine) ([], W0y)."""
     Ws = [layer.weight.detach().to(_F64).numpy() for layer in net.layers]
+    if len(Ws) == 1:
+        return [], Ws[0][:, n:]
     return [Ws[0][:, n:], *Ws[1:-1]], Ws[-1]
 
 
@@ -74,7 +77,12 @@ def structural_local_naive(problem: Problem) -> float | None:
         return None
     LN = float(np.prod([np.linalg.norm(W, 2) for W in [*Ws, Wo]])) * net.act.lipschitz ** len(Ws)
     b = net.layers[-1].bias.detach().to(_F64).numpy()
-    Gmax = float(np.linalg.norm(np.abs(Wo).sum(1) * net.act.value_bound + np.abs(b)))
+    if Ws:  # |G| <= |W_out| sup|f| + |b_out|
+        reach = np.abs(Wo).sum(1) * net.act.value_bound
+    else:  # no hidden layer: G = W0 z + b, |G| <= |W0| max|z| + |b| over X x Y
+        zmax = np.abs(np.concatenate([system.X, system.Y])).max(1)
+        reach = np.abs(net.layers[0].weight.detach().to(_F64).numpy()) @ zmax
+    Gmax = float(np.linalg.norm(reach + np.abs(b)))
     X = torch.as_tensor(system.X, dtype=_F64)
     hl, hh = h_enclosure(system, X[None, :, 0], X[None, :, 1])
     hl, hh = hl[0].numpy(), hh[0].numpy()
@@ -132,7 +140,7 @@ def lipsdp_for(problem: Problem, metric_weighted: bool = False,
         R = sqrtm_psd(np.asarray(problem.P, dtype=np.float64))
         Wo, K = R @ Wo, R @ K
     if not Ws:  # no hidden layer: k is affine in y, L = ||W0y + K||_2 exactly
-        L = float(np.linalg.norm(Wo[:, problem.n:] + K, 2)) * _ROUND_UP
+        L = float(np.linalg.norm(Wo + K, 2)) * _ROUND_UP
         return sdp.SdpResult(Status.PROVED, "affine in y: exact", L, solver="closed-form",
                              raw_value=L, verified=True)
     return sdp.lipsdp_neuron(Ws, Wo, K, method=method, slope=net.act.slope_bounds)
