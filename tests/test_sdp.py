@@ -10,6 +10,7 @@ import torch
 
 from certify import checkpoint, sdp
 from certify.checks.lipschitz import (
+    LOCAL_ROOM,
     check_lipschitz,
     lipsdp_for,
     mlp_in_y,
@@ -163,6 +164,31 @@ def test_networks_without_hidden_layers_get_sound_lipschitz_bounds(structure):
         exact = np.linalg.norm(W[:, 2:], 2)
         assert r.which == "lipsdp" and r.lipsdp == pytest.approx(exact, rel=1e-11)
         assert r.sampled == pytest.approx(exact, rel=1e-9)
+
+
+def test_local_lipschitz_proof_runs_only_where_the_global_bound_leaves_room():
+    """k affine in y: LipSDP is exact (= the sampled value), so the local dk/dy proof is not
+    run (it could lower L by < LOCAL_ROOM, and its entry-magnitude bound, exact only for
+    p = 1, would spend the whole budget); a deep network whose LipSDP is well above the
+    sampled value gets the local proof, and its smaller bound is used."""
+    calls = []
+
+    def local(value: float):
+        def run() -> float:
+            calls.append(value)
+            return value
+        return run
+
+    affine = _problem(random_network(2, 1, hidden=(), seed=3))
+    r = check_lipschitz(affine, sample_points=2000, local=local(1e9))
+    assert calls == [] and r.which == "lipsdp" and r.local_upper is None
+    assert r.value <= r.sampled * (1 + LOCAL_ROOM) and "local proof not run" in r.message
+    deep = _problem(random_network(2, 1, hidden=(6, 5), seed=8, scale=2.0))
+    g = check_lipschitz(deep, sample_points=2000)
+    assert g.value > g.sampled * (1 + LOCAL_ROOM)  # room for a local bound
+    target = g.sampled * (1 + LOCAL_ROOM / 2)
+    r2 = check_lipschitz(deep, sample_points=2000, local=local(target))
+    assert calls == [target] and r2.which == "local" and r2.value == target
 
 
 def test_lipschitz_metric_weighted_variant():

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -33,6 +34,9 @@ from certify.witness import dk_dy_norm_lower
 _F64 = torch.float64
 _NULL_PROGRESS = NullProgress()
 _ROUND_UP = 1.0 + 1e-12  # covers the SVD's relative error in a product of a few norms
+#: the local dk/dy proof runs only when the global bound is more than this (relative) above
+#: the sampled lower bound: the local proof's own tolerance (`side_proofs.bound_dk_dy`)
+LOCAL_ROOM = 1e-3
 
 
 def mlp_in_y(net: GainNetwork, n: int) -> tuple[list[np.ndarray], np.ndarray]:
@@ -148,12 +152,18 @@ def lipsdp_for(problem: Problem, metric_weighted: bool = False,
 
 def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
                     progress: Progress = _NULL_PROGRESS, local_upper: float | None = None,
-                    sample_points: int = 20_000) -> LipschitzResult:
+                    sample_points: int = 20_000,
+                    local: Callable[[], float | None] | None = None) -> LipschitzResult:
     """LipSDP (verified), naive, sampled lower bound and the caller's local bound.
 
     `value` is the smallest sound bound and `which` names it ("lipsdp", "naive" - both
     global - or "local" - valid while y and y_e stay in Y). PROVED when a finite sound bound
     exists, UNKNOWN otherwise; ERROR if a sampled value exceeds a sound bound (a bug).
+    `local`: computes the local bound (the dk/dy branch and bound) when `local_upper` is not
+    given; it is called only when the global bound leaves room for it, i.e. is more than
+    `LOCAL_ROOM` above the sampled lower bound (else the local bound could lower L by less
+    than that: for k affine in y the global bound is exact, and a local proof by entry
+    magnitudes, exact only for p = 1, would spend its whole budget without closing).
     """
     t0 = time.perf_counter()
     settings = settings or VerifySettings()
@@ -188,6 +198,14 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
     sampled, where = sampled_lower(problem, points=min(sample_points, settings.grid_points),
                                    seed=settings.seed)
     progress.update(task)
+    global_bound = min([b for b in (lipsdp, None if structural else naive_f)
+                        if b is not None and math.isfinite(b)], default=math.inf)
+    local_skipped = False
+    if local_upper is None and local is not None:
+        if math.isfinite(sampled) and global_bound <= sampled * (1.0 + LOCAL_ROOM):
+            local_skipped = True
+        else:
+            local_upper = local()
     cands: list[tuple[float, str]] = []
     if lipsdp is not None:
         cands.append((lipsdp, "lipsdp"))
@@ -210,6 +228,9 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
     parts.append(f"naive {naive_f:.6g}" + (" (local, over X x Y)" if structural else ""))
     if local_upper is not None:
         parts.append(f"interval prover {local_upper:.6g} (local)")
+    elif local_skipped:
+        parts.append(f"local proof not run (the global bound is within {LOCAL_ROOM:g} of the "
+                     "sampled value)")
     if value is None:
         status, msg = Status.UNKNOWN, "no finite sound bound; " + "; ".join(parts)
     elif not math.isfinite(sampled):
@@ -243,15 +264,16 @@ class LipschitzCheck(Check):
     reads = ("lipschitz_seconds", "max_boxes", "grid_points", "seed")
 
     def run(self, context: Context) -> LipschitzResult:
+        from certify.device import on_settings_device
         from certify.side_proofs import bound_dk_dy
 
         s = context.settings
-        from certify.device import on_settings_device
 
-        local = bound_dk_dy(on_settings_device(context.problem, s), seconds=s.lipschitz_seconds,
-                            max_boxes=s.max_boxes)
-        return check_lipschitz(context.problem, s, progress=context.progress,
-                               local_upper=local)
+        def local() -> float | None:
+            return bound_dk_dy(on_settings_device(context.problem, s),
+                               seconds=s.lipschitz_seconds, max_boxes=s.max_boxes)
+
+        return check_lipschitz(context.problem, s, progress=context.progress, local=local)
 
     def present(self, r: LipschitzResult, certificate: Any) -> Presentation:
         s = certificate.settings or {}
