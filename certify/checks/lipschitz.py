@@ -34,8 +34,9 @@ from certify.witness import dk_dy_norm_lower
 _F64 = torch.float64
 _NULL_PROGRESS = NullProgress()
 _ROUND_UP = 1.0 + 1e-12  # covers the SVD's relative error in a product of a few norms
-#: the local dk/dy proof runs only when the global bound is more than this (relative) above
-#: the sampled lower bound: the local proof's own tolerance (`side_proofs.bound_dk_dy`)
+#: the local dk/dy proof's relative tolerance (`side_proofs.bound_dk_dy`, passed by
+#: `LipschitzCheck`); it runs only when the global bound is more than this above the sampled
+#: lower bound
 LOCAL_ROOM = 1e-3
 
 
@@ -271,7 +272,8 @@ class LipschitzCheck(Check):
 
         def local() -> float | None:
             return bound_dk_dy(on_settings_device(context.problem, s),
-                               seconds=s.lipschitz_seconds, max_boxes=s.max_boxes)
+                               seconds=s.lipschitz_seconds, max_boxes=s.max_boxes,
+                               rel_tol=LOCAL_ROOM)
 
         return check_lipschitz(context.problem, s, progress=context.progress, local=local)
 
