@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 from certify import activations
 from certify.bounds.interval_ops import iadd, isum
 from certify.bounds.network_interval import gain_enclosure, network_enclosure
+from certify.bounds.system_taylor import jacobian_tm
 from certify.bounds.taylor import (
     TM,
     gain_taylor,
@@ -169,14 +170,14 @@ def _frozen_jcl_taylor(system, net, lo, hi, net_tms=None):
         z = torch.zeros(*iv.lo.shape[:-1], p, dtype=torch.float64)
         return Interval(torch.cat([iv.lo, z], -1), torch.cat([iv.hi, z], -1))
 
-    jf = tm_from_intervals(Interval(*jacobian_f_enclosure(system, xc, xc)),
-                           pad(Interval(*hessian_f_enclosure(system, xl, xh))), r)
+    # the system's Jacobian models: `certify.bounds.system_taylor` (second-order form since
+    # issue 9; tested in tests/test_system_taylor.py), not part of what is frozen here
+    jf = jacobian_tm(system, "f", lo, hi, r)
     K = net.K.to(torch.float64)
     has_K = bool(torch.any(K != 0))
     structural = net.structure == "structural"
     if structural or has_K:
-        Jh = tm_from_intervals(Interval(*jacobian_h_enclosure(system, xc, xc)),
-                               pad(Interval(*hessian_h_enclosure(system, xl, xh))), r)
+        Jh = jacobian_tm(system, "h", lo, hi, r)
     if not structural:
         dkdx = tm_index(d1, (slice(None), slice(None), slice(0, n)))
     else:

@@ -36,11 +36,7 @@ from certify.network import GainNetwork
 from certify.system import System
 from certify.system_enclosures import (
     h_enclosure,
-    hessian_f_enclosure,
-    hessian_h_enclosure,
-    jacobian_f_enclosure,
     jacobian_h_enclosure,
-    pad_y,
     residual_jacobian,
 )
 
@@ -244,10 +240,11 @@ def gain_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Te
     enclosures of their derivatives). net_tms: (value [B, out], Jacobian [B, out, d], radii)
     of the network from elsewhere (e.g. tightened by linear bound propagation); default
     `network_taylor`."""
+    from certify.bounds.system_taylor import jacobian_tm  # it imports this module
     from certify.gain.propagate import NetOutput, compose  # certify.gain.taylor imports us
     from certify.gain.taylor import TaylorArithmetic
 
-    n, p = system.n, system.p
+    n = system.n
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     val, d1, r = network_taylor(net, lo, hi) if net_tms is None else net_tms
@@ -256,9 +253,7 @@ def gain_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Te
     xc, xl, xh = zc[:, :n], lo[:, :n], hi[:, :n]
     rt = Jh = None
     if spec.needs_h:
-        Jh = tm_from_intervals(Interval(*jacobian_h_enclosure(system, xc, xc)),
-                               pad_y(Interval(*hessian_h_enclosure(system, xl, xh)), p),
-                               r)  # [B, p, n]
+        Jh = jacobian_tm(system, "h", lo, hi, r)  # [B, p, n]
     if spec.structural or (spec.has_K and with_k):  # what compose reads r for
         hc = Interval(*h_enclosure(system, xc, xc))
         jhb = Interval(*jacobian_h_enclosure(system, xl, xh))
@@ -273,17 +268,14 @@ def jcl_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Ten
                net_tms: tuple[TM, TM, torch.Tensor] | None = None) -> TM:
     """TM of the closed-loop Jacobian Jf(xhat) + dk/dxhat(xhat, y) over z-boxes -> [B, n, n]
     (dk/dxhat from `gain_taylor`; net_tms as there)."""
-    n = system.n
+    from certify.bounds.system_taylor import jacobian_tm  # it imports this module
+
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     net_tms = network_taylor(net, lo, hi) if net_tms is None else net_tms
     r = net_tms[2]
     dkdx = gain_taylor(system, net, lo, hi, net_tms, with_k=False, with_dy=False).dk_dx
-    xc = (0.5 * (lo + hi))[:, :n]
-    jf = tm_from_intervals(Interval(*jacobian_f_enclosure(system, xc, xc)),
-                           pad_y(Interval(*hessian_f_enclosure(system, lo[:, :n], hi[:, :n])),
-                                  system.p), r)
-    return tm_add(jf, dkdx, r)
+    return tm_add(jacobian_tm(system, "f", lo, hi, r), dkdx, r)
 
 
 def tm_congruence(pc: Preconditioner, J: TM, lam: float, r: torch.Tensor) -> TM:
