@@ -146,6 +146,7 @@ def branch_and_bound(
     seconds: float = 60.0,
     max_boxes: int = 2_000_000,
     batch: int = 1024,
+    first_round: int | None = None,
     max_depth: int = 80,
     progress: Progress | None = None,
     task: str = "proof",
@@ -165,9 +166,10 @@ def branch_and_bound(
     evaluated the closing tolerance relaxes to `coarse` (a fine precision where it is cheap,
     never more than N boxes spent on it beyond the coarse one; boxes closed before stay
     closed, their bounds are below either level). Budgets: `seconds` and `max_boxes` (boxes
-    evaluated). `executor` / `remote`: where each round's children are evaluated; `lag`: rounds in
-    flight before the oldest is merged (module docstring). The outcome depends on `lag` and
-    the budgets, not on the executor.
+    evaluated). `first_round`: the root is first split into about that many equal boxes
+    (default and at most `batch`). `executor` / `remote`: where each round's children are
+    evaluated; `lag`: rounds in flight before the oldest is merged (module docstring). The
+    outcome depends on `lag` and the budgets, not on the executor.
     """
     progress = progress or NullProgress()
     t0 = time.perf_counter()
@@ -294,7 +296,8 @@ def branch_and_bound(
         frontier.add(box.lo[keep], box.hi[keep], box.depth[keep], ub[keep],
                      ev.score[keep] if ev.score is not None else None)
 
-    dispatch(initial_grid(root_lo, root_hi, batch))
+    dispatch(initial_grid(root_lo, root_hi, batch if first_round is None
+                          else max(1, min(first_round, batch))))
     budget_hit = False
     last_report = t0
     try:

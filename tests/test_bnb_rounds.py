@@ -71,3 +71,22 @@ def test_budgeted_decision_rounds_close_the_easy_region() -> None:
     assert not out.complete and not out.violated
     assert out.upper == 1.0
     assert 0.49 <= out.stats.proved_volume_fraction <= 0.5
+
+
+def test_first_round_sets_the_coarsest_boxes() -> None:
+    """A bound that closes boxes of width <= 1/4 on [0, 1]^2: a first round of 16 boxes closes
+    at once (16 boxes), the default first round of `batch` boxes spends them all, and a first
+    round of 4 refines each box once (4 + 8 + 16)."""
+    from certify.bnb import BoxEval, branch_and_bound
+
+    def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+        width = (hi - lo).amax(-1)
+        return BoxEval(upper=width - 0.25, centre_value=-torch.ones_like(width))
+
+    root = (torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64))
+    counts = {}
+    for first in (None, 16, 4):
+        out = branch_and_bound(*root, evaluate, threshold=0.0, batch=64, first_round=first)
+        assert out.complete and out.upper <= 0
+        counts[first] = out.stats.boxes_processed
+    assert counts == {None: 64, 16: 16, 4: 28}
