@@ -24,6 +24,7 @@ from certify.bounds.crown import (
     to_tm,
 )
 from certify.bounds.taylor import TM, jcl_taylor, tm_absorb, tm_add, tm_congruence
+from certify.bounds.top_rank import TopRank, top_rank
 from certify.intervals import TINY, down, gamma, up
 from certify.network import GainNetwork
 
@@ -40,6 +41,8 @@ class TopLayerRemainder:
 
     C: torch.Tensor  # [m, h]
     w: torch.Tensor  # [B, J, h]
+    #: the errors' rank structure (one or two hidden layers; `certify.bounds.top_rank`)
+    rank: TopRank | None = None
 
 
 def mixed_jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
@@ -74,7 +77,7 @@ def mixed_jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
     if not top_apart:
         return le, None
     WQ = fb.layers[-1].col_consts(colt)[4][:, 0]  # [B, J, h]
-    return le, TopLayerRemainder(RW, WQ)
+    return le, TopLayerRemainder(RW, WQ, top_rank(fb.layers, colt, RW))
 
 
 def network_crown_mixed_jacobian(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,

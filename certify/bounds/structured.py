@@ -37,6 +37,7 @@ import torch
 
 from certify.bounds.mixed import TopLayerRemainder
 from certify.bounds.taylor import TM
+from certify.bounds.top_rank import rank_loewner_upper
 from certify.intervals import TINY, gamma, up
 from certify.linalg import eigh
 
@@ -46,6 +47,8 @@ def loewner_upper(A: TM, top: TopLayerRemainder, level: float = 0.0) -> TM:
     from above in the Loewner order (module docstring): A [B, n, n] (coefficients [B, n, n,
     d]), `top` the last layer's relaxation errors (C [n, h], w [B, n, h]); W is balanced
     against the room level I - c (the level the bounds will be held to)."""
+    if top.rank is not None:  # the errors' directions are known: `certify.bounds.top_rank`
+        return rank_loewner_upper(A, top.C, top.w, top.rank, level)
     C, w = top.C.to(torch.float64), top.w.to(torch.float64)
     n, h = C.shape
     s = up(w.sum(1) * (1.0 + gamma(n + 1)))  # [B, h] >= sum_j w_jk

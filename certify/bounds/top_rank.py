@@ -1,0 +1,191 @@
+"""The top layer's product errors by their rank structure, for networks with at most two
+hidden layers (issue 9).
+
+`certify.bounds.structured` bounds He{C eps} (C = R W_H [n, h], eps [h, n] the relaxation
+errors of the last hidden layer's products Q_k^j = s_k t_k^j) with |eps_kj| <= w_kj taken
+independent for every (k, j). They are not: with the averaged McCormick planes (slopes
+tc_k^j on s_k, sc_k on t_k^j, intercept midpoint mq) and s_k = a_s pre_k + m_s + e_k (|e_k| <=
+ws_k, the relaxation of f'),
+
+    eps_kj = sigma_k tau_kj + tc_kj e_k + kappa_kj,  sigma_k = s_k - sc_k,
+    tau_kj = t_k^j - tc_kj,  kappa_kj = -(sc_k tc_kj + mq_kj)
+
+(exactly, in real arithmetic: s t - tc s - sc t = (s - sc)(t - tc) - sc tc). With two hidden
+layers t_k^j = sum_l W1_kl s1_l W0_lj (s1 = f'(pre_0), W0 the first layer's weights), so
+tau_k = sum_l W1_kl delta_l W0_l + o_k with delta_l = s1_l - s1c_l, |delta_l| <= rho1_l, and
+o_k = W1 diag(s1c) W0 - tc_k a known vector (one hidden layer: t = W0 exactly, tau_k = o_k).
+Every error term is a scalar times a fixed direction, so for every x
+
+    x^T He{C eps} x = sum_k (c_k . x)(eps_k . x)
+      <= sum_k |c_k . x| [sum_l beta_kl |W0_l . x| + rs_k |o_k . x| + ws_k |tc_k . x|] + entrywise
+      <= x^T W x + entrywise,
+
+beta_kl = rs_k |W1_kl| rho1_l (rs_k >= |sigma_k|), each |c . x||v . x| <= (a (c . x)^2 +
+(v . x)^2 / a) / 2 (any a > 0), so W = 1/2 [C diag(A) C^T + W0^T diag(Bw) W0 + O^T diag(rs /
+a_o) O + TC^T diag(ws / a_t) TC] with A_k = sum_l beta_kl a_kl + rs_k a_o,k + ws_k a_t,k and
+Bw_l = sum_k beta_kl / a_kl: rank-one terms along the directions the errors really have,
+where the independent form pays sum_j w_kj |x_j| in every direction. "entrywise" is kappa
+and the rounding of o, |C| (rs |do| + |kappa|), joined to the remainder entry by entry. The
+a's balance each pair against the room R = level I - sym(c) (a = sqrt(v^T R^-1 v /
+c^T R^-1 c), which minimises the trace of R^-1/2 W R^-1/2); any a > 0 is sound.
+
+Measured on the 2x10 four-state chain (seeds 5, 7, 10): 25-35% fewer boxes than the
+independent form.
+
+Rounding: rs, rho1, beta, A, Bw and the a-weighted sums are rounded up (sums of
+non-negative terms, widened by gamma_K); W is formed in float and its error, at most
+gamma_K times the same sums with |C|, |W0|, |O|, |TC|, joins the remainder; o's float error
+is bounded by gamma_{h+3} (|W1| |s1c| |W0| + |tc|); kappa by the outward-rounded
+|sc tc + mq| (two roundings).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from certify.bounds.relax import mccormick
+from certify.bounds.taylor import TM
+from certify.intervals import TINY, Interval, gamma, up
+from certify.linalg import eigh
+
+
+@dataclass
+class TopRank:
+    """The rank structure of the top layer's product errors over each box (module
+    docstring): eps_k = sigma_k tau_k + e_k tc_k + kappa_k with |sigma_k| <= rs [B, h],
+    |e_k| <= ws [B, h], tau_k = sum_l W1_kl delta_l W0[l] + o_k, |delta_l| <= rho1 [B, h1]
+    (beta [B, h, h1] = rs |W1| rho1, rounded up), directions W0 [h1, n], o [B, h, n] and
+    tc [B, h, n], and `entry` [B, h, n]: the entrywise rest rs |do| + |kappa| of each
+    eps_k."""
+
+    rs: torch.Tensor
+    ws: torch.Tensor
+    beta: torch.Tensor
+    W0: torch.Tensor
+    o: torch.Tensor
+    tc: torch.Tensor
+    entry: torch.Tensor
+
+
+def top_rank(layers: list, cols: torch.Tensor, C: torch.Tensor) -> TopRank | None:
+    """The structure for a network with one or two hidden layers (`certify.bounds.crown`'s
+    `_Layer`s, their ranges and relaxations) and C = R W_H [m, h]; None for deeper networks
+    or a composed first layer (its tangent is not W0 exactly)."""
+    if len(layers) > 2 or layers[0].bslack is not None:
+        return None
+    top = layers[-1]
+    top.col_consts(cols)  # makes the relaxation of f' on the top layer (a_s, m_s, w_s)
+    t = Interval(top.tan.lo[..., cols], top.tan.hi[..., cols])  # [B, h, J]
+    s = Interval(top.s.lo.unsqueeze(-1), top.s.hi.unsqueeze(-1))
+    mc = mccormick(s, t)  # as `col_consts` forms it: the same floats
+    tc, sc = mc.slope_s, mc.slope_t  # [B, h, J], [B, h, 1]
+    mq = 0.5 * (mc.lower_icpt + mc.upper_icpt)
+    rs = up(torch.maximum(top.s.hi - sc[..., 0], sc[..., 0] - top.s.lo))  # [B, h]
+    ws = top.w_s[:, 0, 0, :].to(torch.float64)  # [B, h]
+    # |sc tc + mq| in real arithmetic: the float value plus its two roundings
+    kappa = up((sc * tc + mq).abs() + gamma(2) * ((sc * tc).abs() + mq.abs())
+               * (1.0 + 4 * gamma(1)) + TINY)  # [B, h, J]
+    W0 = layers[0].W.to(torch.float64)[:, cols]  # [h1, J]
+    B, h, J = tc.shape
+    if len(layers) == 1:  # t = W0[:, cols] exactly: tau = o = W0 - tc (one rounding)
+        beta = torch.zeros(B, h, 0, dtype=torch.float64, device=tc.device)
+        o = W0[None] - tc
+        W0 = W0[:0]  # no lower layer: no delta directions
+        do = up(gamma(2) * (o.abs() + tc.abs()))
+    else:
+        s1 = layers[0].s
+        s1c = 0.5 * (s1.lo + s1.hi)
+        rho1 = up(torch.maximum(s1.hi - s1c, s1c - s1.lo))  # [B, h1]
+        W1 = top.W.to(torch.float64)  # [h, h1]
+        h1 = W1.shape[1]
+        beta = up(up(rs[:, :, None] * W1.abs()[None]) * rho1[:, None, :])  # [B, h, h1]
+        o = torch.einsum("kl,bl,lj->bkj", W1, s1c, W0) - tc
+        mag = torch.einsum("kl,bl,lj->bkj", W1.abs(), s1c.abs(), W0.abs()) + tc.abs()
+        do = up(gamma(h1 + 3) * mag * (1.0 + 4 * gamma(1)))
+    entry = up(rs[:, :, None] * do + kappa)  # [B, h, J]
+    return TopRank(rs, ws, beta, W0, o, tc, entry)
+
+
+def rank_loewner_upper(A: TM, C: torch.Tensor, w: torch.Tensor, rank: TopRank,
+                       level: float = 0.0) -> TM:
+    """The TM (c + W, g, e + entrywise rest + rounding) whose members bound every member of
+    A + He{C eps} from above in the Loewner order, W balanced against the room level I -
+    sym(c). Per neuron k the bound of |eps_k . x| is the rank form (module docstring) or
+    the independent one of `certify.bounds.structured` (w [B, J, h]: |eps_kj| <= w_jk),
+    whichever has the smaller trace against the room (neither dominates: the rank form wins
+    on most boxes of the 2x10 chains, not on all); both are sound, so is any choice."""
+    C = C.to(torch.float64)
+    w = w.to(torch.float64)
+    n, h = C.shape
+    c0 = A.c
+    Ri = _room_inverse(c0, level)  # [B, n, n]
+    qc = torch.einsum("ik,bij,jk->bk", C, Ri, C)
+    qw = torch.einsum("li,bij,lj->bl", rank.W0, Ri, rank.W0)
+    qo = torch.einsum("bki,bij,bkj->bk", rank.o, Ri, rank.o)
+    qt = torch.einsum("bki,bij,bkj->bk", rank.tc, Ri, rank.tc)
+    # the independent form per k: (c_k . x)(w_k . |x|) <= (a (c_k . x)^2 + s_k/a w_k . x^2)/2
+    s_ind = up(w.sum(1) * (1.0 + gamma(n + 1)))  # [B, h] >= sum_j w_jk
+    q_ind = s_ind * torch.einsum("bjk,bj->bk", w, torch.diagonal(Ri, dim1=-2, dim2=-1))
+    t_ind = (qc * q_ind).sqrt()
+    t_rank = qc.sqrt() * ((rank.beta * qw.sqrt()[:, None, :]).sum(-1) + rank.rs * qo.sqrt()
+                          + rank.ws * qt.sqrt())
+    use = ~(t_ind < t_rank)  # NaN: the rank form (its own terms carry the NaN)
+    z = torch.zeros((), dtype=torch.float64, device=c0.device)
+    a_kl = _ratio(qw[:, None, :], qc[:, :, None])
+    a_o, a_t, a_i = _ratio(qo, qc), _ratio(qt, qc), _ratio(q_ind, qc)
+    beta = torch.where(use[:, :, None], rank.beta, z)
+    rs, ws = torch.where(use, rank.rs, z), torch.where(use, rank.ws, z)
+    si = torch.where(use, z, s_ind)
+    K = rank.beta.shape[-1] + 4
+    widen = 1.0 + 2.0 * gamma(K + 1)
+    Acoef = up(((beta * a_kl).sum(-1) + rs * a_o + ws * a_t + si * a_i) * widen)  # [B, h]
+    Bw = up(up(beta / a_kl).sum(1) * widen)  # [B, h1]
+    fo, ft = up(rs / a_o), up(ws / a_t)  # [B, h]
+    diag = up(torch.einsum("bk,bjk->bj", up(si / a_i), w) * (1.0 + 2.0 * gamma(h + 1)))
+    W = 0.5 * (torch.einsum("ik,bk,jk->bij", C, Acoef, C)
+               + torch.einsum("li,bl,lj->bij", rank.W0, Bw, rank.W0)
+               + torch.einsum("bk,bki,bkj->bij", fo, rank.o, rank.o)
+               + torch.einsum("bk,bki,bkj->bij", ft, rank.tc, rank.tc)
+               + torch.diag_embed(diag))
+    # float error of W: gamma_K' times the same sums of absolute values
+    Wabs = 0.5 * (torch.einsum("ik,bk,jk->bij", C.abs(), Acoef, C.abs())
+                  + torch.einsum("li,bl,lj->bij", rank.W0.abs(), Bw, rank.W0.abs())
+                  + torch.einsum("bk,bki,bkj->bij", fo, rank.o.abs(), rank.o.abs())
+                  + torch.einsum("bk,bki,bkj->bij", ft, rank.tc.abs(), rank.tc.abs())
+                  + torch.diag_embed(diag))
+    gk = gamma(h + rank.beta.shape[-1] + 6)
+    c = c0 + W
+    entry = torch.einsum("ik,bkj->bij", C.abs(), torch.where(use[:, :, None], rank.entry, z))
+    entry = up(entry * (1.0 + 2.0 * gamma(h + 2)) + TINY)
+    rest = 0.5 * (entry + entry.transpose(1, 2))
+    e = up((A.e + rest + gk * Wabs + gamma(1) * c.abs()) * (1.0 + 2.0 * gk) + TINY)
+    bad = ~(torch.isfinite(c).flatten(1).all(-1) & torch.isfinite(e).flatten(1).all(-1))
+    e = torch.where(bad[:, None, None], torch.full_like(e, float("nan")), e)
+    return TM(c, A.g, e)
+
+
+def _ratio(qv: torch.Tensor, qc: torch.Tensor) -> torch.Tensor:
+    """a = sqrt(qv / qc) clamped to [1e-150, 1e150] (1 where not finite): any a > 0 is sound."""
+    a = (qv / qc).sqrt()
+    a = torch.where(torch.isfinite(a), a, torch.ones_like(a))
+    return a.clamp(1e-150, 1e150)
+
+
+def _room_inverse(c: torch.Tensor, level: float) -> torch.Tensor:
+    """(level I - sym(c))^-1 with its eigenvalues clamped positive (identity where LAPACK
+    fails or c is not finite): only the balance of the a's depends on it."""
+    B, n, _ = c.shape
+    eye = torch.eye(n, dtype=torch.float64, device=c.device)
+    out = eye.expand(B, n, n).clone()
+    ok = torch.isfinite(c).flatten(1).all(-1)
+    if not bool(ok.any()):
+        return out
+    try:
+        ev, Q = eigh(level * eye - 0.5 * (c[ok] + c[ok].transpose(-1, -2)))
+    except RuntimeError:
+        return out
+    ev = torch.maximum(ev, ev[:, -1:].abs() * 1e-9 + 1e-300)
+    out[ok] = (Q / ev[:, None, :]) @ Q.transpose(-1, -2)
+    return out
