@@ -15,6 +15,7 @@ from certify.bounds.mixed import TopLayerRemainder, contraction_tm_mixed
 from certify.bounds.preconditioner import diagonal_preconditioner
 from certify.bounds.structured import loewner_upper
 from certify.bounds.taylor import tm_lam_upper
+from certify.bounds.top_rank import rank_loewner_upper
 from certify.network import GainNetwork
 from certify.problem import Problem
 
@@ -33,10 +34,11 @@ def _chain(seed: int, n: int, hidden: tuple[int, ...], act: str, gain: float = 2
     gen = torch.Generator().manual_seed(seed)
     net = GainNetwork(n, 1, hidden, structure="direct", K=torch.randn(n, 1, generator=gen),
                       activation=act)
-    with torch.no_grad():
+    with torch.no_grad():  # every parameter from `gen`: the case is the seed's alone
         for layer in net.layers:
             layer.weight.copy_(gain * torch.randn(layer.weight.shape, generator=gen)
                                / layer.weight.shape[1] ** 0.5)
+            layer.bias.copy_(0.3 * torch.randn(layer.bias.shape, generator=gen))
     return Problem(system, net.double(), 0.1, system.P)
 
 
@@ -62,28 +64,32 @@ def test_rank_model_bounds_every_sampled_quadratic_form(seed: int, act: str, dep
     dz = z.reshape(4, -1, d) - c[:, None]
     A, top = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam, top_apart=True)
     assert (top.rank is not None) == (depth <= 2)
-    U = loewner_upper(A, top, level)
-    M = U.c[:, None] + torch.einsum("bijd,bsd->bsij", U.g, dz)
-    v = torch.cat([torch.randn(4, D.shape[1], 16, n, generator=gen, dtype=F64),
-                   torch.linalg.eigh(D).eigenvectors.transpose(-1, -2),
-                   torch.linalg.eigh(D - M).eigenvectors.transpose(-1, -2)], 2)
-    lhs = torch.einsum("bsvi,bsij,bsvj->bsv", v, D, v)
-    rhs = torch.einsum("bsvi,bsij,bsvj->bsv", v, M, v) \
-        + torch.einsum("bsvi,bij,bsvj->bsv", v.abs(), U.e, v.abs())
-    assert bool((lhs <= rhs + 1e-12 * (1 + lhs.abs())).all())
+    models = [loewner_upper(A, top, level)]
+    if top.rank is not None:  # each form alone, for every neuron: both must be sound
+        models += [rank_loewner_upper(A, top.C, top.w, top.rank, level, force=f)
+                   for f in ("rank", "independent")]
+    rnd = torch.randn(4, D.shape[1], 16, n, generator=gen, dtype=F64)
+    for U in models:
+        M = U.c[:, None] + torch.einsum("bijd,bsd->bsij", U.g, dz)
+        v = torch.cat([rnd, torch.linalg.eigh(D).eigenvectors.transpose(-1, -2),
+                       torch.linalg.eigh(D - M).eigenvectors.transpose(-1, -2)], 2)
+        lhs = torch.einsum("bsvi,bsij,bsvj->bsv", v, D, v)
+        rhs = torch.einsum("bsvi,bsij,bsvj->bsv", v, M, v) \
+            + torch.einsum("bsvi,bij,bsvj->bsv", v.abs(), U.e, v.abs())
+        assert bool((lhs <= rhs + 1e-12 * (1 + lhs.abs())).all())
 
 
 def test_rank_structure_decides_boxes_the_independent_form_cannot() -> None:
-    """A four-state chain with a 2x10 tanh network (gain 2), boxes of radius 0.06 and a level
+    """A four-state chain with a 2x10 tanh network (gain 2), boxes of radius 0.1 and a level
     between the boxes' sampled maxima: the rank form decides more boxes than the same errors
     taken independent per entry of eps (the form before), and none whose sampled lam_max
     exceeds the level."""
-    prob = _chain(7, 4, (10, 10), "tanh", cond=30.0)
+    prob = _chain(5, 4, (10, 10), "tanh", cond=30.0)
     pc = diagonal_preconditioner(prob.P_t, torch.ones(4, dtype=F64), "none")
     gen = torch.Generator().manual_seed(0)
     c = 1.8 * torch.rand(256, 5, generator=gen, dtype=F64) - 0.9
-    lo, hi = c - 0.06, c + 0.06
-    r = torch.full_like(lo, 0.06)
+    lo, hi = c - 0.1, c + 0.1
+    r = torch.full_like(lo, 0.1)
     A, top = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam, top_apart=True)
     assert top.rank is not None
     independent = TopLayerRemainder(top.C, top.w)  # no rank structure: the old form

@@ -81,6 +81,7 @@ class _Layer:
         # intercept radius with the rounding slack folded in: L m - |L| (w + gamma K)
         self.wk_a = up(self.w_a + self.gk * up(K_a * (1 + 8 * U)))
         self._cols: dict[tuple[int, ...], tuple] = {}
+        self._planes: dict[tuple[int, ...], object] = {}  # McCormick planes per column set
         self.bslack: torch.Tensor | None = None  # |pre - (W x + b)| (composed first layers)
 
     def _smag(self) -> torch.Tensor | float:
@@ -111,6 +112,7 @@ class _Layer:
         if key not in self._cols:
             t = Interval(self.tan.lo[..., cols], self.tan.hi[..., cols])
             m = mccormick(Interval(self.s.lo.unsqueeze(-1), self.s.hi.unsqueeze(-1)), t)
+            self._planes[key] = m
             f = lambda x: x.transpose(1, 2).unsqueeze(1)  # noqa: E731  [B, h, J] -> [B,1,J,h]
             mq, wq = _midrad_icpt(m.lower_icpt, m.upper_icpt)
             ss = f(m.slope_s)
@@ -129,6 +131,12 @@ class _Layer:
             WKQ = up(WQ + self.gk * up(KQ * (1 + 8 * U)))
             self._cols[key] = (st, SA, MQ, WKQ, WQ)
         return self._cols[key]
+
+    def planes(self, cols: torch.Tensor):
+        """The McCormick planes of s * t^j behind `col_consts` (`relax.BilinearBounds`,
+        [B, h, J]), for `certify.bounds.top_rank`."""
+        self.col_consts(cols)
+        return self._planes[tuple(int(c) for c in cols)]
 
 
 def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,

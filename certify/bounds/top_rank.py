@@ -45,9 +45,8 @@ from dataclasses import dataclass
 
 import torch
 
-from certify.bounds.relax import mccormick
 from certify.bounds.taylor import TM
-from certify.intervals import TINY, Interval, gamma, up
+from certify.intervals import TINY, gamma, up
 from certify.linalg import eigh
 
 
@@ -76,10 +75,7 @@ def top_rank(layers: list, cols: torch.Tensor, C: torch.Tensor) -> TopRank | Non
     if len(layers) > 2 or layers[0].bslack is not None:
         return None
     top = layers[-1]
-    top.col_consts(cols)  # makes the relaxation of f' on the top layer (a_s, m_s, w_s)
-    t = Interval(top.tan.lo[..., cols], top.tan.hi[..., cols])  # [B, h, J]
-    s = Interval(top.s.lo.unsqueeze(-1), top.s.hi.unsqueeze(-1))
-    mc = mccormick(s, t)  # as `col_consts` forms it: the same floats
+    mc = top.planes(cols)  # the planes `col_consts` made (and the relaxation of f', w_s)
     tc, sc = mc.slope_s, mc.slope_t  # [B, h, J], [B, h, 1]
     mq = 0.5 * (mc.lower_icpt + mc.upper_icpt)
     rs = up(torch.maximum(top.s.hi - sc[..., 0], sc[..., 0] - top.s.lo))  # [B, h]
@@ -109,13 +105,14 @@ def top_rank(layers: list, cols: torch.Tensor, C: torch.Tensor) -> TopRank | Non
 
 
 def rank_loewner_upper(A: TM, C: torch.Tensor, w: torch.Tensor, rank: TopRank,
-                       level: float = 0.0) -> TM:
+                       level: float = 0.0, force: str | None = None) -> TM:
     """The TM (c + W, g, e + entrywise rest + rounding) whose members bound every member of
     A + He{C eps} from above in the Loewner order, W balanced against the room level I -
     sym(c). Per neuron k the bound of |eps_k . x| is the rank form (module docstring) or
     the independent one of `certify.bounds.structured` (w [B, J, h]: |eps_kj| <= w_jk),
     whichever has the smaller trace against the room (neither dominates: the rank form wins
-    on most boxes of the 2x10 chains, not on all); both are sound, so is any choice."""
+    on most boxes of the 2x10 chains, not on all); both are sound, so is any choice
+    (`force`: "rank" or "independent" for every neuron, for the tests)."""
     C = C.to(torch.float64)
     w = w.to(torch.float64)
     n, h = C.shape
@@ -132,18 +129,22 @@ def rank_loewner_upper(A: TM, C: torch.Tensor, w: torch.Tensor, rank: TopRank,
     t_rank = qc.sqrt() * ((rank.beta * qw.sqrt()[:, None, :]).sum(-1) + rank.rs * qo.sqrt()
                           + rank.ws * qt.sqrt())
     use = ~(t_ind < t_rank)  # NaN: the rank form (its own terms carry the NaN)
+    if force is not None:
+        use = torch.full_like(use, force == "rank")
     z = torch.zeros((), dtype=torch.float64, device=c0.device)
     a_kl = _ratio(qw[:, None, :], qc[:, :, None])
     a_o, a_t, a_i = _ratio(qo, qc), _ratio(qt, qc), _ratio(q_ind, qc)
     beta = torch.where(use[:, :, None], rank.beta, z)
     rs, ws = torch.where(use, rank.rs, z), torch.where(use, rank.ws, z)
-    si = torch.where(use, z, s_ind)
+    # independent neurons: a_i (c_k . x)^2 + (s_k / a_i) sum_j w_jk x_j^2
+    ai = torch.where(use, z, a_i)
+    si = torch.where(use, z, up(s_ind / a_i))
     K = rank.beta.shape[-1] + 4
     widen = 1.0 + 2.0 * gamma(K + 1)
-    Acoef = up(((beta * a_kl).sum(-1) + rs * a_o + ws * a_t + si * a_i) * widen)  # [B, h]
+    Acoef = up(((beta * a_kl).sum(-1) + rs * a_o + ws * a_t + ai) * widen)  # [B, h]
     Bw = up(up(beta / a_kl).sum(1) * widen)  # [B, h1]
     fo, ft = up(rs / a_o), up(ws / a_t)  # [B, h]
-    diag = up(torch.einsum("bk,bjk->bj", up(si / a_i), w) * (1.0 + 2.0 * gamma(h + 1)))
+    diag = up(torch.einsum("bk,bjk->bj", si, w) * (1.0 + 2.0 * gamma(h + 1)))
     W = 0.5 * (torch.einsum("ik,bk,jk->bij", C, Acoef, C)
                + torch.einsum("li,bl,lj->bij", rank.W0, Bw, rank.W0)
                + torch.einsum("bk,bki,bkj->bij", fo, rank.o, rank.o)
