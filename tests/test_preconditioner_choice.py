@@ -39,10 +39,13 @@ def _problem(seed: int, n: int, cond: float) -> Problem:
     system = linear_system(A, C, lam=0.1, P=_metric(seed, n, cond), name="chainp")
     gen = torch.Generator().manual_seed(seed)
     net = GainNetwork(n, 1, (6, 5), structure="direct", K=torch.randn(n, 1, generator=gen))
-    with torch.no_grad():
+    with torch.no_grad():  # every parameter from `gen` (biases as PyTorch's default init)
         for layer in net.layers:
+            fan_in = layer.weight.shape[1]
             layer.weight.copy_(2.0 * torch.randn(layer.weight.shape, generator=gen)
-                               / layer.weight.shape[1] ** 0.5)
+                               / fan_in ** 0.5)
+            layer.bias.copy_((2 * torch.rand(layer.bias.shape, generator=gen) - 1)
+                             / fan_in ** 0.5)
     return Problem(system, net.double(), 0.1, system.P)
 
 
