@@ -27,6 +27,14 @@ from certify.witness import is_witness, rate_sign_lower
 RATE_REL_TOL = 1e-4
 #: boxes after which the rate proof's tolerance relaxes to 1e-3 (the bound stays sound)
 RATE_FINE_BOXES = 16_384
+#: share of `rate_seconds` for the maximisation branch and bound; when it runs out before
+#: closing, the rest of the budget goes to MPDI decisions above the proved rate
+#: (`certify.prover.raise_rate`)
+RATE_BNB_SHARE = 0.25
+#: the decisions stop when the bracket [proved, sampled] is this narrow (relative): the
+#: report prints lam_cert to 4 significant digits, and each halving costs about twice the
+#: last (examples/vdp2_lmi.ckpt: 1.0 -> 1.1179 against the sampled 1.1188)
+RATE_LADDER_REL_TOL = 1e-3
 
 
 def check_rate(problem: Problem, settings: VerifySettings, *,
@@ -35,8 +43,10 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
     """Bracket lam_cert: sampled upper value and, when `prove`, a proved lower bound.
 
     A PROVED MPDI at the design lam already proves lam_cert >= lam; the rate's own branch and
-    bound (budget `rate_seconds`) can only raise that. No proof is attempted when sampling
-    already shows a rate <= 0 (then no bound exists whatever the proof says).
+    bound (a quarter of `rate_seconds`) can only raise that, and when it runs out before
+    closing, MPDI decisions at rates above the proved one use the rest of the budget
+    (`certify.prover.raise_rate`). No proof is attempted when sampling already shows a rate
+    <= 0 (then no bound exists whatever the proof says).
     """
     progress = progress or NullProgress()
     t0 = time.perf_counter()
@@ -74,13 +84,24 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
         # to 1e-3 after RATE_FINE_BOXES boxes. On settings.device, in rounds of the CPU's
         # size: the same boxes and bound on every device (up to the last bits of rounding)
         seeds = [[*worst_cex.xhat, *worst_cex.y]] if worst_cex is not None else None
-        outcome = prove_rate(on_settings_device(problem, settings), seconds=settings.rate_seconds,
+        on_device = on_settings_device(problem, settings)
+        t_rate = time.perf_counter()
+        outcome = prove_rate(on_device, seconds=settings.rate_seconds * RATE_BNB_SHARE,
                              max_boxes=settings.max_boxes,
                              progress=progress, seeds=seeds, rel_tol=RATE_REL_TOL,
                              coarse_after=(RATE_FINE_BOXES, 1e-3))
         if outcome.lower is not None and outcome.lower == outcome.lower:
             proved_lower = outcome.lower if proved_lower is None else max(proved_lower,
                                                                           outcome.lower)
+        left = settings.rate_seconds - (time.perf_counter() - t_rate)
+        if (outcome.stats.budget_exhausted and proved_lower is not None and proved_lower > 0
+                and sampled_upper > proved_lower and left > 0):
+            from certify.prover import raise_rate
+
+            ladder = raise_rate(on_device, proved_lower, sampled_upper, seconds=left,
+                                max_boxes=settings.max_boxes,
+                                rel_tol=RATE_LADDER_REL_TOL, progress=progress)
+            proved_lower = ladder.lower
     seconds = time.perf_counter() - t0
     if search.nonfinite:
         return RateResult(Status.UNKNOWN, "the rate is NaN/Inf at some grid points",
