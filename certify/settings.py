@@ -30,7 +30,7 @@ class VerifySettings:
     top_counterexamples: int = 5
     proof_seconds: float = 60.0  # branch-and-bound budget for the MPDI proof
     max_boxes: int = 2_000_000  # B&B budget in sub-boxes (GPU_MAX_BOXES: see make_settings)
-    rate_seconds: float = 20.0  # branch-and-bound budget for the proved lam_cert
+    rate_seconds: float = 20.0  # budget for the proved lam_cert (branch and bound, then decisions)
     residual_seconds: float = 10.0
     lipschitz_seconds: float = 10.0
     noise: float = 0.15  # vbar: bound on ||v(t)||_2 of the measurement noise
