@@ -63,11 +63,12 @@ def sampled_D(prob, z: torch.Tensor) -> torch.Tensor:
     return 0.5 * (P @ J + (P @ J).transpose(1, 2)) + 2 * prob.lam * P
 
 
-def mixed_case(seed: int, n: int, cond: float, scale: float, points: int) -> tuple:
-    """A chain problem (`_problem`) with the congruence M = I, 5 boxes of radius `scale`
-    around random centres c, and D sampled at `points` points per box: (prob, pc, lo, hi, r,
-    D [5, S, n, n], dz [5, S, d] the points less their box centre)."""
-    prob = _problem(seed, n, cond)
+def mixed_case(seed: int, n: int, cond: float, scale: float, points: int,
+               prob=None) -> tuple:
+    """A chain problem (`_problem`, or `prob`) with the congruence M = I, 5 boxes of radius
+    `scale` around random centres c, and D sampled at `points` points per box: (prob, pc, lo,
+    hi, r, D [5, S, n, n], dz [5, S, d] the points less their box centre)."""
+    prob = _problem(seed, n, cond) if prob is None else prob
     pc = diagonal_preconditioner(prob.P_t, torch.ones(n, dtype=F64), "none")
     d = n + 1
     gen = torch.Generator().manual_seed(seed + 3)

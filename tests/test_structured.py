@@ -88,22 +88,35 @@ def test_matrix_errors_decide_boxes_the_entrywise_remainder_cannot() -> None:
     import certify.bounds.mpdi as mpdi
 
     prob = _problem(3, 4, 30.0)
-    pc = diagonal_preconditioner(prob.P_t, torch.ones(4, dtype=F64), "none")
-    gen = torch.Generator().manual_seed(0)
-    c = 1.6 * torch.rand(256, 5, generator=gen, dtype=F64) - 0.8
-    lo, hi = c - 0.1, c + 0.1
-    r = torch.full_like(lo, 0.1)
+    pc, lo, hi, r, sampled, level = boxes_and_level(prob, 0.8, 0.1, 0.8)
     A, top = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam, top_apart=True)
     A0, _ = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam)
-    # the level: between the boxes' sampled maxima, so that some boxes must not be decided
-    D = sampled_D(prob, _points(lo, hi, 64, 1).reshape(-1, 5))
-    sampled = torch.linalg.eigvalsh(D)[:, -1].reshape(256, -1).amax(1)
-    level = float(sampled.quantile(0.8)) + 0.05
-    plain, _ = tm_lam_upper(A0, r, level=level)
-    structured, _ = tm_lam_upper(loewner_upper(A, top, level), r, level=level)
-    lvl = level - 1e-12 * (1 + abs(level))
-    n_plain, n_struct = int((plain == lvl).sum()), int((structured == lvl).sum())
-    assert n_struct > n_plain, (n_plain, n_struct)
-    assert bool((sampled[structured == lvl] <= lvl).all())
-    assert bool((sampled > lvl).any())
+    plain = decided(A0, r, level)
+    structured = decided(loewner_upper(A, top, level), r, level)
+    assert int(structured.sum()) > int(plain.sum()), (int(plain.sum()), int(structured.sum()))
+    assert bool((sampled[structured] <= level).all())
+    assert bool((sampled > level).any())
     assert mpdi.STRUCTURED_TOP  # the prover's mixed stage uses the matrix form
+
+
+def boxes_and_level(prob, spread: float, radius: float, quantile: float) -> tuple:
+    """For a chain problem with the congruence M = I: 256 boxes of `radius` with centres in
+    [-spread, spread]^d, their sampled max of lam_max(D) (64 points each) and a level
+    between those maxima (their `quantile` + 0.05), so that some boxes must not be decided:
+    (pc, lo, hi, r, sampled, level)."""
+    n = prob.n
+    pc = diagonal_preconditioner(prob.P_t, torch.ones(n, dtype=F64), "none")
+    gen = torch.Generator().manual_seed(0)
+    c = 2 * spread * torch.rand(256, n + 1, generator=gen, dtype=F64) - spread
+    lo, hi = c - radius, c + radius
+    r = torch.full_like(lo, radius)
+    D = sampled_D(prob, _points(lo, hi, 64, 1).reshape(-1, n + 1))
+    sampled = torch.linalg.eigvalsh(D)[:, -1].reshape(256, -1).amax(1)
+    return pc, lo, hi, r, sampled, float(sampled.quantile(quantile)) + 0.05
+
+
+def decided(model, r: torch.Tensor, level: float) -> torch.Tensor:
+    """Which boxes the model's bound decides against `level` (the decision reports just
+    below the level)."""
+    bound, _ = tm_lam_upper(model, r, level=level)
+    return bound == level - 1e-12 * (1 + abs(level))

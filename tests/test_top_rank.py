@@ -12,17 +12,15 @@ from hypothesis import strategies as st
 
 from certify import activations
 from certify.bounds.mixed import TopLayerRemainder, contraction_tm_mixed
-from certify.bounds.preconditioner import diagonal_preconditioner
 from certify.bounds.structured import loewner_upper
-from certify.bounds.taylor import tm_lam_upper
 from certify.bounds.top_rank import rank_loewner_upper
 from certify.network import GainNetwork
 from certify.problem import Problem
 
 from .planted import linear_system
-from .test_crown import _points
-from .test_mixed_rows import sampled_D
+from .test_mixed_rows import mixed_case
 from .test_preconditioner_choice import _metric
+from .test_structured import boxes_and_level, decided
 
 F64 = torch.float64
 
@@ -52,23 +50,16 @@ def test_rank_model_bounds_every_sampled_quadratic_form(seed: int, act: str, dep
     """For sampled points z and vectors v (random, the eigenvectors of D(z) and of D(z)
     minus the model's affine part): v^T D(z) v <= v^T (c + g . dz) v + |v|^T e |v|. The
     rank structure is there for one and two hidden layers, not for three."""
-    prob = _chain(seed, n, (6, 5, 4)[:depth], act)
-    pc = diagonal_preconditioner(prob.P_t, torch.ones(n, dtype=F64), "none")
-    d = n + 1
+    prob, pc, lo, hi, r, D, dz = mixed_case(seed, n, 8.0, scale, 60,
+                                            prob=_chain(seed, n, (6, 5, 4)[:depth], act))
     gen = torch.Generator().manual_seed(seed + 3)
-    c = 2 * torch.rand(4, d, generator=gen, dtype=F64) - 1
-    lo, hi = c - scale, c + scale
-    r = torch.maximum(hi - c, c - lo)
-    z = _points(lo, hi, 60, seed).reshape(-1, d)
-    D = sampled_D(prob, z).reshape(4, -1, n, n)
-    dz = z.reshape(4, -1, d) - c[:, None]
     A, top = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam, top_apart=True)
     assert (top.rank is not None) == (depth <= 2)
     models = [loewner_upper(A, top, level)]
     if top.rank is not None:  # each form alone, for every neuron: both must be sound
         models += [rank_loewner_upper(A, top.C, top.w, top.rank, level, force=f)
                    for f in ("rank", "independent")]
-    rnd = torch.randn(4, D.shape[1], 16, n, generator=gen, dtype=F64)
+    rnd = torch.randn(5, D.shape[1], 16, n, generator=gen, dtype=F64)
     for U in models:
         M = U.c[:, None] + torch.einsum("bijd,bsd->bsij", U.g, dz)
         v = torch.cat([rnd, torch.linalg.eigh(D).eigenvectors.transpose(-1, -2),
@@ -85,21 +76,12 @@ def test_rank_structure_decides_boxes_the_independent_form_cannot() -> None:
     taken independent per entry of eps (the form before), and none whose sampled lam_max
     exceeds the level."""
     prob = _chain(5, 4, (10, 10), "tanh", cond=30.0)
-    pc = diagonal_preconditioner(prob.P_t, torch.ones(4, dtype=F64), "none")
-    gen = torch.Generator().manual_seed(0)
-    c = 1.8 * torch.rand(256, 5, generator=gen, dtype=F64) - 0.9
-    lo, hi = c - 0.1, c + 0.1
-    r = torch.full_like(lo, 0.1)
+    pc, lo, hi, r, sampled, level = boxes_and_level(prob, 0.9, 0.1, 0.7)
     A, top = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam, top_apart=True)
     assert top.rank is not None
     independent = TopLayerRemainder(top.C, top.w)  # no rank structure: the old form
-    D = sampled_D(prob, _points(lo, hi, 64, 1).reshape(-1, 5))
-    sampled = torch.linalg.eigvalsh(D)[:, -1].reshape(256, -1).amax(1)
-    level = float(sampled.quantile(0.7)) + 0.05
-    old, _ = tm_lam_upper(loewner_upper(A, independent, level), r, level=level)
-    new, _ = tm_lam_upper(loewner_upper(A, top, level), r, level=level)
-    lvl = level - 1e-12 * (1 + abs(level))
-    n_old, n_new = int((old == lvl).sum()), int((new == lvl).sum())
-    assert n_new > n_old, (n_old, n_new)
-    assert bool((sampled[new == lvl] <= lvl).all())
-    assert bool((sampled > lvl).any())
+    old = decided(loewner_upper(A, independent, level), r, level)
+    new = decided(loewner_upper(A, top, level), r, level)
+    assert int(new.sum()) > int(old.sum()), (int(old.sum()), int(new.sum()))
+    assert bool((sampled[new] <= level).all())
+    assert bool((sampled > level).any())
