@@ -10,7 +10,9 @@ rho(E) <= 0. This bench measures, on sub-boxes of the issue-9 instance families:
   fit, over `--points` random points of the sub-box. A sampled ESTIMATE (not a bound) of the
   remainder of the best affine enclosure; no sound linear relaxation can do much better;
 - `room`: minus the sampled max of lam_max(A) over the sub-box (what a remainder may use);
-- `closed`: the fraction of sub-boxes the prover's bound closes; `closable_by_best_affine`:
+- `closed`: the fraction of sub-boxes the linear-bound stage alone closes (remainder
+  entrywise); `closed_by_prover`: the fraction the prover's whole box bound decides
+  (`mpdi_box_bounds` in decision mode); `closable_by_best_affine`:
   the fraction the prover's bound form (max over the vertices of lam_max of the affine part,
   plus rho of the remainder) closes with the fitted affine part and its sampled remainder in
   place of the prover's: an estimate of what a perfect affine enclosure could close.
@@ -38,7 +40,11 @@ import torch  # noqa: E402
 from bench.instances import InstanceSpec  # noqa: E402
 from bench.prove_suite import FAMILIES, _cached_instance  # noqa: E402
 from certify.bounds.eigen import rho_upper  # noqa: E402
-from certify.bounds.mpdi import choose_preconditioner, crown_contraction_tm  # noqa: E402
+from certify.bounds.mpdi import (  # noqa: E402
+    choose_preconditioner,
+    crown_contraction_tm,
+    mpdi_box_bounds,
+)
 from certify.bounds.taylor import tm_lam_upper  # noqa: E402
 from certify.intervals import up  # noqa: E402
 from certify.kernels import closed_loop_jacobian, contraction_matrix  # noqa: E402
@@ -91,6 +97,10 @@ def measure(problem, rel_radius: float, boxes: int, points: int, seed: int) -> d
     Lv = (Vx @ coef + mid[:, None]).reshape(boxes, len(V), m, m)
     ideal_bound = lam_max_sym(Lv).amax(1) + best
     ratio = sound / best.clamp_min(1e-300)
+    # what the prover's own box bound decides (every stage: rank-structured top layer, mixed
+    # rows, congruence tests), at the level 0 of its decision mode
+    decided = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, screen=0.0, decide=True,
+                              root_width=rhi - rlo).upper <= 0
     return {"rel_radius": rel_radius, "boxes": boxes, "points": points,
             "preconditioner": pc.kind,
             "sound_rho_median": round(float(sound.median()), 5),
@@ -98,6 +108,7 @@ def measure(problem, rel_radius: float, boxes: int, points: int, seed: int) -> d
             "ratio_median": round(float(ratio.median()), 3),
             "room_median": round(float(-smax.median()), 5),
             "closed": round(float((bound <= 0).double().mean()), 4),
+            "closed_by_prover": round(float(decided.double().mean()), 4),
             "closable_by_best_affine": round(float((ideal_bound <= 0).double().mean()), 4)}
 
 
