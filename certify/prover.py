@@ -192,13 +192,15 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
     lo, hi = _root(problem)
     n = problem.n
     executor = current_executor() if executor is None else executor
-    plain_screen = _plain_screen(problem, lam, pc, taylor, crown)
     # where the plain bound probe closes part of the root split into 1024 boxes (Van der Pol
     # instances, 55-79%), coarser boxes close too: a coarse first round saves refining them
-    # (2x10 Van der Pol, seeds 0-9: 1391 -> 873 boxes, median); where it closes nothing, every
-    # region needs that depth and the full first round saves the coarse levels (3x30 Van der
-    # Pol: 4472 boxes against 4780 from a quarter-size first round)
-    first_round = batch // COARSE_START if plain_screen and direct_mixed(problem, pc) else batch
+    # (2x10 Van der Pol, seeds 0-9: 1391 -> 873 boxes, median; vdp_certified: 3012 -> 2020);
+    # where it closes nothing, every region needs that depth and the full first round saves
+    # the coarse levels (3x30 Van der Pol: 4472 boxes against 4780 from a quarter-size one)
+    probe = crown and taylor is True
+    coarse = probe and plain_screen_pays(problem, lam, pc)
+    plain_screen = coarse if probe and direct_mixed(problem, pc) else True  # `_plain_screen`
+    first_round = batch // COARSE_START if coarse else batch
     out = branch_and_bound(
         lo, hi, _mpdi_evaluator(problem, lam, pc, taylor, crown, plain_screen), threshold=0.0,
         seconds=seconds, max_boxes=max_boxes, batch=batch, first_round=first_round,

@@ -119,9 +119,9 @@ def test_killed_worker_with_rounds_in_flight_changes_nothing(clusters):
     two = clusters[1]
     two.client.wait_for_workers(2, timeout=60)
     victim = list(two.worker_pids().values())[0]
-    killer = KillWithRoundsInFlight(two, victim, at=5)
+    killer = KillWithRoundsInFlight(two, victim, at=8)
     remote = prove_mpdi(problem, seconds=1e9, executor=killer, **kw)
-    assert killer.in_flight_at_kill == 1 and killer.rounds > 5  # mid-proof, pipelined
+    assert killer.in_flight_at_kill == 1 and killer.rounds > 8  # mid-proof, pipelined
     _same(serial, remote)
     two.client.wait_for_workers(2, timeout=60)
     assert victim not in two.worker_pids().values()  # it really died
