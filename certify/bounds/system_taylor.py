@@ -37,10 +37,9 @@ import sympy
 import torch
 
 from certify.bounds.taylor import TM, tm_from_intervals
-from certify.expr import evaluate
-from certify.interval_rules import INTERVAL
 from certify.intervals import TINY, Interval, gamma, up
 from certify.system_enclosures import (
+    _enclose_list,
     hessian_f_enclosure,
     hessian_h_enclosure,
     jacobian_f_enclosure,
@@ -93,12 +92,8 @@ def quadratic_enclosure(system: Any, which: str, lo: torch.Tensor, hi: torch.Ten
         return None
     n = system.n
     m = n if which == "f" else system.p
-    lo, hi, r = lo.to(torch.float64), hi.to(torch.float64), r.to(torch.float64)
-    env = {s: Interval(lo[:, i], hi[:, i]) for i, s in enumerate(system.symbols)}
-    like = Interval(lo[:, 0], hi[:, 0])
-    vals = [evaluate(e, env, INTERVAL, like) for e in exprs]
-    Tlo = torch.stack([v.lo for v in vals], -1)  # [B, E]
-    Thi = torch.stack([v.hi for v in vals], -1)
+    lo, r = lo.to(torch.float64), r.to(torch.float64)
+    Tlo, Thi = _enclose_list(system, exprs, lo, hi)  # [B, E]
     dev = lo.device
     tt = torch.tensor(terms, dtype=torch.long, device=dev)  # [K, 5]
     src, dst, k, l_, off = tt.unbind(-1)
