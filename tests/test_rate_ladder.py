@@ -42,7 +42,8 @@ def test_ladder_stops_at_the_budget() -> None:
 
 def test_rate_check_on_vdp2_lmi_proves_above_the_design_rate() -> None:
     """The maximisation alone ended at the design rate 1.0 after its whole 20 s budget; with
-    the ladder the check proves more than 1.05 on a 6 s budget (sampled upper 1.119)."""
+    the ladder the check proves more than 1.05 on a 6 s budget (sampled upper 1.119), with the
+    MPDI's design rate as the floor and without it."""
     from certify import checkpoint
     from certify.checks.rate import check_rate
     from certify.results import MpdiResult, Status
@@ -51,6 +52,7 @@ def test_rate_check_on_vdp2_lmi_proves_above_the_design_rate() -> None:
     path = Path(__file__).parents[1] / "examples" / "vdp2_lmi.ckpt"
     prob = checkpoint.load(str(path)).problem
     mpdi = MpdiResult(Status.PROVED, "proved at the design rate", -0.5, -0.39)
-    res = check_rate(prob, VerifySettings(rate_seconds=6.0), mpdi=mpdi)
-    assert res.status is Status.PROVED
-    assert res.proved_lower > 1.05 and res.proved_lower <= res.sampled_upper
+    for known in (mpdi, None):  # without a proved design rate the ladder starts from 0
+        res = check_rate(prob, VerifySettings(rate_seconds=6.0), mpdi=known)
+        assert res.status is Status.PROVED
+        assert res.proved_lower > 1.05 and res.proved_lower <= res.sampled_upper

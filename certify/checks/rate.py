@@ -94,14 +94,17 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
             proved_lower = outcome.lower if proved_lower is None else max(proved_lower,
                                                                           outcome.lower)
         left = settings.rate_seconds - (time.perf_counter() - t_rate)
-        if (outcome.stats.budget_exhausted and proved_lower is not None and proved_lower > 0
-                and sampled_upper > proved_lower and left > 0):
+        # from the proved rate, or from 0 when none is positive (0 is then only where the
+        # ladder starts: a rate counts as proved only when a decision proved it)
+        start = proved_lower if proved_lower is not None and proved_lower > 0 else 0.0
+        if outcome.stats.budget_exhausted and sampled_upper > start and left > 0:
             from certify.prover import raise_rate
 
-            ladder = raise_rate(on_device, proved_lower, sampled_upper, seconds=left,
+            ladder = raise_rate(on_device, start, sampled_upper, seconds=left,
                                 max_boxes=settings.max_boxes,
                                 rel_tol=RATE_LADDER_REL_TOL, progress=progress)
-            proved_lower = ladder.lower
+            if ladder.lower > start:
+                proved_lower = ladder.lower
     seconds = time.perf_counter() - t0
     if search.nonfinite:
         return RateResult(Status.UNKNOWN, "the rate is NaN/Inf at some grid points",
