@@ -9,6 +9,7 @@ proved; NaN/Inf anywhere leaves the box UNKNOWN; a violation is a concrete float
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -86,12 +87,12 @@ def _seed_box(seeds: object | None, d: int, device: str = "cpu") -> Box | None:
 
 
 def _plain_screen(problem: Problem, lam: float, pc: Preconditioner, taylor: bool | str,
-                  crown: bool) -> bool:
+                  crown: bool, pays: bool | None = None) -> bool:
     """Whether the boxes meet the plain interval bound before the linear bounds: always,
     except for the mixed-row linear bounds (M = I, a direct network), where it is probed
-    (`plain_screen_pays`; deterministic in the problem)."""
+    (`plain_screen_pays`, or `pays` when the caller has it; deterministic in the problem)."""
     if crown and taylor is True and direct_mixed(problem, pc):
-        return plain_screen_pays(problem, lam, pc)
+        return plain_screen_pays(problem, lam, pc) if pays is None else pays
     return True
 
 
@@ -197,9 +198,8 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
     # (2x10 Van der Pol, seeds 0-9: 1391 -> 873 boxes, median; vdp_certified: 3012 -> 2020);
     # where it closes nothing, every region needs that depth and the full first round saves
     # the coarse levels (3x30 Van der Pol: 4472 boxes against 4780 from a quarter-size one)
-    probe = crown and taylor is True
-    coarse = probe and plain_screen_pays(problem, lam, pc)
-    plain_screen = coarse if probe and direct_mixed(problem, pc) else True  # `_plain_screen`
+    coarse = crown and taylor is True and plain_screen_pays(problem, lam, pc)
+    plain_screen = _plain_screen(problem, lam, pc, taylor, crown, pays=coarse)
     first_round = batch // COARSE_START if coarse else batch
     out = branch_and_bound(
         lo, hi, _mpdi_evaluator(problem, lam, pc, taylor, crown, plain_screen), threshold=0.0,
@@ -347,8 +347,6 @@ def raise_rate(problem: Problem, lower: float, upper: float, *, seconds: float,
     at most 4x the time of the last proved one (at least 1 s; in all at most `seconds`): the
     proofs grow as the margin shrinks, and the first target not decided ends the ladder. A
     VIOLATED target (a sound witness) is an upper bound and the ladder goes on below it."""
-    import time
-
     t_start = time.perf_counter()
     last = 0.25
     attempts: list[tuple[float, str, float]] = []

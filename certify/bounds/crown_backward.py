@@ -28,7 +28,7 @@ from __future__ import annotations
 import torch
 
 from certify.activations import Activation
-from certify.bounds.relax import mccormick, relax_slope, relax_value
+from certify.bounds.relax import BilinearBounds, mccormick, relax_slope, relax_value
 from certify.intervals import TINY, Interval, down, gamma, up
 
 U = 2.0**-53
@@ -81,7 +81,7 @@ class _Layer:
         # intercept radius with the rounding slack folded in: L m - |L| (w + gamma K)
         self.wk_a = up(self.w_a + self.gk * up(K_a * (1 + 8 * U)))
         self._cols: dict[tuple[int, ...], tuple] = {}
-        self._planes: dict[tuple[int, ...], object] = {}  # McCormick planes per column set
+        self._planes: dict[tuple[int, ...], BilinearBounds] = {}  # per column set
         self.bslack: torch.Tensor | None = None  # |pre - (W x + b)| (composed first layers)
 
     def _smag(self) -> torch.Tensor | float:
@@ -132,7 +132,7 @@ class _Layer:
             self._cols[key] = (st, SA, MQ, WKQ, WQ)
         return self._cols[key]
 
-    def planes(self, cols: torch.Tensor):
+    def planes(self, cols: torch.Tensor) -> BilinearBounds:
         """The McCormick planes of s * t^j behind `col_consts` (`relax.BilinearBounds`,
         [B, h, J]), for `certify.bounds.top_rank`."""
         self.col_consts(cols)

@@ -37,9 +37,8 @@ import torch
 
 from certify.bounds.mixed import TopLayerRemainder
 from certify.bounds.taylor import TM
-from certify.bounds.top_rank import rank_loewner_upper
+from certify.bounds.top_rank import rank_loewner_upper, room_inverse
 from certify.intervals import TINY, gamma, up
-from certify.linalg import eigh
 
 
 def loewner_upper(A: TM, top: TopLayerRemainder, level: float = 0.0) -> TM:
@@ -84,22 +83,10 @@ def _balance(c: torch.Tensor, C: torch.Tensor, w: torch.Tensor, s: torch.Tensor,
     """a_k > 0 per box [B, h] (module docstring: the room R = level I - sym(c), clamped
     positive definite); 1 where it is not finite or LAPACK fails (any positive a is
     sound)."""
-    B, h = s.shape
-    ones = torch.ones(B, h, dtype=torch.float64, device=s.device)
     ok = torch.isfinite(c).flatten(1).all(-1) & torch.isfinite(w).flatten(1).all(-1)
-    if not bool(ok.any()):
-        return ones
-    try:
-        eye = torch.eye(c.shape[-1], dtype=torch.float64, device=c.device)
-        ev, Q = eigh(level * eye - 0.5 * (c[ok] + c[ok].transpose(-1, -2)))
-    except RuntimeError:
-        return ones
-    ev = torch.maximum(ev, ev[:, -1:].abs() * 1e-9 + 1e-300)
-    Rinv = (Q / ev[:, None, :]) @ Q.transpose(-1, -2)
+    Rinv, done = room_inverse(c, level)
     cRc = torch.einsum("ik,bij,jk->bk", C, Rinv, C)
-    wR = torch.einsum("bjk,bj->bk", w[ok], torch.diagonal(Rinv, dim1=-2, dim2=-1))
-    a = (s[ok] * wR / cRc.clamp_min(1e-300)).sqrt()
-    a = torch.where(torch.isfinite(a) & (a > 1e-150) & (a < 1e150), a, torch.ones_like(a))
-    out = ones.clone()
-    out[ok] = a
-    return out
+    wR = torch.einsum("bjk,bj->bk", w, torch.diagonal(Rinv, dim1=-2, dim2=-1))
+    a = (s * wR / cRc.clamp_min(1e-300)).sqrt()
+    good = (ok & done)[:, None] & torch.isfinite(a) & (a > 1e-150) & (a < 1e150)
+    return torch.where(good, a, torch.ones_like(a))

@@ -117,7 +117,7 @@ def rank_loewner_upper(A: TM, C: torch.Tensor, w: torch.Tensor, rank: TopRank,
     w = w.to(torch.float64)
     n, h = C.shape
     c0 = A.c
-    Ri = _room_inverse(c0, level)  # [B, n, n]
+    Ri, _ = room_inverse(c0, level)  # [B, n, n]
     qc = torch.einsum("ik,bij,jk->bk", C, Ri, C)
     qw = torch.einsum("li,bij,lj->bl", rank.W0, Ri, rank.W0)
     qo = torch.einsum("bki,bij,bkj->bk", rank.o, Ri, rank.o)
@@ -174,19 +174,20 @@ def _ratio(qv: torch.Tensor, qc: torch.Tensor) -> torch.Tensor:
     return a.clamp(1e-150, 1e150)
 
 
-def _room_inverse(c: torch.Tensor, level: float) -> torch.Tensor:
-    """(level I - sym(c))^-1 with its eigenvalues clamped positive (identity where LAPACK
-    fails or c is not finite): only the balance of the a's depends on it."""
+def room_inverse(c: torch.Tensor, level: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """((level I - sym(c))^-1 [B, n, n] with its eigenvalues clamped positive, done [B]):
+    the identity where c is not finite or LAPACK fails (done False). Only the balance of
+    the Loewner bounds' weights depends on it (here and in `certify.bounds.structured`)."""
     B, n, _ = c.shape
     eye = torch.eye(n, dtype=torch.float64, device=c.device)
     out = eye.expand(B, n, n).clone()
     ok = torch.isfinite(c).flatten(1).all(-1)
     if not bool(ok.any()):
-        return out
+        return out, ok
     try:
         ev, Q = eigh(level * eye - 0.5 * (c[ok] + c[ok].transpose(-1, -2)))
     except RuntimeError:
-        return out
+        return out, torch.zeros_like(ok)
     ev = torch.maximum(ev, ev[:, -1:].abs() * 1e-9 + 1e-300)
     out[ok] = (Q / ev[:, None, :]) @ Q.transpose(-1, -2)
-    return out
+    return out, ok
