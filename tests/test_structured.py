@@ -47,7 +47,10 @@ def test_errors_apart_plus_C_eps_contain_sampled_rows(seed: int, act: str, depth
     low = torch.einsum("bmjd,bsd->bsmj", le.gl, dz) + le.cl[:, None]
     upp = torch.einsum("bmjd,bsd->bsmj", le.gu, dz) + le.cu[:, None]
     outside = torch.maximum(low - want, want - upp).clamp_min(0.0)
-    allowed = torch.einsum("mk,bjk->bmj", top.C.abs(), top.w)[:, None]
+    allowed = torch.einsum("mk,bjk->bmj", top.C.abs(), top.w)
+    if top.rank is not None and top.rank.lower is not None:  # the first layer's, apart too
+        allowed = allowed + top.rank.lower.full
+    allowed = allowed[:, None]
     assert bool((outside <= allowed + 1e-13 * (1 + want.abs())).all())
     full, none = mixed_jacobian_crown(net, lo, hi, cols, R, fb)
     assert none is None

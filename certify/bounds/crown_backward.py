@@ -141,8 +141,8 @@ class _Layer:
 
 def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
               LQ: torch.Tensor | None, bias: torch.Tensor, cols: torch.Tensor,
-              lo: torch.Tensor, hi: torch.Tensor, top_apart: bool = False
-              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+              lo: torch.Tensor, hi: torch.Tensor, top_apart: bool = False,
+              lower_apart: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Backward pass from coefficients on a_{top-1} (La) and on Q_{top-1}^j (LQ; None for
     value-only queries), both [B, R, J, h], plus a constant `bias` [B, R, J], down to z:
     returns (Lz [B, R, J, d], cl, cu [B, R, J]) with
@@ -160,7 +160,9 @@ def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
     top_apart (derivative queries, La None): the relaxation errors of the products Q at layer
     top - 1, sum_k |LQ_k| WQ_k, are left out of the intercepts (their rounding slack stays
     in): the caller accounts for them as LQ . eps with |eps| <= WQ, one eps for all queries
-    (`certify.bounds.mixed.TopLayerRemainder`)."""
+    (`certify.bounds.mixed.TopLayerRemainder`). lower_apart (with top_apart, two hidden
+    layers): the same for the products at layer 0, whose errors the caller bounds by
+    `certify.bounds.top_rank.LowerRank`."""
     B, d = lo.shape
     zc = 0.5 * (lo + hi)
     # internal layout [B, J, R, h]: the intercept sums over h are then batched matrix-vector
@@ -185,7 +187,8 @@ def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
             st, SA, MQ, WKQ, WQ = lay.col_consts(cols)
             q_pre = LQ * sw(SA)
             Lpre = q_pre if La is None else Lpre + q_pre
-            if top_apart and li == top - 1:  # only the rounding slack: the caller has WQ
+            if (top_apart and li == top - 1) or (lower_apart and li == 0):
+                # only the rounding slack: the caller has WQ
                 WKQ = up(WKQ - WQ)
             qs, qt = dot(LQ, col(MQ)), dot(LQ.abs(), col(WKQ))
             s_term = qs if La is None else s_term + qs

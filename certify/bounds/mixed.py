@@ -24,7 +24,7 @@ from certify.bounds.crown import (
     to_tm,
 )
 from certify.bounds.taylor import TM, jcl_taylor, tm_absorb, tm_add, tm_congruence
-from certify.bounds.top_rank import TopRank, top_rank
+from certify.bounds.top_rank import TopRank, lower_apart_applies, top_rank
 from certify.intervals import TINY, down, gamma, up
 from certify.network import GainNetwork
 
@@ -55,7 +55,9 @@ def mixed_jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
     multiplying by |R| loses them). R W_H is a float product: its error, at most
     gamma_{out+2} |R| |W_H| entrywise, times |Q_{H-1}^j| (forward magnitudes), widens both
     lines, rounded up. top_apart: the last hidden layer's relaxation errors are left out of
-    the lines and returned as a `TopLayerRemainder` (else None)."""
+    the lines and returned as a `TopLayerRemainder` (else None); with two hidden layers
+    (`top_rank.lower_apart_applies`) so are the first layer's f' errors, returned in its
+    `rank.lower`."""
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     B, d = lo.shape
@@ -67,9 +69,10 @@ def mixed_jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
     colt = torch.as_tensor(cols, dtype=torch.long, device=lo.device)
     J = len(cols)
     LQ = _queries(RW, J, B)
+    lower = top_apart and lower_apart_applies(fb.layers)
     Lz, cl, cu = _backward(fb.layers, len(fb.layers), None, LQ,
                            torch.zeros(B, m, J, dtype=torch.float64, device=lo.device), colt,
-                           lo, hi, top_apart=top_apart)
+                           lo, hi, top_apart=top_apart, lower_apart=lower)
     qm = fb.layers[-1].qmag(colt)  # [B, h, J]
     h = qm.shape[1]
     slack = up(torch.einsum("mh,bhj->bmj", delta, qm) * (1.0 + gamma(h + 2)) + TINY)
@@ -77,7 +80,7 @@ def mixed_jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,
     if not top_apart:
         return le, None
     WQ = fb.layers[-1].col_consts(colt)[4][:, 0]  # [B, J, h]
-    return le, TopLayerRemainder(RW, WQ, top_rank(fb.layers, colt, RW))
+    return le, TopLayerRemainder(RW, WQ, top_rank(fb.layers, colt, RW, lower=lower))
 
 
 def network_crown_mixed_jacobian(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor,

@@ -73,6 +73,8 @@ def entrywise(A: TM, top: TopLayerRemainder) -> TM:
     C, w = top.C.to(torch.float64), top.w.to(torch.float64)
     h = C.shape[1]
     E = torch.einsum("ik,bjk->bij", C.abs(), w)
+    if top.rank is not None and top.rank.lower is not None:  # the first layer's, apart too
+        E = up(up(E * (1.0 + gamma(h + 2))) + top.rank.lower.full)
     gk = gamma(h + 4)
     e = up((A.e + 0.5 * (E + E.transpose(1, 2))) * (1.0 + 2.0 * gk) + TINY)
     return TM(A.c, A.g, e)
