@@ -13,7 +13,8 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from certify import activations
-from certify.bounds.mixed import TopLayerRemainder, contraction_tm_mixed
+from certify.bounds.crown import forward_bounds
+from certify.bounds.mixed import TopLayerRemainder, contraction_tm_mixed, mixed_jacobian_crown
 from certify.bounds.structured import loewner_upper
 from certify.bounds.taylor import TM
 from certify.bounds.top_rank import rank_loewner_upper
@@ -115,3 +116,44 @@ def test_rank_structure_decides_boxes_the_independent_form_cannot() -> None:
     assert int(new.sum()) > int(old.sum()), (int(old.sum()), int(new.sum()))
     assert bool((sampled[new] <= level).all())
     assert bool((sampled > level).any())
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), act=st.sampled_from(activations.names()),
+       n=st.integers(2, 4), scale=st.sampled_from([0.05, 0.3]),
+       level=st.sampled_from([0.0, 2.0]))
+def test_first_layer_pairs_majorise_every_error_pattern(seed: int, act: str, n: int,
+                                                        scale: float, level: float) -> None:
+    """The first layer's f' errors alone, at the corners of their set (e1_l = +-ws1_l, the
+    top layer's errors 0): v^T (c + E) v <= v^T c' v + |v|^T e' |v| for the model (c', e') that
+    `rank_loewner_upper` makes from (c, no remainder) with the top layer's error bounds set to
+    0 (so that nothing else pays for these), E = sym(sum_l e1_l U_l W0_l^T), for v the
+    eigenvectors of c + E - c' and random ones. Leaving out either half of the pairs fails
+    here (checked)."""
+    prob, pc, lo, hi, r, D, dz = mixed_case(seed, n, 8.0, scale, 4,
+                                            prob=_chain(seed, n, (6, 5), act))
+    cols = list(range(n))
+    fb = forward_bounds(prob.network, lo, hi, cols=cols, crown=True, taylor=False)
+    _, top = mixed_jacobian_crown(prob.network, lo, hi, cols, prob.P_t, fb, top_apart=True)
+    low = top.rank.lower
+    assert low is not None
+    W0 = fb.layers[0].W.to(F64)[:, :n]
+    gen = torch.Generator().manual_seed(seed)
+    B, h1 = low.ws1.shape
+    c0 = 0.5 * torch.randn(B, n, n, generator=gen, dtype=F64)
+    c0 = c0 + c0.transpose(1, 2)
+    A = TM(c0, torch.zeros(B, n, n, n + 1, dtype=F64), torch.zeros(B, n, n, dtype=F64))
+    z = torch.zeros_like
+    only_first = replace(top.rank, rs=z(top.rank.rs), ws=z(top.rank.ws),
+                         beta=z(top.rank.beta), entry=z(top.rank.entry))
+    out = rank_loewner_upper(A, top.C, z(top.w), only_first, level, force="rank")
+    for _ in range(16):
+        s1 = torch.randint(0, 2, (B, h1), generator=gen).to(F64) * 2 - 1
+        E = torch.einsum("bl,bil,lj->bij", s1 * low.ws1, low.U, W0)
+        M = c0 + 0.5 * (E + E.transpose(1, 2))
+        v = torch.cat([torch.linalg.eigh(M - out.c).eigenvectors.transpose(1, 2),
+                       torch.randn(B, 8, n, generator=gen, dtype=F64)], 1)
+        lhs = torch.einsum("bvi,bij,bvj->bv", v, M, v)
+        rhs = torch.einsum("bvi,bij,bvj->bv", v, out.c, v) \
+            + torch.einsum("bvi,bij,bvj->bv", v.abs(), out.e, v.abs())
+        assert bool((lhs <= rhs + 1e-12 * (1 + lhs.abs())).all())

@@ -40,8 +40,11 @@ per first-layer neuron, the W0_l half joining Bw. Entry by entry (as the backwar
 carried them before) they cost sum_l |U_il| |W0_lj| ws1_l in every entry. Measured on the
 boxes the 2x10 four-state chain's proofs send to this bound (seeds 5 and 9, 30 k boxes
 each): 24.5% -> 32.2% and 20.7% -> 25.0% decided; whole proofs (seeds 0, 1, 4, 6, 10):
-17-31% fewer boxes. (The first layer's value errors, through a_s of the top layer, stay in
-the pass: as the same kind of pairs they decided 1% more boxes there.)
+17-31% fewer boxes. The first layer's value errors (through the top layer's f' slope a_s:
+entry (i, j) carries sum_l ea_l G_l[i, j], G_l = C diag(a_s W1[:, l]) tc) stay in the pass:
+as rank-one pairs per top neuron they decided 32.9% of seed 5's boxes; as the Loewner
+majorant sum_l wa_l |sym(G_l)| (one small eigh per box and neuron) 34.7%, but whole proofs
+(seeds 1 and 10) took 6% fewer boxes and 10-20% more time.
 
 Rounding: rs, rho1, beta, A, Bw and the a-weighted sums are rounded up (sums of
 non-negative terms, widened by gamma_K); W is formed in float and its error, at most
