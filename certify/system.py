@@ -200,6 +200,11 @@ class System:
         return len(self.outputs)
 
     @functools.cached_property
+    def jacobians_constant(self) -> bool:
+        """True when df/dx and dh/dx are constant matrices (f and h affine in x)."""
+        return self.h_is_linear and not any(e.free_symbols for e in self.jf_expr)
+
+    @functools.cached_property
     def h_is_linear(self) -> bool:
         """True when h(x) = C x + d (then ker dh is constant)."""
         return all(sympy.diff(e, s) == 0 for e in self.jh_expr for s in self.symbols)

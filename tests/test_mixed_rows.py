@@ -13,12 +13,14 @@ from certify import activations
 from certify.bounds.crown import forward_bounds, network_crown_tms
 from certify.bounds.eigen import rho_upper
 from certify.bounds.mixed import (
+    contraction_rest,
     contraction_tm_mixed,
     mixed_jacobian_crown,
     network_crown_mixed_jacobian,
 )
 from certify.bounds.preconditioner import diagonal_preconditioner
 from certify.kernels import closed_loop_jacobian
+from certify.system import load_system
 
 from .test_crown import _boxes, _net, _points
 from .test_preconditioner_choice import _problem
@@ -107,3 +109,17 @@ def test_mixing_before_bounding_is_tighter_than_after() -> None:
     ra = rho_upper(0.5 * (after + after.transpose(1, 2)))
     rm = rho_upper(0.5 * (mixed + mixed.transpose(1, 2)))
     assert float((rm / ra).median()) < 0.95
+
+
+def test_a_constant_rest_is_made_once_and_serves_every_box() -> None:
+    """For a linear plant and output (the chains) He{P (Jf - K dh/dx)} + 2 lam P is constant:
+    the batch's model has no first-order part and its centre lies within the remainders of
+    each box's own model (single boxes take the general path); Van der Pol's is not."""
+    prob, pc, lo, hi, r, _, _ = mixed_case(3, 4, 8.0, 0.05, 2)
+    assert prob.system.jacobians_constant
+    assert not load_system("vdp").jacobians_constant
+    fast = contraction_rest(prob, pc, lo, hi, r, prob.lam)
+    assert bool((fast.g == 0).all()) and bool((fast.e < 1e-12).all())
+    for i in range(lo.shape[0]):
+        own = contraction_rest(prob, pc, lo[i:i + 1], hi[i:i + 1], r[i:i + 1], prob.lam)
+        assert bool(((fast.c[i] - own.c[0]).abs() <= fast.e[i] + own.e[0]).all())
