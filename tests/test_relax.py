@@ -3,13 +3,25 @@ every sampled value."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from certify import activations
-from certify.bounds.relax import mccormick, relax_dtanh, relax_slope, relax_tanh, relax_value
+from certify.bounds.relax import (
+    _combine,
+    _Ends,
+    _piece_extrema,
+    _piece_extrema_where,
+    mccormick,
+    relax_dtanh,
+    relax_slope,
+    relax_tanh,
+    relax_value,
+)
 from certify.intervals import Interval
 
 F64 = torch.float64
@@ -129,3 +141,24 @@ def test_point_enclosures_match_the_general_path() -> None:
     for enc in (tanh_enclosure, dtanh_enclosure, d2tanh_enclosure):
         fast, general = enc(Interval(x, x)), enc(Interval(x, x.clone()))
         assert torch.equal(fast.lo, general.lo) and torch.equal(fast.hi, general.hi)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-9, 0.1, 1.0, 5.0]),
+       centre=st.floats(-4, 4), kind=st.sampled_from(["tanh", "dtanh"]))
+def test_pieces_on_the_elements_that_meet_them_equal_the_full_evaluation(
+        seed: int, scale: float, centre: float, kind: str) -> None:
+    """`_piece_extrema_where` (each curvature piece evaluated only on the intervals that meet
+    it) gives bit for bit what evaluating every piece on every interval gives, once the
+    pieces are combined: the same intercepts."""
+    gen = torch.Generator().manual_seed(seed)
+    lo = centre + scale * torch.randn(300, generator=gen, dtype=F64)
+    hi = lo + scale * torch.rand(300, generator=gen, dtype=F64)
+    a = 0.3 * torch.randn(300, generator=gen, dtype=F64)
+    x0 = lo + (hi - lo) * torch.rand(300, generator=gen, dtype=F64)
+    ends = _Ends(kind, lo, hi)
+    pieces = [(-math.inf, -0.7, True, x0), (-0.7, -0.6, None, None), (-0.6, 0.6, False, x0),
+              (0.6, math.inf, True, x0)]
+    full = _combine([_piece_extrema(ends, a, p, q, c, x) for p, q, c, x in pieces])
+    some = _combine([_piece_extrema_where(ends, a, p, q, c, x) for p, q, c, x in pieces])
+    assert torch.equal(full[0], some[0]) and torch.equal(full[1], some[1])

@@ -147,6 +147,31 @@ def _piece_extrema(ends: _Ends, a: torch.Tensor, p_lo: float, p_hi: float,
     return rmin, rmax, empty
 
 
+def _piece_extrema_where(ends: _Ends, a: torch.Tensor, p_lo: float, p_hi: float,
+                         convex: bool | None, x0: torch.Tensor | None
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`_piece_extrema` computed only on the elements whose [lo, hi] meets the piece (the
+    others are empty: +inf / -inf, dropped by `_combine`); the same values where computed."""
+    meet = (ends.hi >= p_lo) & (ends.lo <= p_hi)
+    inf = float("inf")
+    rmin = torch.full_like(ends.lo, inf)
+    rmax = torch.full_like(ends.lo, -inf)
+    empty = ~meet
+    if not bool(meet.any()):
+        return rmin, rmax, empty
+    if bool(meet.all()):
+        return _piece_extrema(ends, a, p_lo, p_hi, convex, x0)
+    sub = _Ends.__new__(_Ends)
+    sub.kind, sub.lo, sub.hi = ends.kind, ends.lo[meet], ends.hi[meet]
+    sub.f_lo = Interval(ends.f_lo.lo[meet], ends.f_lo.hi[meet])
+    sub.f_hi = Interval(ends.f_hi.lo[meet], ends.f_hi.hi[meet])
+    mn, mx, em = _piece_extrema(sub, a[meet], p_lo, p_hi, convex,
+                                None if x0 is None else x0[meet])
+    rmin[meet] = torch.where(em, torch.full_like(mn, inf), mn)
+    rmax[meet] = torch.where(em, torch.full_like(mx, -inf), mx)
+    return rmin, rmax, empty
+
+
 def _combine(parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
              ) -> tuple[torch.Tensor, torch.Tensor]:
     inf = float("inf")
@@ -177,8 +202,8 @@ def relax_tanh(lo: torch.Tensor, hi: torch.Tensor) -> LinearBounds:
     # critical points of r: tanh'(x) = a  <=>  |x| = atanh(sqrt(1 - a))
     xc = torch.atanh(torch.sqrt((1.0 - a).clamp(0.0, 1.0)).clamp(max=1.0 - 1e-16))
     ends = _Ends("tanh", lo, hi)
-    parts = [_piece_extrema(ends, a, -inf_(), 0.0, True, -xc),
-             _piece_extrema(ends, a, 0.0, inf_(), False, xc)]
+    parts = [_piece_extrema_where(ends, a, -inf_(), 0.0, True, -xc),
+             _piece_extrema_where(ends, a, 0.0, inf_(), False, xc)]
     rmin, rmax = _combine(parts)
     return LinearBounds(a, rmin, a, rmax)
 
@@ -231,14 +256,14 @@ def relax_dtanh(lo: torch.Tensor, hi: torch.Tensor) -> LinearBounds:
     ends = _Ends("dtanh", lo, hi)
     parts = [
         # convex (-inf, -c_out]: tanh'' increasing there
-        _piece_extrema(ends, a, -inf_(), -c_out, True, x_left),
+        _piece_extrema_where(ends, a, -inf_(), -c_out, True, x_left),
         # concave [-c_in, c_in]: tanh'' decreasing
-        _piece_extrema(ends, a, -c_in, c_in, False, x_mid),
+        _piece_extrema_where(ends, a, -c_in, c_in, False, x_mid),
         # convex [c_out, inf): tanh'' increasing
-        _piece_extrema(ends, a, c_out, inf_(), True, x_right),
+        _piece_extrema_where(ends, a, c_out, inf_(), True, x_right),
         # the two slivers around +-c: tanh' enclosed over the whole sliver (a constant)
-        _piece_extrema(ends, a, -c_out, -c_in, None, None),
-        _piece_extrema(ends, a, c_in, c_out, None, None),
+        _piece_extrema_where(ends, a, -c_out, -c_in, None, None),
+        _piece_extrema_where(ends, a, c_in, c_out, None, None),
     ]
     rmin, rmax = _combine(parts)
     return LinearBounds(a, rmin, a, rmax)
