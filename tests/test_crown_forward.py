@@ -10,6 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import certify.bounds.crown as crown_module
 from certify import activations
 from certify.bounds.crown import AffineInputNetwork, ForwardBounds, forward_bounds
 from certify.bounds.crown_backward import _backward, _concretize, _Layer, _queries
@@ -147,7 +148,9 @@ def _assert_identical(new: ForwardBounds, ref: ForwardBounds) -> None:
 @pytest.mark.parametrize("act", activations.names())
 @pytest.mark.parametrize("cols", [None, [1], []])
 @pytest.mark.parametrize("crown", [True, False])
-def test_forward_bounds_bit_identical(act: str, cols: list[int] | None, crown: bool) -> None:
+def test_forward_bounds_bit_identical(act: str, cols: list[int] | None, crown: bool,
+                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(crown_module, "ONE_LAYER_CLOSED_FORM", False)  # the reference's pass
     net = _net(3, 4, 3, 6, 1.5, act)
     lo, hi = _boxes(5, 5, 4, 0.2)
     new = forward_bounds(net, lo, hi, cols=cols, crown=crown)
@@ -168,9 +171,11 @@ def test_forward_bounds_bit_identical(act: str, cols: list[int] | None, crown: b
 
 @pytest.mark.parametrize("act", ["tanh", "softplus", "gelu"])
 @pytest.mark.parametrize("cols", [None, []])
-def test_forward_bounds_bit_identical_composed_first_layer(act: str, cols: list[int] | None
+def test_forward_bounds_bit_identical_composed_first_layer(act: str, cols: list[int] | None,
+                                                           monkeypatch: pytest.MonkeyPatch
                                                            ) -> None:
     """The composed network z -> N(A x + a) with the first layer's rounding slack b0_slack."""
+    monkeypatch.setattr(crown_module, "ONE_LAYER_CLOSED_FORM", False)
     net = _net(7, 4, 2, 5, 1.2, act)
     gen = torch.Generator().manual_seed(11)
     A = torch.randn(4, 2, generator=gen, dtype=F64)
@@ -240,3 +245,28 @@ def test_ranges_without_taylor_models_are_as_tight_as_with_them(act: str) -> Non
         tb = both.tan[li].hi[..., :2] - both.tan[li].lo[..., :2]
         ti = ivl.tan[li].hi[..., :2] - ivl.tan[li].lo[..., :2]
         assert float((ti / tb).median()) <= 1.05
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 10_000), act=st.sampled_from(activations.names()),
+       scale=st.sampled_from([0.0, 1e-3, 0.1, 0.5]), depth=st.integers(2, 3),
+       cols=st.sampled_from([None, [0, 2], []]))
+def test_second_layer_closed_form_matches_the_backward_pass(seed: int, act: str, scale: float,
+                                                            depth: int,
+                                                            cols: list[int] | None) -> None:
+    """The second layer's ranges from `certify.bounds.one_layer` (the default) and from the
+    general backward pass: the same linear functions, so equal up to their rounding slack
+    (within 1e-9 of the width, plus 1e-12), for every activation and depth; that they contain
+    sampled values is `test_forward_ranges_contain_sampled_values`'s."""
+    net = _net(seed, 3, depth, 5, 2.0, act)
+    lo, hi = _boxes(seed, 6, 3, scale)
+    closed = forward_bounds(net, lo, hi, cols=cols, crown=True, taylor=False)
+    crown_module.ONE_LAYER_CLOSED_FORM = False
+    try:
+        general = forward_bounds(net, lo, hi, cols=cols, crown=True, taylor=False)
+    finally:
+        crown_module.ONE_LAYER_CLOSED_FORM = True
+    for a, b in ((closed.pre[1], general.pre[1]), (closed.tan[1], general.tan[1])):
+        tol = 1e-9 * (b.hi - b.lo) + 1e-12 * (1 + b.lo.abs() + b.hi.abs())
+        assert bool(((a.lo - b.lo).abs() <= tol).all()), float((a.lo - b.lo).abs().max())
+        assert bool(((a.hi - b.hi).abs() <= tol).all()), float((a.hi - b.hi).abs().max())

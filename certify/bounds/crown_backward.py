@@ -102,13 +102,7 @@ class _Layer:
         of MQ + SA pre + st t^j for every point of the box (the relaxation error, the same
         for every query)."""
         key = tuple(int(c) for c in cols)
-        if self.a_s is None:
-            rs = relax_slope(self.act, self.pre.lo, self.pre.hi)
-            if not torch.equal(rs.lower_slope, rs.upper_slope):
-                raise ValueError("backward propagation needs parallel-line relaxations")
-            self.a_s = rs.lower_slope[:, None, None, :]
-            ms, ws = _midrad_icpt(rs.lower_icpt, rs.upper_icpt)
-            self.m_s, self.w_s = ms[:, None, None, :], ws[:, None, None, :]
+        self.slope_lines()
         if key not in self._cols:
             t = Interval(self.tan.lo[..., cols], self.tan.hi[..., cols])
             m = mccormick(Interval(self.s.lo.unsqueeze(-1), self.s.hi.unsqueeze(-1)), t)
@@ -131,6 +125,18 @@ class _Layer:
             WKQ = up(WQ + self.gk * up(KQ * (1 + 8 * U)))
             self._cols[key] = (st, SA, MQ, WKQ, WQ)
         return self._cols[key]
+
+    def slope_lines(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(a_s, m_s, w_s) [B, 1, 1, h]: f'(pre) within a_s pre + m_s +- w_s on the range of
+        pre (made on first use)."""
+        if self.a_s is None:
+            rs = relax_slope(self.act, self.pre.lo, self.pre.hi)
+            if not torch.equal(rs.lower_slope, rs.upper_slope):
+                raise ValueError("backward propagation needs parallel-line relaxations")
+            self.a_s = rs.lower_slope[:, None, None, :]
+            ms, ws = _midrad_icpt(rs.lower_icpt, rs.upper_icpt)
+            self.m_s, self.w_s = ms[:, None, None, :], ws[:, None, None, :]
+        return self.a_s, self.m_s, self.w_s
 
     def planes(self, cols: torch.Tensor) -> BilinearBounds:
         """The McCormick planes of s * t^j behind `col_consts` (`relax.BilinearBounds`,
