@@ -104,6 +104,27 @@ def test_mccormick_is_sound(seed: int, scale: float) -> None:
     assert bool((v <= lin + bb.upper_icpt[:, None] + tol).all())
 
 
+@SETTINGS
+@given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-9, 0.1, 1.0, 30.0]))
+def test_mccormick_of_a_point_factor_is_exact_to_an_ulp(seed: int, scale: float) -> None:
+    """t a point (the first layer's tangent): the planes hold at sampled s and their
+    intercepts are -sc t to an ulp on each side (no corner slack)."""
+    g = torch.Generator().manual_seed(seed)
+    sl = scale * torch.randn(32, generator=g, dtype=F64)
+    su = sl + scale * torch.rand(32, generator=g, dtype=F64)
+    t = scale * torch.randn(32, generator=g, dtype=F64)
+    bb = mccormick(Interval(sl, su), Interval(t, t.clone()))
+    s = sl[:, None] + (su - sl)[:, None] * torch.rand(32, 200, generator=g, dtype=F64)
+    lin = bb.slope_s[:, None] * s + bb.slope_t[:, None] * t[:, None]
+    v = s * t[:, None]
+    tol = 8 * 2.0**-53 * (v.abs() + lin.abs() + 1e-300)
+    assert bool((lin + bb.lower_icpt[:, None] <= v + tol).all())
+    assert bool((v <= lin + bb.upper_icpt[:, None] + tol).all())
+    exact = -(0.5 * (sl + su)) * t
+    assert bool((bb.lower_icpt <= exact).all()) and bool((exact <= bb.upper_icpt).all())
+    assert bool((bb.upper_icpt - bb.lower_icpt <= 4 * 2.0**-52 * exact.abs() + 1e-300).all())
+
+
 def test_dtanh_critical_points_solve_the_cubic_on_their_pieces() -> None:
     """`_dtanh_crit` (closed form) returns, per piece of known curvature, the x where
     tanh''(x) = a when the piece has one: it only places the tangent of the sound bound,

@@ -293,6 +293,9 @@ def mccormick(s: Interval, t: Interval) -> BilinearBounds:
     """Averaged McCormick planes for the product s * t (see the module docstring)."""
     sc = 0.5 * (s.lo + s.hi)
     tc = 0.5 * (t.lo + t.hi)
+    if torch.equal(t.lo, t.hi):  # a point t (the first layer's tangent W0): tc = t exactly,
+        q = sc * tc  # so s t - tc s - sc t = -sc t, one product within one ulp
+        return BilinearBounds(tc, sc, -up(q), -down(q))
     # s t - tc s - sc t >= -(sl tl + su tu)/2 holds for the exact midpoints; for the float
     # sc, tc use the exact identity with the four corner values (bilinear => extremes at corners)
     corners = [(s.lo, t.lo), (s.lo, t.hi), (s.hi, t.lo), (s.hi, t.hi)]
