@@ -117,26 +117,21 @@ class _ForwardRanges:
             # through the first layer alone the queries have a closed form
             lowv, highv, lowt, hight = second_layer_ranges(self.layers[0], W, b, colt,
                                                            0.5 * (lo + hi), r)
-            piv = Interval(torch.maximum(piv.lo, lowv), torch.minimum(piv.hi, highv))
+        else:
+            # value queries on pre_L = W_L[i] a_{L-1} + b_L[i] (both sides in one pass)
+            bias = b[None, :, None].expand(B, m, 1)
+            lowv, highv = _concretize(*_backward(self.layers, li, _queries(W, 1, B), None,
+                                                 bias, colt[:1], lo, hi), r)
+            lowv, highv = lowv[..., 0], highv[..., 0]
+            lowt = hight = None
             if len(colt) > 0:
-                tl, th = tiv.lo.clone(), tiv.hi.clone()
-                tl[:, colt] = torch.maximum(tl[:, colt], lowt.transpose(1, 2))
-                th[:, colt] = torch.minimum(th[:, colt], hight.transpose(1, 2))
-                tiv = Interval(tl, th)
-            if paired:
-                return Paired(pre.tm, piv), Paired(T.tm, tiv)
-            return piv, tiv
-        # value queries on pre_L = W_L[i] a_{L-1} + b_L[i] (both sides in one pass)
-        bias = b[None, :, None].expand(B, m, 1)
-        lowv, highv = _concretize(*_backward(self.layers, li, _queries(W, 1, B), None, bias,
-                                             colt[:1], lo, hi), r)
-        piv = Interval(torch.maximum(piv.lo, lowv[..., 0]), torch.minimum(piv.hi, highv[..., 0]))
+                # tangent queries on t_L^j = W_L[i] Q_{L-1}^j, rows [B, m, J] here
+                zero = torch.zeros(B, m, len(colt), dtype=torch.float64, device=lo.device)
+                lowt, hight = _concretize(*_backward(self.layers, li, None,
+                                                     _queries(W, len(colt), B), zero, colt,
+                                                     lo, hi), r)
+        piv = Interval(torch.maximum(piv.lo, lowv), torch.minimum(piv.hi, highv))
         if len(colt) > 0:
-            # tangent queries on t_L^j = W_L[i] Q_{L-1}^j, rows [B, d, m] here
-            zero = torch.zeros(B, m, len(colt), dtype=torch.float64, device=lo.device)
-            lowt, hight = _concretize(*_backward(self.layers, li, None,
-                                                 _queries(W, len(colt), B), zero, colt, lo,
-                                                 hi), r)
             tl, th = tiv.lo.clone(), tiv.hi.clone()
             tl[:, colt] = torch.maximum(tl[:, colt], lowt.transpose(1, 2))
             th[:, colt] = torch.minimum(th[:, colt], hight.transpose(1, 2))
