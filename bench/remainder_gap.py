@@ -147,7 +147,7 @@ def error_budget(problem, pc, lo, hi, r, lam: float) -> dict | None:
     out = {}
     for source in ("none", *ERROR_SOURCES, "all"):
         rk, a = top.rank, A
-        zero = source in ("all",)
+        zero = source == "all"
         if zero or source == "top_kl":
             rk = replace(rk, beta=torch.zeros_like(rk.beta))
         if zero or source == "top_o":

@@ -103,6 +103,14 @@ class _Ends:
         self.kind, self.lo, self.hi = kind, lo, hi
         self.f_lo, self.f_hi = _f_point(kind, lo), _f_point(kind, hi)
 
+    def restrict(self, mask: torch.Tensor) -> _Ends:
+        """The same ends on the elements `mask` selects (no libm call again)."""
+        sub = _Ends.__new__(_Ends)
+        sub.kind, sub.lo, sub.hi = self.kind, self.lo[mask], self.hi[mask]
+        sub.f_lo = Interval(self.f_lo.lo[mask], self.f_lo.hi[mask])
+        sub.f_hi = Interval(self.f_hi.lo[mask], self.f_hi.hi[mask])
+        return sub
+
     def clamped(self, f_end: Interval, clamp: torch.Tensor, p: float) -> Interval:
         """f at the end, or at the boundary p where `clamp` (the end lies beyond p)."""
         if not math.isfinite(p):
@@ -161,11 +169,7 @@ def _piece_extrema_where(ends: _Ends, a: torch.Tensor, p_lo: float, p_hi: float,
         return rmin, rmax, empty
     if bool(meet.all()):
         return _piece_extrema(ends, a, p_lo, p_hi, convex, x0)
-    sub = _Ends.__new__(_Ends)
-    sub.kind, sub.lo, sub.hi = ends.kind, ends.lo[meet], ends.hi[meet]
-    sub.f_lo = Interval(ends.f_lo.lo[meet], ends.f_lo.hi[meet])
-    sub.f_hi = Interval(ends.f_hi.lo[meet], ends.f_hi.hi[meet])
-    mn, mx, em = _piece_extrema(sub, a[meet], p_lo, p_hi, convex,
+    mn, mx, em = _piece_extrema(ends.restrict(meet), a[meet], p_lo, p_hi, convex,
                                 None if x0 is None else x0[meet])
     rmin[meet] = torch.where(em, torch.full_like(mn, inf), mn)
     rmax[meet] = torch.where(em, torch.full_like(mx, -inf), mx)
