@@ -120,6 +120,20 @@ def initial_grid(lo: torch.Tensor, hi: torch.Tensor, target: int) -> Box:
 PIPELINE_LAG = 2
 
 
+def split_dimensions(lo: torch.Tensor, hi: torch.Tensor, score: torch.Tensor | None,
+                     scale: torch.Tensor) -> torch.Tensor:
+    """The dimension [N] each box is bisected along: the largest of the caller's split score
+    (normalised per box; NaN and +inf count as 0), ties broken by the width relative to the
+    root's `scale`; the widest relative side where there is no score."""
+    widths = (hi - lo) / scale
+    s = widths
+    if score is not None:
+        ws = torch.nan_to_num(score, nan=0.0, posinf=0.0)
+        norm = ws.amax(-1, keepdim=True)
+        s = torch.where(norm > 0, ws / norm.clamp_min(1e-300) + 1e-3 * widths, widths)
+    return torch.argmax(s, -1)
+
+
 def split(box: Box, dims: torch.Tensor) -> Box:
     """Bisect each box along dims [N]; the two halves share the (float) midpoint exactly."""
     N = len(box)
@@ -321,14 +335,7 @@ def branch_and_bound(
             # boxes nearest to closing instead, so that a budgeted run closes regions early
             # while the worst boxes (counterexamples) are still refined
             lo, hi, depth, wscore = frontier.take(batch, threshold is not None)
-            # split dimension: the caller's score, ties broken by scaled width
-            widths = (hi - lo) / scale
-            s = widths
-            if wscore is not None:
-                ws = torch.nan_to_num(wscore, nan=0.0, posinf=0.0)
-                norm = ws.amax(-1, keepdim=True)
-                s = torch.where(norm > 0, ws / norm.clamp_min(1e-300) + 1e-3 * widths, widths)
-            kids = split(Box(lo, hi, depth), torch.argmax(s, -1))
+            kids = split(Box(lo, hi, depth), split_dimensions(lo, hi, wscore, scale))
             max_seen_depth = max(max_seen_depth, int(kids.depth.max()))
             dispatch(kids)
         while in_flight:  # stopped: merge what was dispatched (the bound covers it all)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -170,6 +171,35 @@ def _mpdi_remote(problem: Problem, lam: float, taylor: bool | str, crown: bool,
     return mpdi_box_chunk, payload
 
 
+@dataclass
+class DecisionSetup:
+    """What the MPDI decision proof runs on (`mpdi_decision`): the box evaluation, the root
+    box [d] and the number of boxes of the first round. The proof's tree (which boxes are
+    split, which closed) is a function of these and the split rule alone."""
+
+    evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval]
+    lo: torch.Tensor
+    hi: torch.Tensor
+    first_round: int
+
+
+def mpdi_decision(problem: Problem, lam: float, taylor: bool | str = True, crown: bool = True,
+                  batch: int = 1024) -> DecisionSetup:
+    """The `DecisionSetup` of `prove_mpdi` at rate `lam` (also used by bench/tree_size.py,
+    which follows the same tree)."""
+    pc = _mpdi_preconditioner(problem, lam, taylor)
+    lo, hi = _root(problem)
+    # where the plain bound probe closes part of the root split into 1024 boxes (Van der Pol
+    # instances, 55-79%), coarser boxes close too: a coarse first round saves refining them
+    # (2x10 Van der Pol, seeds 0-9: 1391 -> 873 boxes, median; vdp_certified: 3012 -> 2020);
+    # where it closes nothing, every region needs that depth and the full first round saves
+    # the coarse levels (3x30 Van der Pol: 4472 boxes against 4780 from a quarter-size one)
+    coarse = crown and taylor is True and plain_screen_pays(problem, lam, pc)
+    plain_screen = _plain_screen(problem, lam, pc, taylor, crown, pays=coarse)
+    return DecisionSetup(_mpdi_evaluator(problem, lam, pc, taylor, crown, plain_screen), lo, hi,
+                         batch // COARSE_START if coarse else batch)
+
+
 def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 60.0,
                max_boxes: int = 2_000_000, progress: Progress | None = None,
                seeds: object | None = None, batch: int = 1024, taylor: bool | str = True,
@@ -189,21 +219,13 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
 
     progress = progress or NullProgress()
     lam = float(problem.lam if lam is None else lam)
-    pc = _mpdi_preconditioner(problem, lam, taylor)
-    lo, hi = _root(problem)
+    setup = mpdi_decision(problem, lam, taylor, crown, batch)
+    lo, hi = setup.lo, setup.hi
     n = problem.n
     executor = current_executor() if executor is None else executor
-    # where the plain bound probe closes part of the root split into 1024 boxes (Van der Pol
-    # instances, 55-79%), coarser boxes close too: a coarse first round saves refining them
-    # (2x10 Van der Pol, seeds 0-9: 1391 -> 873 boxes, median; vdp_certified: 3012 -> 2020);
-    # where it closes nothing, every region needs that depth and the full first round saves
-    # the coarse levels (3x30 Van der Pol: 4472 boxes against 4780 from a quarter-size one)
-    coarse = crown and taylor is True and plain_screen_pays(problem, lam, pc)
-    plain_screen = _plain_screen(problem, lam, pc, taylor, crown, pays=coarse)
-    first_round = batch // COARSE_START if coarse else batch
     out = branch_and_bound(
-        lo, hi, _mpdi_evaluator(problem, lam, pc, taylor, crown, plain_screen), threshold=0.0,
-        seconds=seconds, max_boxes=max_boxes, batch=batch, first_round=first_round,
+        lo, hi, setup.evaluate, threshold=0.0,
+        seconds=seconds, max_boxes=max_boxes, batch=batch, first_round=setup.first_round,
         progress=progress, task=task,
         seeds=_seed_box(seeds, lo.shape[0], problem.device), keep_leaves=keep_leaves,
         executor=executor,
