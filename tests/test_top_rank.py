@@ -157,3 +157,60 @@ def test_first_layer_pairs_majorise_every_error_pattern(seed: int, act: str, n: 
         rhs = torch.einsum("bvi,bij,bvj->bv", v, out.c, v) \
             + torch.einsum("bvi,bij,bvj->bv", v.abs(), out.e, v.abs())
         assert bool((lhs <= rhs + 1e-12 * (1 + lhs.abs())).all())
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), act=st.sampled_from(activations.names()),
+       n=st.integers(2, 4), scale=st.sampled_from([0.05, 0.3]),
+       level=st.sampled_from([0.0, 2.0]), coupled=st.booleans())
+def test_beta_terms_majorise_every_error_pattern(seed: int, act: str, n: int, scale: float,
+                                                 level: float, coupled: bool) -> None:
+    """The products of the two layers' tangent variations alone, at the corners of their set
+    (sigma_k = +-rs_k, delta_l = +-rho1_l, every other error 0): v^T (c + E) v <= v^T c' v +
+    |v|^T e' |v| for the model (c', e') `rank_loewner_upper` makes in the coupled form and in
+    the pair form, E = sym(C diag(sigma) W1 diag(delta) W0), for v the eigenvectors of
+    c + E - c' and random ones."""
+    prob, pc, lo, hi, r, D, dz = mixed_case(seed, n, 8.0, scale, 4,
+                                            prob=_chain(seed, n, (6, 5), act))
+    cols = list(range(n))
+    fb = forward_bounds(prob.network, lo, hi, cols=cols, crown=True, taylor=False)
+    _, top = mixed_jacobian_crown(prob.network, lo, hi, cols, prob.P_t, fb, top_apart=True)
+    rank = top.rank
+    assert rank.W1 is not None
+    gen = torch.Generator().manual_seed(seed)
+    B, h = rank.rs.shape
+    h1 = rank.rho1.shape[1]
+    c0 = 0.5 * torch.randn(B, n, n, generator=gen, dtype=F64)
+    c0 = c0 + c0.transpose(1, 2)
+    A = TM(c0, torch.zeros(B, n, n, n + 1, dtype=F64), torch.zeros(B, n, n, dtype=F64))
+    z = torch.zeros_like
+    only_beta = replace(rank, ws=z(rank.ws), o=z(rank.o), tc=z(rank.tc),
+                        entry=z(rank.entry), lower=None)
+    out = rank_loewner_upper(A, top.C, z(top.w), only_beta, level, force="rank",
+                             coupled=coupled)
+    C = top.C.to(F64)
+    for _ in range(16):
+        sig = (torch.randint(0, 2, (B, h), generator=gen).to(F64) * 2 - 1) * rank.rs
+        dl = (torch.randint(0, 2, (B, h1), generator=gen).to(F64) * 2 - 1) * rank.rho1
+        E = torch.einsum("ik,bk,kl,bl,lj->bij", C, sig, rank.W1, dl, rank.W0)
+        M = c0 + 0.5 * (E + E.transpose(1, 2))
+        v = torch.cat([torch.linalg.eigh(M - out.c).eigenvectors.transpose(1, 2),
+                       torch.randn(B, 8, n, generator=gen, dtype=F64)], 1)
+        lhs = torch.einsum("bvi,bij,bvj->bv", v, M, v)
+        rhs = torch.einsum("bvi,bij,bvj->bv", v, out.c, v) \
+            + torch.einsum("bvi,bij,bvj->bv", v.abs(), out.e, v.abs())
+        assert bool((lhs <= rhs + 1e-12 * (1 + lhs.abs())).all())
+
+
+def test_coupled_beta_terms_decide_boxes_the_pair_form_cannot() -> None:
+    """The 2x10 four-state chain of the tests above: the beta terms in the coupled form (the
+    cancellations between the top neurons kept) decide more boxes than the pair form alone,
+    and none whose sampled lam_max exceeds the level."""
+    prob = _chain(5, 4, (10, 10), "tanh", cond=30.0)
+    pc, lo, hi, r, sampled, level = boxes_and_level(prob, 0.9, 0.1, 0.7)
+    A, top = contraction_tm_mixed(prob, pc, lo, hi, r, prob.lam, top_apart=True)
+    old = decided(rank_loewner_upper(A, top.C, top.w, top.rank, level, coupled=False), r,
+                  level)
+    new = decided(rank_loewner_upper(A, top.C, top.w, top.rank, level), r, level)
+    assert int(new.sum()) > int(old.sum()), (int(old.sum()), int(new.sum()))
+    assert bool((sampled[new] <= level).all())
