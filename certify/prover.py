@@ -9,7 +9,6 @@ proved; NaN/Inf anywhere leaves the box UNKNOWN; a violation is a concrete float
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -35,6 +34,7 @@ from certify.kernels import mpdi_lam_max, pointwise_rate
 from certify.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import Counterexample, ProofStats, Status
+from certify.tree_estimate import completion_text, estimate_tree
 from certify.witness import is_witness, mpdi_lower
 
 __all__ = ["ProofOutcome", "RateOutcome", "prove_mpdi", "prove_rate", "ROUNDING"]
@@ -204,7 +204,8 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
                max_boxes: int = 2_000_000, progress: Progress | None = None,
                seeds: object | None = None, batch: int = 1024, taylor: bool | str = True,
                keep_leaves: int = 5000, crown: bool = True,
-               executor: object | None = None, task: str = "mpdi proof") -> ProofOutcome:
+               executor: object | None = None, task: str = "mpdi proof",
+               estimate_points: int = 256) -> ProofOutcome:
     """Decide D(xhat, y) <= 0 over X x Y for rate `lam` (default problem.lam) and P.
 
     PROVED: every sub-box has a sound bound lam_max(D) <= 0. VIOLATED: a point (a box
@@ -214,6 +215,8 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
     the forward Taylor models without backward linear bound propagation (the pre-issue-9 prover).
     `executor`: where the rounds' boxes are evaluated (default `current_executor()`; the
     verdict and bounds do not depend on it). `task`: the name the progress display shows.
+    A proof that spent its budget estimates, by `estimate_points` random descents, how many
+    boxes a complete one needs (`certify.tree_estimate`; in `stats`, and in the message).
     """
     from certify.executor import current_executor
 
@@ -251,6 +254,12 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
         msg = (f"{why} (seconds={seconds}, max_boxes={max_boxes}); best upper bound "
                f"{out.upper:.6g}, proved volume {out.stats.proved_volume_fraction:.4f}; "
                "raise proof_seconds or max_boxes")
+        if out.stats.budget_exhausted and not out.stuck and estimate_points > 0:
+            est = estimate_tree(setup.evaluate, lo, hi, setup.first_round, estimate_points)
+            st = out.stats
+            st.estimated_boxes, st.estimate_rel_stderr = est.boxes, est.rel_stderr
+            tail = completion_text(est.boxes, est.rel_stderr, st.boxes_processed)
+            msg += "; " + tail if tail else ""
     upper = out.upper if math.isfinite(out.upper) else float("inf")
     return ProofOutcome(status=status, upper=upper, lower=out.lower, counterexample=cex,
                         stats=out.stats, boxes=out.leaves, message=msg)
@@ -341,55 +350,3 @@ class _Level:
         out[work] = torch.where(torch.isnan(t) | torch.isnan(cheap[work]), cheap[work],
                                 torch.minimum(cheap[work], t))
         return out
-
-
-@dataclass
-class RateLadder:
-    """Where `raise_rate` got: lam_cert >= lower (proved), and lam_cert < upper when
-    `violated` (a sound witness at that rate), else upper is the caller's sampled value."""
-
-    lower: float
-    upper: float
-    violated: bool
-    attempts: list[tuple[float, str, float]]  # (rate, status, seconds)
-
-
-def raise_rate(problem: Problem, lower: float, upper: float, *, seconds: float,
-               max_boxes: int = 2_000_000, rel_tol: float = 1e-4,
-               progress: Progress | None = None) -> RateLadder:
-    """Raise a proved lower bound `lower` on lam_cert towards a sampled upper value `upper`
-    by MPDI decisions: lam_cert >= t iff D(t) <= 0 on X x Y, which `prove_mpdi(lam=t)`
-    decides with the decision-mode bounds (the Cholesky vertex tests, the mixed-row linear
-    bounds). With an ill-conditioned P those are far stronger than the generalised-eigenvalue
-    bound of `prove_rate`'s maximisation: on examples/vdp2_lmi.ckpt (P's condition ~1e3)
-    `prove_rate` gained nothing over the design rate 1.0 in 20 s, while the decision at 1.11
-    (sampled upper 1.119) proves in 0.2 s.
-
-    Each target halves the gap to `upper`, until it is below rel_tol |upper|. A target gets
-    at most 4x the time of the last proved one (at least 1 s; in all at most `seconds`): the
-    proofs grow as the margin shrinks, and the first target not decided ends the ladder. A
-    VIOLATED target (a sound witness) is an upper bound and the ladder goes on below it."""
-    t_start = time.perf_counter()
-    last = 0.25
-    attempts: list[tuple[float, str, float]] = []
-    violated = False
-    while upper - lower > rel_tol * abs(upper):
-        left = seconds - (time.perf_counter() - t_start)
-        if left <= 0.05:
-            break
-        target = 0.5 * (lower + upper)
-        if not lower < target < upper:  # no float between them
-            break
-        t0 = time.perf_counter()
-        out = prove_mpdi(problem, lam=target, seconds=min(left, max(4.0 * last, 1.0)),
-                         max_boxes=max_boxes, progress=progress,
-                         task=f"rate decision at {target:.6g}")
-        took = time.perf_counter() - t0
-        attempts.append((target, out.status.value, round(took, 3)))
-        if out.status is Status.PROVED:
-            lower, last = target, took
-        elif out.status is Status.VIOLATED:
-            upper, violated = target, True
-        else:
-            break
-    return RateLadder(lower, upper, violated, attempts)

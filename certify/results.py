@@ -56,6 +56,10 @@ class ProofStats:
     rounding: str = ""
     # (seconds since start, proved volume fraction) samples, for the report.
     volume_history: list[list[float]] = field(default_factory=list)
+    # an unfinished decision proof: the boxes a complete one would evaluate, estimated by
+    # random descents (`certify.tree_estimate`; not a bound), and its relative standard error
+    estimated_boxes: float | None = None
+    estimate_rel_stderr: float | None = None
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Raising the proved rate by MPDI decisions (`certify.prover.raise_rate`, used by the rate
+"""Raising the proved rate by MPDI decisions (`certify.rate_ladder.raise_rate`, used by the rate
 check when its maximisation runs out): it climbs to the closed-form lam_cert of a linear
 observer and never past it, a violated target lowers the upper end, and on
 examples/vdp2_lmi.ckpt the rate check proves more than the design rate within its budget."""
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import scipy.linalg
 
-from certify.prover import raise_rate
+from certify.rate_ladder import raise_rate
 
 from .planted import lam_cert_linear, linear_problem
 

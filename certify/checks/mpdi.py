@@ -106,6 +106,7 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
     ascent, the sound re-check of candidates and the proof)."""
     from certify.device import on_settings_device, proof_batch
     from certify.prover import prove_mpdi
+    from certify.tree_estimate import completion_text
 
     progress = progress or NullProgress()
     t0 = time.perf_counter()
@@ -165,13 +166,15 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
                      "but no point has a sound lower bound > 0 (the value is within rounding "
                      f"error of 0); best proved upper bound {best}: neither proved nor "
                      "violated"), **common)
+    st = outcome.stats
+    ahead = completion_text(st.estimated_boxes, st.estimate_rel_stderr, st.boxes_processed)
     return MpdiResult(
         status=Status.UNKNOWN, upper=outcome.upper, proof=outcome.stats,
         seconds=time.perf_counter() - t0,
         message=(f"proof budget spent (proof_seconds={settings.proof_seconds:g}, max_boxes="
                  f"{settings.max_boxes}); no counterexample (largest lam_max(D) found "
                  f"{common['lower']:.4g}), best proved upper bound {best}; raise proof_seconds "
-                 "or max_boxes"), **common)
+                 "or max_boxes" + (f": {ahead}" if ahead else "")), **common)
 
 
 def _fmt(values: list[float]) -> str:
@@ -228,6 +231,14 @@ class MpdiCheck(Check):
             numbers += [Quantity("boxes processed", r.proof.boxes_processed),
                         Quantity("proved volume fraction", r.proof.proved_volume_fraction),
                         Quantity("budget exhausted", r.proof.budget_exhausted)]
+            if r.proof.estimated_boxes is not None:  # an unfinished proof (tree_estimate)
+                rate = r.proof.boxes_per_second
+                more = max(r.proof.estimated_boxes - r.proof.boxes_processed, 0.0)
+                numbers += [Quantity("boxes a complete proof needs (estimate)",
+                                     r.proof.estimated_boxes, sig=2),
+                            Quantity("seconds more at this run's speed (estimate)",
+                                     more / rate if rate > 0 else None, sig=2,
+                                     missing="no speed measured")]
         return Presentation(
             sampled=Quantity("max \u03bb_max(D) found (grid + ascent)", r.lower, signed=True),
             proved=upper,

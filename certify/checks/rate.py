@@ -29,7 +29,7 @@ RATE_REL_TOL = 1e-4
 RATE_FINE_BOXES = 16_384
 #: share of `rate_seconds` for the maximisation branch and bound; when it runs out before
 #: closing, the rest of the budget goes to MPDI decisions above the proved rate
-#: (`certify.prover.raise_rate`)
+#: (`certify.rate_ladder.raise_rate`)
 RATE_BNB_SHARE = 0.25
 #: the decisions stop when the bracket [proved, sampled] is this narrow (relative): the
 #: report prints lam_cert to 4 significant digits, and each halving costs about twice the
@@ -45,7 +45,7 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
     A PROVED MPDI at the design lam already proves lam_cert >= lam; the rate's own branch and
     bound (a quarter of `rate_seconds`) can only raise that, and when it runs out before
     closing, MPDI decisions at rates above the proved one use the rest of the budget
-    (`certify.prover.raise_rate`). No proof is attempted when sampling already shows a rate
+    (`certify.rate_ladder.raise_rate`). No proof is attempted when sampling already shows a rate
     <= 0 (then no bound exists whatever the proof says).
     """
     progress = progress or NullProgress()
@@ -98,7 +98,7 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
         # ladder starts: a rate counts as proved only when a decision proved it)
         start = proved_lower if proved_lower is not None and proved_lower > 0 else 0.0
         if outcome.stats.budget_exhausted and sampled_upper > start and left > 0:
-            from certify.prover import raise_rate
+            from certify.rate_ladder import raise_rate
 
             ladder = raise_rate(on_device, start, sampled_upper, seconds=left,
                                 max_boxes=settings.max_boxes,

@@ -1,0 +1,126 @@
+"""How many boxes a complete decision proof takes, estimated by random descents.
+
+A budgeted proof that ends UNKNOWN says how much volume it closed, not how far it is from
+done. In decision mode the branch-and-bound tree is fixed by the box bound and the split rule
+alone: each box is closed or split on its own bound against the fixed threshold, whatever
+order the rounds take (`certify.bnb`). So the tree can be sampled (Knuth's estimator): follow
+uniform random points z of the root box down from their first-round box, evaluating each box
+on the way with the proof's own evaluation and splitting it by the proof's own rule
+(`certify.bnb.split_dimensions`) until the box containing z closes. A leaf at depth L
+(halvings from the root) holds 2^-L of the volume, so the tree has E_z[2^L(z)] leaves; grown
+from F first-round boxes by S splits it has F + S leaves and F + 2 S boxes, so a complete
+proof evaluates 2 leaves - F boxes. The mean is unbiased but heavy-tailed (a few deep points
+near the critical region carry much of it), hence the relative standard error beside it.
+Cost: one box evaluation per point and level, batched over the points. A point still open
+at `max_depth` (NaN/Inf bounds: the proof would set it aside) is counted as stuck and left
+out.
+
+Nothing here is a bound or part of a verdict: the estimate only tells a user whether a
+larger budget is worth it (`certify.prover.prove_mpdi`), and bench/tree_size.py measures
+the prover with it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from certify.bnb import BoxEval, initial_grid, split_dimensions
+
+
+@dataclass
+class TreeEstimate:
+    """The estimated size of a complete decision proof (module docstring)."""
+
+    leaves: float  # leaves of the whole tree (nan when every point was stuck)
+    boxes: float  # boxes a complete proof evaluates: 2 leaves - first round
+    rel_stderr: float  # standard error of the leaf estimate, relative
+    points: int  # random descents
+    stuck: int  # descents still open at the depth limit (left out)
+    evaluations: int  # boxes evaluated by the descents
+    depth_quantiles: list[int]  # leaf depths at 10, 50, 90, 99 %
+
+
+def leaf_depths(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], lo: torch.Tensor,
+                hi: torch.Tensor, first_round: int, z: torch.Tensor, threshold: float = 0.0,
+                max_depth: int = 80) -> tuple[torch.Tensor, int]:
+    """(depth of the closed leaf containing each point z [P, d] of the root box [lo, hi], -1
+    where stuck; box evaluations spent) in the decision tree of `evaluate` at `threshold`
+    whose first round splits the root into about `first_round` boxes."""
+    scale = (hi - lo).clamp_min(1e-300)
+    z = z.to(device=lo.device, dtype=torch.float64)
+    points = z.shape[0]
+    grid = initial_grid(lo, hi, first_round)
+    inside = ((z[:, None] >= grid.lo[None]) & (z[:, None] <= grid.hi[None])).all(-1)
+    first = inside.to(torch.int8).argmax(1)  # the first box holding z (shared faces: any)
+    blo, bhi = grid.lo[first].clone(), grid.hi[first].clone()
+    depth = grid.depth[first].clone()
+    leaf = torch.full((points,), -1, dtype=torch.long, device=lo.device)
+    active = torch.arange(points, device=lo.device)
+    evaluations = 0
+    while len(active):
+        ev = evaluate(blo[active], bhi[active])
+        evaluations += len(active)
+        closed = (ev.upper <= threshold) & torch.isfinite(ev.upper)
+        leaf[active[closed]] = depth[active[closed]]
+        go = ~closed & (depth[active] < max_depth)  # the rest are stuck: stay -1
+        active, score = active[go], None if ev.score is None else ev.score[go]
+        if not len(active):
+            break
+        dims = split_dimensions(blo[active], bhi[active], score, scale)
+        ar = torch.arange(len(active), device=lo.device)
+        mid = 0.5 * (blo[active, dims] + bhi[active, dims])
+        left = z[active, dims] <= mid  # the half `certify.bnb.split` puts first
+        new_lo, new_hi = blo[active].clone(), bhi[active].clone()
+        new_hi[ar[left], dims[left]] = mid[left]
+        new_lo[ar[~left], dims[~left]] = mid[~left]
+        blo[active], bhi[active] = new_lo, new_hi
+        depth[active] += 1
+    return leaf.cpu(), evaluations
+
+
+def summarize(leaf: torch.Tensor, evaluations: int, first_round: int = 0) -> TreeEstimate:
+    """The `TreeEstimate` from leaf depths (-1: stuck) of a tree grown from `first_round`
+    boxes."""
+    ok = leaf >= 0
+    stuck = int((~ok).sum())
+    if not bool(ok.any()):
+        return TreeEstimate(math.nan, math.nan, math.inf, len(leaf), stuck, evaluations, [])
+    w = torch.pow(2.0, leaf[ok].to(torch.float64))
+    mean = float(w.mean())
+    se = float(w.std()) / math.sqrt(len(w)) if len(w) > 1 else math.inf
+    q = torch.quantile(leaf[ok].to(torch.float64),
+                       torch.tensor([0.1, 0.5, 0.9, 0.99], dtype=torch.float64))
+    return TreeEstimate(mean, max(2.0 * mean - first_round, mean), se / mean, len(leaf), stuck,
+                        evaluations,
+                        [int(v) for v in q])
+
+
+def estimate_tree(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], lo: torch.Tensor,
+                  hi: torch.Tensor, first_round: int, points: int = 256, seed: int = 0,
+                  threshold: float = 0.0, max_depth: int = 80) -> TreeEstimate:
+    """`points` seeded uniform descents (drawn on the CPU: the same points on every device)
+    through the decision tree of `evaluate`, summarised."""
+    gen = torch.Generator().manual_seed(seed)
+    u = torch.rand(points, lo.shape[0], generator=gen, dtype=torch.float64)
+    z = lo.cpu() + (hi - lo).cpu() * u
+    leaf, evaluations = leaf_depths(evaluate, lo, hi, first_round, z, threshold, max_depth)
+    return summarize(leaf, evaluations, first_round)
+
+
+def completion_text(boxes: float | None, rel_stderr: float | None, done: int) -> str:
+    """The user's line on an unfinished proof: about how many boxes a complete one evaluates,
+    from the estimate ("" without one). No timings: a verdict's message depends on the
+    inputs alone, not on the machine (the seconds are in the proof's stats)."""
+    if boxes is None or not math.isfinite(boxes) or boxes <= 0:
+        return ""
+    spread = (f", +-{100 * rel_stderr:.0f}%" if rel_stderr is not None
+              and math.isfinite(rel_stderr) else "")
+    return (f"a complete proof would evaluate about {boxes:.2g} boxes (random-descent "
+            f"estimate{spread}; this run: {done})")
+
+
+__all__ = ["TreeEstimate", "leaf_depths", "summarize", "estimate_tree", "completion_text"]
