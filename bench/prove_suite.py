@@ -60,7 +60,12 @@ def _run(prob, seconds: float, max_boxes: int, taylor: object, crown: bool = Tru
             "seconds": round(time.perf_counter() - t, 3),
             "cpu_seconds": round(time.process_time() - cpu, 3), "upper": out.upper,
             "lower": out.lower, "proved_volume": round(st.proved_volume_fraction, 6),
-            "volume_history": _history(st.volume_history)}
+            "volume_history": _history(st.volume_history),
+            # an unfinished proof: the boxes a complete one needs (certify.tree_estimate;
+            # `seconds` then includes the estimate's few seconds, the proof's own is
+            # `proof_seconds`)
+            "estimated_boxes": st.estimated_boxes, "estimate_rel_stderr": st.estimate_rel_stderr,
+            "proof_seconds": round(st.seconds, 3)}
 
 
 def _cached_instance(spec: InstanceSpec, cache: Path | None):
