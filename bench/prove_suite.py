@@ -94,6 +94,28 @@ def _cached_instance(spec: InstanceSpec, cache: Path | None):
     return prob, info
 
 
+def add_family_arguments(ap: argparse.ArgumentParser, n: tuple[int, ...] = (2,)) -> None:
+    """The instance-family options the one-g, one-margin benches share (bench/tree_size.py,
+    bench/remainder_gap.py): --family, --g, --n, --margin, --seeds, --cache."""
+    ap.add_argument("--family", nargs="+", default=["2x10"], choices=sorted(FAMILIES))
+    ap.add_argument("--g", type=float, default=2.0)
+    ap.add_argument("--n", nargs="+", type=int, default=list(n))
+    ap.add_argument("--margin", type=float, default=0.02)
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0])
+    ap.add_argument("--cache", default="/tmp/certify-bench/instances.json")
+
+
+def family_instances(args: argparse.Namespace):
+    """(spec, problem) for every family, n and seed of `add_family_arguments`' options."""
+    cache = Path(args.cache) if args.cache else None
+    for fam in args.family:
+        depth, width = FAMILIES[fam]
+        for n in args.n:
+            for seed in args.seeds:
+                spec = InstanceSpec(depth, width, args.g, n, args.margin, seed)
+                yield spec, _cached_instance(spec, cache)[0]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--family", nargs="+", default=["2x10"], choices=sorted(FAMILIES))

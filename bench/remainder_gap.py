@@ -40,8 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from bench.instances import InstanceSpec  # noqa: E402
-from bench.prove_suite import FAMILIES, _cached_instance  # noqa: E402
+from bench.prove_suite import add_family_arguments, family_instances  # noqa: E402
 from certify.bounds.eigen import rho_upper  # noqa: E402
 from certify.bounds.mpdi import (  # noqa: E402
     choose_preconditioner,
@@ -165,29 +164,17 @@ def error_budget(problem, pc, lo, hi, r, lam: float) -> dict | None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--family", nargs="+", default=["2x10"], choices=sorted(FAMILIES))
-    ap.add_argument("--g", type=float, default=2.0)
-    ap.add_argument("--n", nargs="+", type=int, default=[2])
-    ap.add_argument("--margin", type=float, default=0.02)
-    ap.add_argument("--seeds", nargs="+", type=int, default=[0])
+    add_family_arguments(ap)
     ap.add_argument("--radii", nargs="+", type=float, default=[0.25, 0.125, 0.0625])
     ap.add_argument("--boxes", type=int, default=32, help="random sub-boxes per radius")
     ap.add_argument("--points", type=int, default=3000, help="samples per sub-box")
-    ap.add_argument("--cache", default="/tmp/certify-bench/instances.json")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    cache = Path(args.cache) if args.cache else None
-    for fam in args.family:
-        depth, width = FAMILIES[fam]
-        for n in args.n:
-            for seed in args.seeds:
-                spec = InstanceSpec(depth, width, args.g, n, args.margin, seed)
-                prob, _ = _cached_instance(spec, cache)
-                for r in args.radii:
-                    rec = {"bench": "remainder_gap", "instance": spec.name}
-                    rec.update(measure(prob, r, args.boxes, args.points, seed))
-                    print(json.dumps(rec), flush=True)
-
+    for spec, prob in family_instances(args):
+        for r in args.radii:
+            rec = {"bench": "remainder_gap", "instance": spec.name}
+            rec.update(measure(prob, r, args.boxes, args.points, spec.seed))
+            print(json.dumps(rec), flush=True)
 
 if __name__ == "__main__":
     main()

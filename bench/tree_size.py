@@ -26,48 +26,36 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from bench.instances import InstanceSpec  # noqa: E402
-from bench.prove_suite import FAMILIES, _cached_instance  # noqa: E402
+from bench.prove_suite import add_family_arguments, family_instances  # noqa: E402
 from certify.prover import mpdi_decision, prove_mpdi  # noqa: E402
 from certify.tree_estimate import estimate_tree  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--family", nargs="+", default=["2x10"], choices=sorted(FAMILIES))
-    ap.add_argument("--g", type=float, default=2.0)
-    ap.add_argument("--n", nargs="+", type=int, default=[6])
-    ap.add_argument("--margin", type=float, default=0.02)
-    ap.add_argument("--seeds", nargs="+", type=int, default=[0])
+    add_family_arguments(ap, n=(6,))
     ap.add_argument("--points", type=int, default=1024, help="random descents per instance")
     ap.add_argument("--point-seed", type=int, default=0)
     ap.add_argument("--max-depth", type=int, default=80)
     ap.add_argument("--validate", type=float, default=None, metavar="SECONDS",
                     help="also run the proof with this budget and report its boxes")
-    ap.add_argument("--cache", default="/tmp/certify-bench/instances.json")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    cache = Path(args.cache) if args.cache else None
-    for fam in args.family:
-        depth, width = FAMILIES[fam]
-        for n in args.n:
-            for seed in args.seeds:
-                spec = InstanceSpec(depth, width, args.g, n, args.margin, seed)
-                problem = _cached_instance(spec, cache)[0]
-                t0 = time.perf_counter()
-                setup = mpdi_decision(problem, float(problem.lam))
-                est = estimate_tree(setup.evaluate, setup.lo, setup.hi, setup.first_round,
-                                    args.points, args.point_seed, max_depth=args.max_depth)
-                rec = {"bench": "tree_size", "instance": spec.name, **asdict(est),
-                       "seconds": round(time.perf_counter() - t0, 2)}
-                rec["leaves"], rec["boxes"] = round(est.leaves), round(est.boxes)
-                rec["rel_stderr"] = round(est.rel_stderr, 3)
-                if args.validate is not None:
-                    out = prove_mpdi(problem, seconds=args.validate, max_boxes=10**9)
-                    rec.update(proof_status=out.status.value,
-                               proof_boxes=out.stats.boxes_processed,
-                               proof_seconds=round(out.stats.seconds, 2))
-                print(json.dumps(rec), flush=True)
+    for spec, problem in family_instances(args):
+        t0 = time.perf_counter()
+        setup = mpdi_decision(problem, float(problem.lam))
+        est = estimate_tree(setup.evaluate, setup.lo, setup.hi, setup.first_round,
+                            args.points, args.point_seed, max_depth=args.max_depth)
+        rec = {"bench": "tree_size", "instance": spec.name, **asdict(est),
+               "seconds": round(time.perf_counter() - t0, 2)}
+        rec["leaves"], rec["boxes"] = round(est.leaves), round(est.boxes)
+        rec["rel_stderr"] = round(est.rel_stderr, 3)
+        if args.validate is not None:
+            out = prove_mpdi(problem, seconds=args.validate, max_boxes=10**9)
+            rec.update(proof_status=out.status.value,
+                       proof_boxes=out.stats.boxes_processed,
+                       proof_seconds=round(out.stats.seconds, 2))
+        print(json.dumps(rec), flush=True)
 
 
 if __name__ == "__main__":

@@ -79,6 +79,18 @@ def test_rank_model_bounds_every_sampled_quadratic_form(seed: int, act: str, dep
         assert bool((lhs <= rhs + 1e-12 * (1 + lhs.abs())).all())
 
 
+def assert_majorised(M: torch.Tensor, model: TM, gen: torch.Generator) -> None:
+    """v^T M v <= v^T c' v + |v|^T e' |v| for the model (c', e'), M [B, n, n], for v the
+    eigenvectors of M - c' (where a violation would show first) and 8 random ones per box."""
+    B, n, _ = M.shape
+    v = torch.cat([torch.linalg.eigh(M - model.c).eigenvectors.transpose(1, 2),
+                   torch.randn(B, 8, n, generator=gen, dtype=F64)], 1)
+    lhs = torch.einsum("bvi,bij,bvj->bv", v, M, v)
+    rhs = torch.einsum("bvi,bij,bvj->bv", v, model.c, v) \
+        + torch.einsum("bvi,bij,bvj->bv", v.abs(), model.e, v.abs())
+    assert bool((lhs <= rhs + 1e-12 * (1 + lhs.abs())).all())
+
+
 def with_lower_entrywise(A: TM, top: TopLayerRemainder) -> TM:
     """A with the first layer's f' errors (apart in `top.rank.lower`) back in its remainder,
     entry by entry, as the backward pass carried them before they were kept apart."""
@@ -150,13 +162,7 @@ def test_first_layer_pairs_majorise_every_error_pattern(seed: int, act: str, n: 
     for _ in range(16):
         s1 = torch.randint(0, 2, (B, h1), generator=gen).to(F64) * 2 - 1
         E = torch.einsum("bl,bil,lj->bij", s1 * low.ws1, low.U, W0)
-        M = c0 + 0.5 * (E + E.transpose(1, 2))
-        v = torch.cat([torch.linalg.eigh(M - out.c).eigenvectors.transpose(1, 2),
-                       torch.randn(B, 8, n, generator=gen, dtype=F64)], 1)
-        lhs = torch.einsum("bvi,bij,bvj->bv", v, M, v)
-        rhs = torch.einsum("bvi,bij,bvj->bv", v, out.c, v) \
-            + torch.einsum("bvi,bij,bvj->bv", v.abs(), out.e, v.abs())
-        assert bool((lhs <= rhs + 1e-12 * (1 + lhs.abs())).all())
+        assert_majorised(c0 + 0.5 * (E + E.transpose(1, 2)), out, gen)
 
 
 @settings(max_examples=10, deadline=None)
@@ -193,13 +199,7 @@ def test_beta_terms_majorise_every_error_pattern(seed: int, act: str, n: int, sc
         sig = (torch.randint(0, 2, (B, h), generator=gen).to(F64) * 2 - 1) * rank.rs
         dl = (torch.randint(0, 2, (B, h1), generator=gen).to(F64) * 2 - 1) * rank.rho1
         E = torch.einsum("ik,bk,kl,bl,lj->bij", C, sig, rank.W1, dl, rank.W0)
-        M = c0 + 0.5 * (E + E.transpose(1, 2))
-        v = torch.cat([torch.linalg.eigh(M - out.c).eigenvectors.transpose(1, 2),
-                       torch.randn(B, 8, n, generator=gen, dtype=F64)], 1)
-        lhs = torch.einsum("bvi,bij,bvj->bv", v, M, v)
-        rhs = torch.einsum("bvi,bij,bvj->bv", v, out.c, v) \
-            + torch.einsum("bvi,bij,bvj->bv", v.abs(), out.e, v.abs())
-        assert bool((lhs <= rhs + 1e-12 * (1 + lhs.abs())).all())
+        assert_majorised(c0 + 0.5 * (E + E.transpose(1, 2)), out, gen)
 
 
 def test_coupled_beta_terms_decide_boxes_the_pair_form_cannot() -> None:
