@@ -159,7 +159,7 @@ def search_round(problem: Problem, cs: CegisSettings, fsettings: VerifySettings,
         t0 = time.perf_counter()
         remaining = deadline - time.perf_counter()
         proof = prove_mpdi(problem, seconds=max(1.0, min(cs.proof_seconds, remaining)),
-                           max_boxes=cs.proof_boxes, seeds=top)
+                           max_boxes=cs.proof_boxes, seeds=top, estimate_points=0)
         t_proof = time.perf_counter() - t0
         status, vol = proof.status, proof.stats.proved_volume_fraction
         label, upper = proof.status.value, proof.upper

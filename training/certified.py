@@ -144,7 +144,7 @@ def proved_lmi_start(system: System, lam: float, config: TrainConfig, cs: CegisS
         first = first or (net, P, info)
         t0 = time.perf_counter()
         out = prove_mpdi(Problem(system, base, lam, P), seconds=WARM_PROOF_SECONDS,
-                         max_boxes=cs.proof_boxes)
+                         max_boxes=cs.proof_boxes, estimate_points=0)
         seconds = time.perf_counter() - t0
         tried.append({"margin": info["margin"], "status": out.status.value,
                       "upper": out.upper, "seconds": round(seconds, 2),
