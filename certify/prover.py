@@ -215,8 +215,10 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
     the forward Taylor models without backward linear bound propagation (the pre-issue-9 prover).
     `executor`: where the rounds' boxes are evaluated (default `current_executor()`; the
     verdict and bounds do not depend on it). `task`: the name the progress display shows.
-    A proof that spent its budget estimates, by `estimate_points` random descents, how many
-    boxes a complete one needs (`certify.tree_estimate`; in `stats`, and in the message).
+    A proof that spent its budget estimates, by random descents (batches of `estimate_points`
+    while the standard error is above 20%, within 16 batches and 5% of the boxes the proof
+    evaluated), how many boxes a complete one needs (`certify.tree_estimate`; in `stats` and
+    the message).
     """
     from certify.executor import current_executor
 
@@ -255,7 +257,10 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
                f"{out.upper:.6g}, proved volume {out.stats.proved_volume_fraction:.4f}; "
                "raise proof_seconds or max_boxes")
         if out.stats.budget_exhausted and not out.stuck and estimate_points > 0:
-            est = estimate_tree(setup.evaluate, lo, hi, setup.first_round, estimate_points)
+            # more descents while the estimate is rough, within 5% of the proof's boxes
+            est = estimate_tree(setup.evaluate, lo, hi, setup.first_round, estimate_points,
+                                target_rel_stderr=0.2, max_points=16 * estimate_points,
+                                max_evaluations=max(4096, out.stats.boxes_processed // 20))
             st = out.stats
             st.estimated_boxes, st.estimate_rel_stderr = est.boxes, est.rel_stderr
             tail = completion_text(est.boxes, est.rel_stderr, st.boxes_processed)

@@ -101,14 +101,31 @@ def summarize(leaf: torch.Tensor, evaluations: int, first_round: int = 0) -> Tre
 
 def estimate_tree(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], lo: torch.Tensor,
                   hi: torch.Tensor, first_round: int, points: int = 256, seed: int = 0,
-                  threshold: float = 0.0, max_depth: int = 80) -> TreeEstimate:
+                  threshold: float = 0.0, max_depth: int = 80, *,
+                  target_rel_stderr: float | None = None, max_points: int | None = None,
+                  max_evaluations: int | None = None) -> TreeEstimate:
     """`points` seeded uniform descents (drawn on the CPU: the same points on every device)
-    through the decision tree of `evaluate`, summarised."""
-    gen = torch.Generator().manual_seed(seed)
-    u = torch.rand(points, lo.shape[0], generator=gen, dtype=torch.float64)
-    z = lo.cpu() + (hi - lo).cpu() * u
-    leaf, evaluations = leaf_depths(evaluate, lo, hi, first_round, z, threshold, max_depth)
-    return summarize(leaf, evaluations, first_round)
+    through the decision tree of `evaluate`, summarised. With `target_rel_stderr`, further
+    batches of `points` descents (the next seeds) follow until the relative standard error
+    is at most that, or `max_points` descents or `max_evaluations` box evaluations are spent:
+    budgets in descents and boxes, never in seconds, so the estimate depends on the inputs
+    alone."""
+    leaves: list[torch.Tensor] = []
+    evaluations, batch = 0, 0
+    while True:
+        gen = torch.Generator().manual_seed(seed + batch)
+        u = torch.rand(points, lo.shape[0], generator=gen, dtype=torch.float64)
+        z = lo.cpu() + (hi - lo).cpu() * u
+        leaf, spent = leaf_depths(evaluate, lo, hi, first_round, z, threshold, max_depth)
+        leaves.append(leaf)
+        evaluations += spent
+        batch += 1
+        est = summarize(torch.cat(leaves), evaluations, first_round)
+        if (target_rel_stderr is None or est.rel_stderr <= target_rel_stderr
+                or (max_points is not None and est.points + points > max_points)
+                or (max_evaluations is not None
+                    and evaluations + spent > max_evaluations)):
+            return est
 
 
 def completion_text(boxes: float | None, rel_stderr: float | None, done: int) -> str:

@@ -79,3 +79,24 @@ def test_the_mpdi_check_says_how_far_an_unfinished_proof_is() -> None:
     cert = SimpleNamespace(settings={})
     labels = {q.label: q.value for q in CHECK.present(res, cert).numbers}
     assert labels["boxes a complete proof needs (estimate)"] == res.proof.estimated_boxes > 256
+
+
+def test_more_descents_follow_until_the_target_or_a_budget_in_boxes() -> None:
+    """Batches of descents follow while the standard error is above the target; the caps are
+    in descents and box evaluations (never seconds), so the estimate is reproducible."""
+    from certify.tree_estimate import estimate_tree
+
+    problem, _ = make_instance(InstanceSpec(2, 10, 2.0, 2, 0.02, 0))
+    s = mpdi_decision(problem, float(problem.lam))
+    args = (s.evaluate, s.lo, s.hi, s.first_round, 64)
+    one = estimate_tree(*args)
+    assert one.points == 64
+    capped = estimate_tree(*args, target_rel_stderr=0.0, max_points=192)
+    assert capped.points == 192 and capped.rel_stderr < one.rel_stderr
+    again = estimate_tree(*args, target_rel_stderr=0.0, max_points=192)
+    assert again == capped
+    boxes = estimate_tree(*args, target_rel_stderr=0.0, max_points=10**6,
+                          max_evaluations=one.evaluations + 1)
+    assert boxes.points == 64
+    reached = estimate_tree(*args, target_rel_stderr=one.rel_stderr * 1.01, max_points=10**6)
+    assert reached.points == 64
