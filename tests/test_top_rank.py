@@ -214,3 +214,35 @@ def test_coupled_beta_terms_decide_boxes_the_pair_form_cannot() -> None:
     new = decided(rank_loewner_upper(A, top.C, top.w, top.rank, level), r, level)
     assert int(new.sum()) > int(old.sum()), (int(old.sum()), int(new.sum()))
     assert bool((sampled[new] <= level).all())
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), h=st.integers(2, 12), h1=st.integers(2, 12),
+       spread=st.sampled_from([1e-3, 1.0, 1e3]))
+def test_scaled_majorant_dominates_delta_h_delta(seed: int, h: int, h1: int,
+                                                 spread: float) -> None:
+    """diag(F') >= Delta H Delta for every |delta| <= rho (corners and inside), F' the scaled
+    diagonal majorant of the coupled beta terms, H = W1^T diag(y) W1 as `_coupled_beta`
+    forms it; and F' <= F, the diagonal dominance bound it scales."""
+    from certify.bounds.top_rank import _scaled_majorant, gram
+    from certify.intervals import gamma
+
+    gen = torch.Generator().manual_seed(seed)
+    B = 16
+    W1 = torch.randn(h, h1, generator=gen, dtype=F64)
+    y = torch.rand(B, h, generator=gen, dtype=F64) * spread
+    rho = torch.rand(B, h1, generator=gen, dtype=F64)
+    rho[0, 0] = 0.0  # a neuron without variation
+    H = gram(W1, y)
+    Herr = up(gamma(h + 2) * gram(W1.abs(), y) * (1.0 + 2.0 * gamma(h + 2)))
+    F = up(rho * ((H.abs() + Herr) @ rho[..., None])[..., 0] * (1.0 + 2.0 * gamma(h1 + 2)))
+    Fs = _scaled_majorant(H, Herr, rho, F)
+    assert bool((Fs <= F).all()) and bool((Fs >= 0).all())
+    for corner in (True, False):
+        t = torch.rand(B, 32, h1, generator=gen, dtype=F64) * 2 - 1
+        if corner:
+            t = torch.sign(t)
+        d = t * rho[:, None, :]  # [B, S, h1]
+        M = torch.diag_embed(Fs)[:, None] - d[..., :, None] * H[:, None] * d[..., None, :]
+        lo = torch.linalg.eigvalsh(M)[..., 0]
+        assert bool((lo >= -1e-12 * (1.0 + Fs.abs().amax(-1))[:, None]).all())

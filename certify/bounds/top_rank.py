@@ -378,7 +378,7 @@ def _scaled_majorant(H: torch.Tensor, Herr: torch.Tensor, rho: torch.Tensor, F: 
         left = left & ~ok
     lam = lam.clamp(max=1.0)
     lam = torch.where(torch.isfinite(lam), lam, torch.ones_like(lam))
-    return up(lam[:, None] * F)
+    return torch.minimum(up(lam[:, None] * F), F)  # F itself is a majorant too
 
 
 def _ratio(qv: torch.Tensor, qc: torch.Tensor) -> torch.Tensor:
