@@ -100,3 +100,17 @@ def test_more_descents_follow_until_the_target_or_a_budget_in_boxes() -> None:
     assert boxes.points == 64
     reached = estimate_tree(*args, target_rel_stderr=one.rel_stderr * 1.01, max_points=10**6)
     assert reached.points == 64
+
+
+def test_the_report_shows_the_estimate_only_for_an_unfinished_proof() -> None:
+    from reports.content import fmt_seconds
+    from reports.sections import _estimate_rows
+
+    done = SimpleNamespace(estimated_boxes=None, estimate_rel_stderr=None,
+                           boxes_per_second=1000.0, boxes_processed=500)
+    assert _estimate_rows(done) == []
+    cut = SimpleNamespace(estimated_boxes=4500.0, estimate_rel_stderr=0.1,
+                          boxes_per_second=1000.0, boxes_processed=500)
+    rows = dict(_estimate_rows(cut))
+    assert rows["Boxes a complete proof needs (estimate)"].startswith("4.5e+03")
+    assert rows["Time it needs at this speed (estimate)"] == fmt_seconds(4.0)  # 4000 at 1000/s
