@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import torch
 
-from certify.bnb import BoxEval, initial_grid, split_dimensions
+from certify.bnb import Box, BoxEval, initial_grid, split, split_dimensions
 
 
 @dataclass
@@ -71,14 +71,12 @@ def leaf_depths(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], lo: t
         if not len(active):
             break
         dims = split_dimensions(blo[active], bhi[active], score, scale)
-        ar = torch.arange(len(active), device=lo.device)
-        mid = 0.5 * (blo[active, dims] + bhi[active, dims])
-        left = z[active, dims] <= mid  # the half `certify.bnb.split` puts first
-        new_lo, new_hi = blo[active].clone(), bhi[active].clone()
-        new_hi[ar[left], dims[left]] = mid[left]
-        new_lo[ar[~left], dims[~left]] = mid[~left]
-        blo[active], bhi[active] = new_lo, new_hi
-        depth[active] += 1
+        kids = split(Box(blo[active], bhi[active], depth[active]), dims)  # the prover's halves
+        m = len(active)
+        ar = torch.arange(m, device=lo.device)
+        upper = z[active, dims] > kids.hi[ar, dims]  # z lies in the second half
+        pick = ar + m * upper.long()
+        blo[active], bhi[active], depth[active] = kids.lo[pick], kids.hi[pick], kids.depth[pick]
     return leaf.cpu(), evaluations
 
 
@@ -95,8 +93,16 @@ def summarize(leaf: torch.Tensor, evaluations: int, first_round: int = 0) -> Tre
     q = torch.quantile(leaf[ok].to(torch.float64),
                        torch.tensor([0.1, 0.5, 0.9, 0.99], dtype=torch.float64))
     return TreeEstimate(mean, max(2.0 * mean - first_round, mean), se / mean, len(leaf), stuck,
-                        evaluations,
-                        [int(v) for v in q])
+                        evaluations, [int(v) for v in q])
+
+
+def seconds_to_finish(stats) -> float | None:
+    """Seconds a complete proof still needs at the run's speed, from an unfinished proof's
+    `ProofStats` estimate (None without an estimate or a measured speed)."""
+    boxes = stats.estimated_boxes
+    if boxes is None or not math.isfinite(boxes) or not stats.boxes_per_second > 0:
+        return None
+    return max(boxes - stats.boxes_processed, 0.0) / stats.boxes_per_second
 
 
 def estimate_tree(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], lo: torch.Tensor,
@@ -140,4 +146,5 @@ def completion_text(boxes: float | None, rel_stderr: float | None, done: int) ->
             f"estimate{spread}; this run: {done})")
 
 
-__all__ = ["TreeEstimate", "leaf_depths", "summarize", "estimate_tree", "completion_text"]
+__all__ = ["TreeEstimate", "leaf_depths", "summarize", "estimate_tree", "completion_text",
+           "seconds_to_finish"]

@@ -71,16 +71,17 @@ def proof_facts(cert: Certificate) -> list[tuple[str, str]]:
 
 def _estimate_rows(p) -> list[tuple[str, str]]:
     """An unfinished proof's estimate of a complete one (`certify.tree_estimate`)."""
+    from certify.tree_estimate import seconds_to_finish
+
     boxes = to_float(getattr(p, "estimated_boxes", None))
     if boxes is None:
         return []
     rel = to_float(getattr(p, "estimate_rel_stderr", None))
     spread = f" (\u00b1{100 * rel:.0f} %)" if rel is not None and rel == rel else ""
     rows = [("Boxes a complete proof needs (estimate)", f"{boxes:.3g}{spread}")]
-    rate = to_float(p.boxes_per_second) or 0.0
-    done = to_float(p.boxes_processed) or 0.0
-    if rate > 0 and boxes > done:
-        rows.append(("Time it needs at this speed (estimate)", fmt_seconds((boxes - done) / rate)))
+    more = seconds_to_finish(p)
+    if more:
+        rows.append(("Time it needs at this speed (estimate)", fmt_seconds(more)))
     return rows
 
 

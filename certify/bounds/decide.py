@@ -50,7 +50,8 @@ def decide_affine_family(c: torch.Tensor, rG: torch.Tensor, rem: torch.Tensor,
     worst = None
     if len(need):
         worst = likely_worst_vertex(c[need], rG[need])
-        decided[need] = vertex_test(c[need], rG[need], t[need], worst)
+        at_worst = c[need] + torch.einsum("bd,bdij->bij", worst, rG[need])
+        decided[need] = vertex_test(c[need], rG[need], t[need], worst, at_worst)
     if congruence and len(need):
         left = ~decided[need]
         if bool(left.any()):
@@ -58,7 +59,7 @@ def decide_affine_family(c: torch.Tensor, rG: torch.Tensor, rem: torch.Tensor,
             # even proved <= lvl (the remainder aside), no M decides the box (2x10 chains:
             # ~90% of the boxes that reach this stage at n = 6), so only the others go on
             left[left.clone()] = lam_max_at_most(
-                c[need[left]] + torch.einsum("bd,bdij->bij", worst[left], rG[need[left]]),
+                at_worst[left],
                 torch.full((int(left.sum()),), lvl, dtype=c.dtype, device=c.device))
         if bool(left.any()):
             idx = need[left]
@@ -79,13 +80,16 @@ def decide_affine_family(c: torch.Tensor, rG: torch.Tensor, rem: torch.Tensor,
     return decided, weyl
 
 
-def vertex_test(c: torch.Tensor, rG: torch.Tensor, t: torch.Tensor, worst: torch.Tensor
-                ) -> torch.Tensor:
+def vertex_test(c: torch.Tensor, rG: torch.Tensor, t: torch.Tensor, worst: torch.Tensor,
+                at_worst: torch.Tensor | None = None) -> torch.Tensor:
     """Whether lam_max(c + sum_m v_m rG_m) <= t is proved at every vertex v (certified
     Cholesky tests of the lower triangles), the vertex `worst` [B, d] tested first: a box
-    that fails there needs no other test."""
+    that fails there needs no other test. `at_worst`: that vertex's matrix, when the caller
+    has formed it."""
     out = torch.zeros(c.shape[0], dtype=torch.bool, device=c.device)
-    first = lam_max_at_most(c + torch.einsum("bd,bdij->bij", worst, rG), t)
+    if at_worst is None:
+        at_worst = c + torch.einsum("bd,bdij->bij", worst, rG)
+    first = lam_max_at_most(at_worst, t)
     need = torch.nonzero(first).squeeze(-1)
     if len(need):
         S = vertex_matrices(c[need], rG[need], sym=False)

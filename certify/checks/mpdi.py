@@ -232,12 +232,12 @@ class MpdiCheck(Check):
                         Quantity("proved volume fraction", r.proof.proved_volume_fraction),
                         Quantity("budget exhausted", r.proof.budget_exhausted)]
             if r.proof.estimated_boxes is not None:  # an unfinished proof (tree_estimate)
-                rate = r.proof.boxes_per_second
-                more = max(r.proof.estimated_boxes - r.proof.boxes_processed, 0.0)
+                from certify.tree_estimate import seconds_to_finish
+
                 numbers += [Quantity("boxes a complete proof needs (estimate)",
                                      r.proof.estimated_boxes, sig=2),
                             Quantity("seconds more at this run's speed (estimate)",
-                                     more / rate if rate > 0 else None, sig=2,
+                                     seconds_to_finish(r.proof), sig=2,
                                      missing="no speed measured")]
         return Presentation(
             sampled=Quantity("max \u03bb_max(D) found (grid + ascent)", r.lower, signed=True),
