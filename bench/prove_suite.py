@@ -63,8 +63,9 @@ def _run(prob, seconds: float, max_boxes: int, taylor: object, crown: bool = Tru
             "volume_history": _history(st.volume_history),
             # an unfinished proof: the boxes a complete one needs (certify.tree_estimate;
             # `seconds` then includes the estimate's few seconds, the proof's own is
-            # `proof_seconds`)
-            "estimated_boxes": st.estimated_boxes, "estimate_rel_stderr": st.estimate_rel_stderr,
+            # `proof_seconds`; None from a `--code` checkout older than the estimate)
+            "estimated_boxes": getattr(st, "estimated_boxes", None),
+            "estimate_rel_stderr": getattr(st, "estimate_rel_stderr", None),
             "proof_seconds": round(st.seconds, 3)}
 
 
