@@ -12,7 +12,9 @@ count beside the estimate when it finishes.
 `--what-if-majorant F` / `--what-if-remainder F` (what-ifs, NOT bounds: the descents then
 follow a tree no sound proof has) scale the two remainders of the mixed-row stage by F: the
 Loewner majorant W of the top layers' product errors (`certify.bounds.structured.
-loewner_upper`: c + W becomes c + F W) and the entrywise remainder e. Descents with the same
+loewner_upper`: c + W becomes c + F W) and the entrywise remainder e. Only proofs that use
+that stage (metric congruence M = I and a direct network, as on the issue-9 families) change,
+and for n <= 3 the entrywise form the stage also tries stays as built. Descents with the same
 `--point-seed` follow the same points, so the line says what a F-times tighter enclosure of
 that part would be worth in whole-tree boxes before anyone builds it. Measured on the six-state
 chain, seed 0 (session 14): 8192 descents, 21.8 M boxes (+-14%) as built, 2.2 M (+-48%) with
