@@ -14,6 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 import torch
 
+from certify import frontier as frontier_module
 from certify.bnb import BoxEval, branch_and_bound
 from certify.executor import SerialExecutor
 from certify.frontier import Frontier
@@ -155,6 +156,53 @@ def test_frontier_takes_worst_and_nearest_like_a_sort():
         assert fr.open_max() == ref_max
         assert sorted(int(v) for v in fr.boxes()[0][:, 0]) == sorted(model)
     assert compactions > 5
+
+
+@pytest.mark.parametrize("nearest", [True, False])
+def test_frontier_pools_take_what_a_full_scan_takes(nearest: bool, monkeypatch):
+    """Past POOL_MIN boxes `take` chooses within candidate pools: fed the same adds, takes
+    and closes (children bounded near their parent, so the top pool is drained and refilled;
+    ties and NaN bounds among them), a pooled frontier takes boxes of the same bounds in the
+    same order as one that always scans; the pools are rebuilt several times and serve most
+    takes."""
+    gen = torch.Generator().manual_seed(1)
+    pooled, scanned = Frontier(1, capacity=8), Frontier(1, capacity=8)
+    pooled.POOL_MIN, scanned.POOL_MIN = 200, 10**9
+    pooled.COMPACT_MIN = scanned.COMPACT_MIN = 256
+    builds = []
+    original = frontier_module._Pools.build
+
+    def counting(fr: Frontier, k: int, near: bool):
+        builds.append(fr is pooled)
+        return original(fr, k, near)
+
+    monkeypatch.setattr(frontier_module._Pools, "build", staticmethod(counting))
+    bound: dict[int, float] = {}
+    ub = torch.randn(3000, generator=gen, dtype=torch.float64).round(decimals=2)
+    next_id, pooled_takes = 0, 0
+    for step in range(200):
+        m = len(ub)
+        ub[torch.rand(m, generator=gen) < 0.01] = math.nan
+        ids = torch.arange(next_id, next_id + m, dtype=torch.float64)[:, None]
+        next_id += m
+        bound.update({int(i): float(u) for i, u in zip(ids[:, 0], ub)})
+        for fr in (pooled, scanned):
+            fr.add(ids, ids, torch.zeros(m, dtype=torch.long), ub, None)
+        k = int(torch.randint(1, 60, (1,), generator=gen))
+        pooled_takes += len(pooled) > max(pooled.POOL_MIN, 8 * k)
+        taken = [[bound[int(i)] for i in fr.take(k, nearest)[0][:, 0]]
+                 for fr in (pooled, scanned)]
+        assert [str(v) for v in taken[0]] == [str(v) for v in taken[1]]
+        if step % 9 == 0:
+            shut = [fr.close(-2.0) for fr in (pooled, scanned)]
+            assert [sorted(x[2].tolist()) if x else None for x in shut] == \
+                [sorted(x[2].tolist()) if x else None for x in shut[::-1]]
+        assert len(pooled) == len(scanned)
+        parents = torch.tensor(taken[0], dtype=torch.float64).repeat(2)
+        ub = (torch.nan_to_num(parents, nan=3.0)
+              - 0.05 * torch.rand(len(parents), generator=gen, dtype=torch.float64)
+              ).round(decimals=2)
+    assert sum(builds) > 3 and not any(not b for b in builds) and pooled_takes > 150
 
 
 def test_lag_does_not_change_the_boxes_of_a_closing_proof():
