@@ -33,6 +33,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKPOINTS = ("vdp_certified", "vdp", "vdp_lmi")
+#: every shipped example (`--only`); the default runs CHECKPOINTS
+EXAMPLES = CHECKPOINTS + ("vdp2_lmi", "lorenz_lmi")
 REPORTS = ("--html", "r.html", "--pdf", "r.pdf", "--junit", "r.xml", "--json", "r.json")
 
 
@@ -121,8 +123,8 @@ def main() -> None:
     ap.add_argument("--after", default=str(ROOT), help="tree measured as 'after'")
     ap.add_argument("--repeat", type=int, default=1, help="runs per configuration")
     ap.add_argument("--startup-repeat", type=int, default=7)
-    ap.add_argument("--only", action="append", choices=CHECKPOINTS,
-                    help="checkpoints to run (default: all three)")
+    ap.add_argument("--only", action="append", choices=EXAMPLES,
+                    help="examples to run (default: vdp_certified, vdp, vdp_lmi)")
     ap.add_argument("--skip-runs", action="store_true", help="start-up times only")
     args = ap.parse_args()
     trees = {"before": Path(args.before).resolve(), "after": Path(args.after).resolve()}

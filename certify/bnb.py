@@ -156,6 +156,7 @@ def branch_and_bound(
     tol: float = 0.0,
     rel_tol: float = 0.0,
     coarse_after: tuple[int, float] | None = None,
+    give_up: tuple[int, float] | None = None,
     stop_on_violation: bool = True,
     seconds: float = 60.0,
     max_boxes: int = 2_000_000,
@@ -179,7 +180,11 @@ def branch_and_bound(
     the max over closed and open boxes. `coarse_after = (N, coarse)`: once N boxes have been
     evaluated the closing tolerance relaxes to `coarse` (a fine precision where it is cheap,
     never more than N boxes spent on it beyond the coarse one; boxes closed before stay
-    closed, their bounds are below either level). Budgets: `seconds` and `max_boxes` (boxes
+    closed, their bounds are below either level). `give_up = (N, level)` (maximisation): once
+    N boxes have been evaluated, the run stops as if its budget were spent when the largest
+    bound of the merged boxes, open or closed, is still above `level` (the caller has a
+    better way past that level); the check only chooses when to stop, the bound is then
+    formed as for any budgeted run. Budgets: `seconds` and `max_boxes` (boxes
     evaluated). `first_round`: the root is first split into about that many equal boxes
     (default and at most `batch`). `executor` / `remote`: where each round's children are
     evaluated; `lag`: rounds in flight before the oldest is merged (module docstring). The
@@ -331,6 +336,11 @@ def branch_and_bound(
             if now - t0 > seconds or processed >= max_boxes:
                 budget_hit = True
                 break
+            if give_up is not None and processed >= give_up[0]:
+                if max(closed_max, frontier.open_max(), stuck_max) > give_up[1]:
+                    budget_hit = True
+                    break
+                give_up = None  # checked once
             # the boxes to refine: the worst ones; in decision mode half of the batch is the
             # boxes nearest to closing instead, so that a budgeted run closes regions early
             # while the worst boxes (counterexamples) are still refined

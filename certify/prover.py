@@ -273,7 +273,8 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
 def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_000_000,
                progress: Progress | None = None, tol: float = 1e-9, rel_tol: float = 1e-3,
                batch: int = 1024, seeds: object | None = None,
-               coarse_after: tuple[int, float] | None = None) -> RateOutcome:
+               coarse_after: tuple[int, float] | None = None,
+               give_up: tuple[int, float] | None = None) -> RateOutcome:
     """Proved lower bound on lam_cert = -max lam_max(He{P J_cl}, P) / 2 over X x Y.
 
     Direct branch and bound on phi(z) = lam_max(He{P J_cl(z)}, P) (no bisection): boxes are
@@ -287,6 +288,8 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     rounds instead of being refined until the search finds a point as bad. They only choose
     what is refined; the bound is the max over every box's sound bound either way.
     `coarse_after`: see `branch_and_bound` (the tolerance relaxes after that many boxes).
+    `give_up = (N, rate)`: after N boxes, stop (budget spent) unless the bound so far
+    already proves more than `rate` (`branch_and_bound`'s give_up at phi = -2 rate).
     """
     progress = progress or NullProgress()
     pc = make_preconditioner(problem.P_t)
@@ -315,6 +318,7 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     out = branch_and_bound(lo, hi, evaluate, threshold=None, tol=tol, rel_tol=rel_tol,
                            seconds=seconds, max_boxes=max_boxes, batch=batch,
                            progress=progress, task="rate proof", coarse_after=coarse_after,
+                           give_up=None if give_up is None else (give_up[0], -2.0 * give_up[1]),
                            seeds=_seed_box(seeds, lo.shape[0], problem.device))
     lower = -out.upper / 2.0 if math.isfinite(out.upper) else None
     worst = None

@@ -33,3 +33,20 @@ def test_coarse_after_stops_at_the_coarse_tolerance_after_the_budget() -> None:
     assert coarse.stats.boxes_processed < relaxed.stats.boxes_processed \
         < fine.stats.boxes_processed
     assert relaxed.stats.boxes_processed <= 128 + 4 * 2 * 16  # a few rounds in flight at most
+
+
+def test_give_up_stops_only_while_the_bound_is_above_its_level() -> None:
+    """`give_up = (N, level)`: a run whose bound after N boxes is above the level stops
+    there as budget-spent, still with a sound bound (>= the true max 1); one whose bound is
+    already below runs on to the same outcome as without it."""
+    lo, hi = torch.zeros(2, dtype=F64), torch.ones(2, dtype=F64)
+    kw = dict(batch=16, seconds=60.0, max_boxes=200_000, project=None, rel_tol=1e-9)
+    plain = branch_and_bound(lo, hi, _evaluate, **kw)
+    early = branch_and_bound(lo, hi, _evaluate, give_up=(128, 1.0 + 1e-12), **kw)
+    late = branch_and_bound(lo, hi, _evaluate, give_up=(128, 2.0), **kw)
+    assert plain.complete and not plain.stats.budget_exhausted
+    assert early.stats.budget_exhausted and not early.complete
+    assert 128 <= early.stats.boxes_processed <= 128 + 4 * 2 * 16
+    assert early.upper >= 1.0  # sound
+    assert late.complete and late.upper == plain.upper
+    assert late.stats.boxes_processed == plain.stats.boxes_processed

@@ -56,3 +56,23 @@ def test_rate_check_on_vdp2_lmi_proves_above_the_design_rate() -> None:
         res = check_rate(prob, VerifySettings(rate_seconds=6.0), mpdi=known)
         assert res.status is Status.PROVED
         assert res.proved_lower > 1.05 and res.proved_lower <= res.sampled_upper
+
+
+def test_rate_proof_gives_up_below_a_rate_already_proved() -> None:
+    """`prove_rate(give_up=(N, rate))` on examples/vdp2_lmi.ckpt (whose maximisation proves
+    less than the design rate 1.0 in its first thousands of boxes): asked to beat 1.0 it
+    stops after N boxes as budget-spent, with a proved rate below 1.0; asked to beat a
+    rate every bound beats, it runs to its box budget as without the argument."""
+    from certify import checkpoint
+    from certify.prover import prove_rate
+
+    path = Path(__file__).parents[1] / "examples" / "vdp2_lmi.ckpt"
+    prob = checkpoint.load(str(path)).problem
+    kw = dict(seconds=60.0, max_boxes=8192, batch=512)
+    stopped = prove_rate(prob, give_up=(2048, 1.0), **kw)
+    assert stopped.stats.budget_exhausted
+    assert 2048 <= stopped.stats.boxes_processed < 4096
+    assert stopped.lower is not None and stopped.lower < 1.0
+    assert stopped.lower <= stopped.upper_sampled
+    went_on = prove_rate(prob, give_up=(2048, -1e6), **kw)
+    assert went_on.stats.boxes_processed >= 8192

@@ -29,7 +29,10 @@ RATE_REL_TOL = 1e-4
 RATE_FINE_BOXES = 16_384
 #: share of `rate_seconds` for the maximisation branch and bound; when it runs out before
 #: closing, the rest of the budget goes to MPDI decisions above the proved rate
-#: (`certify.rate_ladder.raise_rate`)
+#: (`certify.rate_ladder.raise_rate`). When the MPDI proof already proved the design rate
+#: and the branch and bound has not proved more after RATE_FINE_BOXES boxes, it hands over
+#: to the decisions then (examples/vdp2_lmi.ckpt: its quarter share ended at 0.93, below
+#: the design rate 1.0, and the decisions reached 1.118)
 RATE_BNB_SHARE = 0.25
 #: the decisions stop when the bracket [proved, sampled] is this narrow (relative): the
 #: report prints lam_cert to 4 significant digits, and each halving costs about twice the
@@ -89,7 +92,9 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
         outcome = prove_rate(on_device, seconds=settings.rate_seconds * RATE_BNB_SHARE,
                              max_boxes=settings.max_boxes,
                              progress=progress, seeds=seeds, rel_tol=RATE_REL_TOL,
-                             coarse_after=(RATE_FINE_BOXES, 1e-3))
+                             coarse_after=(RATE_FINE_BOXES, 1e-3),
+                             give_up=None if proved_lower is None
+                             else (RATE_FINE_BOXES, proved_lower))
         if outcome.lower is not None and outcome.lower == outcome.lower:
             proved_lower = outcome.lower if proved_lower is None else max(proved_lower,
                                                                           outcome.lower)
