@@ -19,9 +19,11 @@ from certify.activations import get, names
 from certify.activations.base import Activation
 from certify.intervals import Interval
 
+from .soak import examples
+
 mp.mp.dps = 50
 F64 = torch.float64
-SETTINGS = settings(max_examples=12, deadline=None)
+SETTINGS = settings(max_examples=examples(12), deadline=None)
 NAMES = ["tanh", "sigmoid", "softplus", "silu", "elu", "gelu"]
 
 
@@ -115,7 +117,7 @@ def test_enclosures_contain_sampled_values(name: str, seed: int, scale: float) -
 
 
 @pytest.mark.parametrize("name", NAMES)
-@settings(max_examples=5, deadline=None)
+@settings(max_examples=examples(5), deadline=None)
 @given(seed=st.integers(0, 10**6), scale=st.sampled_from([0.0, 1.0, 50.0]))
 def test_enclosures_far_in_the_tails(name: str, seed: int, scale: float) -> None:
     _check_enclosures(get(name), *_intervals(seed, 24, scale, far=True), seed=seed,
@@ -231,7 +233,7 @@ def test_point_values_module_and_autograd(name: str, dtype: torch.dtype) -> None
 
 
 @pytest.mark.parametrize("name", NAMES)
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(st.lists(st.floats(-800.0, 800.0, allow_nan=False), min_size=1, max_size=40))
 def test_numpy_form_equals_the_torch_form(name: str, values: list[float]) -> None:
     """`f_array` (the simulation's NumPy form) gives `f`'s values to a few ulps, also far in

@@ -22,6 +22,8 @@ from certify.problem import Problem
 from certify.results import BoundsResult, Status, from_jsonable, to_jsonable
 from certify.system import load_system
 
+from .soak import examples
+
 REL = 1e-10
 
 
@@ -101,7 +103,7 @@ def test_theorem3_not_applicable_at_or_below_two(lam):
     assert r.iss.applicable and r.status == Status.PROVED
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(lam=st.floats(2.0001, 60.0), eps=st.floats(0.0, 10.0), L=st.floats(0.0, 50.0),
        vbar=st.floats(0.0, 2.0), e0=st.floats(0.0, 10.0))
 def test_iss_never_larger_than_theorem3(lam, eps, L, vbar, e0):

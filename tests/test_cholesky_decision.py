@@ -16,6 +16,8 @@ from certify.bounds.eigen import _vertices, lam_max_at_most
 from certify.bounds.taylor import TM, tm_lam_upper
 from tests.mp_reference import exact_lam_max
 
+from .soak import examples
+
 F64 = torch.float64
 
 
@@ -30,7 +32,7 @@ def _sym(gen: torch.Generator, count: int, n: int, scale: float, rank_def: bool
     return 0.5 * (A + A.transpose(-1, -2))
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(2, 7),
        scale=st.sampled_from([1e-200, 1e-3, 1.0, 1e6, 1e200]), rank_def=st.booleans(),
        rel=st.sampled_from([-1e-6, -1e-12, -1e-15, 0.0, 1e-15, 1e-12, 1e-9, 1e-6]))
@@ -64,7 +66,7 @@ def test_cholesky_test_decides_with_slack_and_refuses_nan() -> None:
         == (0,)
 
 
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=examples(20), deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(4, 6), d=st.integers(2, 6),
        level=st.sampled_from([0.0, -0.5, 0.3]))
 def test_vertex_bound_with_level_contains_sampled_lam_max(seed: int, n: int, d: int,

@@ -23,9 +23,11 @@ from certify.network import GainNetwork
 from certify.problem import Problem
 from certify.system import load_system
 
+from .soak import examples
+
 F64 = torch.float64
-SETTINGS = settings(max_examples=8, deadline=None)
-ACT_SETTINGS = settings(max_examples=2, deadline=None)  # per activation
+SETTINGS = settings(max_examples=examples(8), deadline=None)
+ACT_SETTINGS = settings(max_examples=examples(2), deadline=None)  # per activation
 ACTIVATIONS = activations.names()
 
 
@@ -162,7 +164,7 @@ def test_hertz_bound_is_sound_and_never_above_centre_plus_radius(seed: int, n: i
 
 
 @pytest.mark.parametrize("act", ACTIVATIONS)
-@settings(max_examples=2, deadline=None)
+@settings(max_examples=examples(2), deadline=None)
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-6, 1e-2, 0.1, 0.5]),
        g=st.sampled_from([1.0, 3.0]))
 def test_side_bounds_with_crown_contain_points(act: str, seed: int, scale: float,
@@ -194,7 +196,7 @@ def test_side_bounds_with_crown_contain_points(act: str, seed: int, scale: float
     assert bool((res <= ub_r * (1 + 1e-12) + 1e-300).all())
 
 
-@settings(max_examples=12, deadline=None)
+@settings(max_examples=examples(12), deadline=None)
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-4, 1e-2, 0.1, 0.5]))
 def test_residual_norm_bound_holds_at_every_vertex_and_beats_the_entrywise_bound(
         seed: int, scale: float) -> None:

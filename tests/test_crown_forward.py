@@ -18,6 +18,7 @@ from certify.bounds.taylor import TM, tm_activation, tm_linear, tm_mul, tm_rho
 from certify.intervals import Interval, down, imul, matmul_point_right, midrad_to_interval, up
 from certify.network import GainNetwork
 
+from .soak import examples
 from .test_crown import _boxes, _net, _points
 
 F64 = torch.float64
@@ -190,7 +191,7 @@ def test_forward_bounds_bit_identical_composed_first_layer(act: str, cols: list[
         assert new.layers[0].bslack is not None
 
 
-@settings(max_examples=16, deadline=None)
+@settings(max_examples=examples(16), deadline=None)
 @given(seed=st.integers(0, 10_000), act=st.sampled_from(activations.names()),
        scale=st.sampled_from([0.01, 0.1, 0.5]), crown=st.booleans(), taylor=st.booleans(),
        cols=st.sampled_from([None, [0, 1], [2]]))
@@ -247,7 +248,7 @@ def test_ranges_without_taylor_models_are_as_tight_as_with_them(act: str) -> Non
         assert float((ti / tb).median()) <= 1.05
 
 
-@settings(max_examples=12, deadline=None)
+@settings(max_examples=examples(12), deadline=None)
 @given(seed=st.integers(0, 10_000), act=st.sampled_from(activations.names()),
        scale=st.sampled_from([0.0, 1e-3, 0.1, 0.5]), depth=st.integers(2, 3),
        cols=st.sampled_from([None, [0, 2], []]))

@@ -14,6 +14,8 @@ from certify.bounds.decide import decide_affine_family, vertex_test
 from certify.bounds.eigen import _vertices, lam_max_at_most, rho_upper
 from certify.bounds.taylor import TM, tm_lam_upper
 
+from .soak import examples
+
 F64 = torch.float64
 
 
@@ -71,7 +73,7 @@ def test_congruence_decides_a_spread_family_the_identity_cannot() -> None:
     assert bool((_worst_members(A, r, gen) <= 0).all())  # and the families really are <= 0
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(4, 6), d=st.integers(2, 5),
        level=st.sampled_from([0.0, -0.3, 0.5]), spread=st.sampled_from([0.5, 5.0, 50.0]),
        rem=st.sampled_from([1e-3, 0.02, 0.1]), rotate=st.booleans())

@@ -17,6 +17,8 @@ from certify.bounds.eigen import (
 from certify.intervals import Interval
 from tests.mp_reference import exact_lam_max
 
+from .soak import examples
+
 F64 = torch.float64
 
 
@@ -31,7 +33,7 @@ def _sym_batch(seed: int, count: int, scale: float, cluster: bool) -> torch.Tens
     return scale * 0.5 * (A + A.transpose(-1, -2))
 
 
-@settings(max_examples=12, deadline=None)
+@settings(max_examples=examples(12), deadline=None)
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-6, 1.0, 37.0, 1e5]),
        cluster=st.booleans())
 def test_lam3_bound_containsexact_lam_max(seed: int, scale: float, cluster: bool) -> None:
@@ -77,7 +79,7 @@ def test_hertz_3x3_above_sampled_members() -> None:
         assert bool((torch.linalg.eigvalsh(C + E)[:, -1] <= ub).all())
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=examples(10), deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.sampled_from([3, 4, 5, 7]),
        level=st.sampled_from([-0.5, 0.0, 0.5]))
 def test_interval_bound_with_a_level_is_sound_and_decides_the_same(seed: int, n: int,

@@ -48,6 +48,8 @@ from certify.system_enclosures import (
     jacobian_h_enclosure,
 )
 
+from .soak import examples
+
 F64 = torch.float64
 
 SPEC = """
@@ -297,7 +299,7 @@ def test_second_order_compose_at_points_matches_autograd(structure: str) -> None
 
 
 @pytest.mark.parametrize("act", activations.names())
-@settings(max_examples=4, deadline=None)
+@settings(max_examples=examples(4), deadline=None)
 @given(seed=st.integers(0, 10_000), structure=st.sampled_from(["direct", "structural"]),
        with_K=st.booleans(), scale=st.sampled_from([1e-6, 1e-3, 0.05, 0.3]))
 def test_gain_taylor_models_contain_k_and_its_jacobians(act: str, seed: int, structure: str,

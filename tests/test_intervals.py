@@ -29,8 +29,10 @@ from certify.system_enclosures import (
     jacobian_h_enclosure,
 )
 
-SETTINGS = settings(max_examples=20, deadline=None)
-ACT_SETTINGS = settings(max_examples=4, deadline=None)  # per activation
+from .soak import examples
+
+SETTINGS = settings(max_examples=examples(20), deadline=None)
+ACT_SETTINGS = settings(max_examples=examples(4), deadline=None)  # per activation
 ACTIVATIONS = activations.names()
 F64 = torch.float64
 
@@ -256,7 +258,7 @@ def test_taylor_model_contains_closed_loop_jacobian(act: str, seed: int, structu
 
 
 @pytest.mark.parametrize("act", ACTIVATIONS)
-@settings(max_examples=12, deadline=None)
+@settings(max_examples=examples(12), deadline=None)
 @given(seed=st.integers(0, 10_000), centre=st.floats(-6, 6),
        rad=st.sampled_from([1e-8, 1e-3, 0.1, 0.7, 2.0]), with_e=st.booleans())
 def test_activation_taylor_models_contain_f_and_df(act: str, seed: int, centre: float,

@@ -22,6 +22,7 @@ from certify.bounds.preconditioner import diagonal_preconditioner
 from certify.kernels import closed_loop_jacobian
 from certify.system import load_system
 
+from .soak import examples
 from .test_crown import _boxes, _net, _points
 from .test_preconditioner_choice import _problem
 
@@ -29,7 +30,7 @@ F64 = torch.float64
 
 
 @pytest.mark.parametrize("act", activations.names())
-@settings(max_examples=3, deadline=None)
+@settings(max_examples=examples(3), deadline=None)
 @given(seed=st.integers(0, 10_000), depth=st.integers(1, 3), g=st.sampled_from([0.5, 2.0]),
        scale=st.sampled_from([1e-7, 1e-3, 0.05, 0.5]), d=st.integers(2, 5),
        m=st.integers(1, 4))
@@ -83,7 +84,7 @@ def mixed_case(seed: int, n: int, cond: float, scale: float, points: int,
     return prob, pc, lo, hi, r, D, dz
 
 
-@settings(max_examples=8, deadline=None)
+@settings(max_examples=examples(8), deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(2, 4), cond=st.sampled_from([2.0, 30.0]),
        scale=st.sampled_from([0.0, 1e-3, 0.05, 0.3]))
 def test_contraction_tm_contains_He_PJ(seed: int, n: int, cond: float, scale: float) -> None:

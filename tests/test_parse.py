@@ -18,6 +18,7 @@ from certify.parse import LIMITS, parse_expression
 from certify.system import System
 
 from .cli_helpers import run_cli
+from .soak import examples
 
 X_BAD = "[[-1.0, 1.0], [-1.0, 1.0]]"
 X_GOOD = "[[0.5, 1.0], [-1.0, 1.0]]"
@@ -153,7 +154,7 @@ def test_long_sums_and_products_are_flat_not_deep():
         parse_expression("sin(" * 70 + "x1" + ")" * 70, {"x1": sympy.Symbol("x1")})
 
 
-@settings(max_examples=40, deadline=None, derandomize=True)
+@settings(max_examples=examples(40), deadline=None, derandomize=True)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 4), hostile=st.booleans())
 def test_accepted_specs_are_finite_everywhere_and_undefined_ones_refused(seed, n, hostile):
     """Acceptance is sound: f and Jf are finite at every sampled point of X; a spec with a

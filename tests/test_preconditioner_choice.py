@@ -23,6 +23,7 @@ from certify.prover import prove_mpdi
 from certify.results import Status
 
 from .planted import lam_cert_linear, linear_problem, linear_system
+from .soak import examples
 
 F64 = torch.float64
 
@@ -49,7 +50,7 @@ def _problem(seed: int, n: int, cond: float) -> Problem:
     return Problem(system, net.double(), 0.1, system.P)
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=examples(10), deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(2, 4), cond=st.sampled_from([1.5, 8.0, 60.0]),
        scale=st.sampled_from([0.0, 1e-3, 0.05, 0.3]))
 def test_every_candidate_bounds_lam_max_of_D_over_boxes(seed: int, n: int, cond: float,
@@ -74,7 +75,7 @@ def test_every_candidate_bounds_lam_max_of_D_over_boxes(seed: int, n: int, cond:
             assert bool((torch.isnan(ub) | (vmax <= ub)).all()), (pc.kind, crown)
 
 
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=examples(20), deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(1, 5))
 def test_diagonal_congruence_converts_back_soundly(seed: int, n: int) -> None:
     """A <= a I with A = M D M^T gives lam_max(D) <= to_lam_max_D(a), either sign of a."""

@@ -31,6 +31,7 @@ from .mp_reference import (
     random_spec,
     residual_norm,
 )
+from .soak import examples
 
 POLICY = """
 [tool.certify]
@@ -53,7 +54,7 @@ CASES = st.fixed_dictionaries({
 })
 
 
-@settings(max_examples=10, deadline=None, derandomize=True,
+@settings(max_examples=examples(10), deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(case=CASES)
 @example(case={"n": 2, "p": 1, "seed": 11, "cond": 6.0, "net": "zero", "hostile": True})

@@ -24,8 +24,10 @@ from certify.bounds.relax import (
 )
 from certify.intervals import Interval
 
+from .soak import examples
+
 F64 = torch.float64
-SETTINGS = settings(max_examples=40, deadline=None)
+SETTINGS = settings(max_examples=examples(40), deadline=None)
 
 
 def _slack(v: torch.Tensor) -> torch.Tensor:
@@ -58,7 +60,7 @@ def test_tanh_and_dtanh_relaxations_are_sound(seed: int, scale: float, centre: f
 
 
 @pytest.mark.parametrize("name", activations.names())
-@settings(max_examples=6, deadline=None)
+@settings(max_examples=examples(6), deadline=None)
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-12, 1e-4, 0.1, 1.0, 4.0, 20.0]),
        centre=st.floats(-8, 8))
 def test_prover_relaxations_of_every_activation_are_sound(name: str, seed: int, scale: float,
@@ -164,7 +166,7 @@ def test_point_enclosures_match_the_general_path() -> None:
         assert torch.equal(fast.lo, general.lo) and torch.equal(fast.hi, general.hi)
 
 
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=examples(20), deadline=None)
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-9, 0.1, 1.0, 5.0]),
        centre=st.floats(-4, 4), kind=st.sampled_from(["tanh", "dtanh"]))
 def test_pieces_on_the_elements_that_meet_them_equal_the_full_evaluation(

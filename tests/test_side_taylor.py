@@ -22,6 +22,8 @@ from certify.problem import Problem
 from certify.side_proofs import bound_dk_dy
 from certify.system import load_system
 
+from .soak import examples
+
 F64 = torch.float64
 
 
@@ -44,7 +46,7 @@ def _points(lo: torch.Tensor, hi: torch.Tensor, S: int, seed: int) -> torch.Tens
 
 @pytest.mark.parametrize("act", activations.names())
 @pytest.mark.parametrize("structure", ["structural", "direct"])
-@settings(max_examples=3, deadline=None)
+@settings(max_examples=examples(3), deadline=None)
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-6, 1e-2, 0.1, 0.5]),
        g=st.sampled_from([1.0, 3.0]), with_K=st.booleans())
 def test_taylor_dk_dy_bound_contains_sampled_norms(act: str, structure: str, seed: int,

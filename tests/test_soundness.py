@@ -22,6 +22,7 @@ from certify.witness import mpdi_lower, rayleigh_lower
 
 from .cli_helpers import FAST_POLICY, run_cli, save_problem
 from .planted import linear_problem
+from .soak import examples
 
 # D = He{A} + 2 lam I with lam = 1/2 is [[d1, b], [b, d2]] exactly (every constant is a double
 # and d2 - 1 + 1 is exact); det D = d1 d2 - b^2 >= 0, so lam_max(D) = -1.1e-17 <= 0 exactly,
@@ -149,7 +150,7 @@ def test_overflowing_network_is_never_proved(workdir, capsys):
 
 # ----- the witness bounds are lower bounds (hypothesis, 40-digit reference) ---------------
 
-@settings(max_examples=15, deadline=None, derandomize=True)
+@settings(max_examples=examples(15), deadline=None, derandomize=True)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 4), cond=st.floats(0.0, 6.0))
 def test_witness_bounds_are_below_the_40_digit_values(seed, n, cond):
     from certify.checks.lipschitz import dk_dy_norms

@@ -16,6 +16,7 @@ from certify.bounds.preconditioner import diagonal_preconditioner
 from certify.bounds.structured import entrywise, loewner_upper
 from certify.bounds.taylor import tm_lam_upper
 
+from .soak import examples
 from .test_crown import _boxes, _net, _points
 from .test_mixed_rows import mixed_case, sampled_D
 from .test_preconditioner_choice import _problem
@@ -23,7 +24,7 @@ from .test_preconditioner_choice import _problem
 F64 = torch.float64
 
 
-@settings(max_examples=4, deadline=None)
+@settings(max_examples=examples(4), deadline=None)
 @given(seed=st.integers(0, 10_000), act=st.sampled_from(activations.names()),
        depth=st.integers(1, 3), scale=st.sampled_from([1e-3, 0.05, 0.5]), m=st.integers(1, 4))
 def test_errors_apart_plus_C_eps_contain_sampled_rows(seed: int, act: str, depth: int,
@@ -57,7 +58,7 @@ def test_errors_apart_plus_C_eps_contain_sampled_rows(seed: int, act: str, depth
     assert bool((le.cu - le.cl <= full.cu - full.cl + 1e-12).all())  # the lines are narrower
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=examples(10), deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(2, 4), cond=st.sampled_from([2.0, 30.0]),
        scale=st.sampled_from([0.0, 1e-3, 0.05, 0.3]))
 def test_loewner_model_bounds_every_sampled_quadratic_form(seed: int, n: int, cond: float,

@@ -16,8 +16,10 @@ from certify.intervals import Interval, up
 from certify.system import System, load_system
 from certify.system_enclosures import hessian_f_enclosure, jacobian_f_enclosure, pad_y
 
+from .soak import examples
+
 F64 = torch.float64
-SETTINGS = settings(max_examples=20, deadline=None)
+SETTINGS = settings(max_examples=examples(20), deadline=None)
 
 SPEC = """
 name = "curvy"

@@ -23,6 +23,7 @@ from certify.network import GainNetwork
 from certify.problem import Problem
 
 from .planted import linear_system
+from .soak import examples
 from .test_mixed_rows import mixed_case
 from .test_preconditioner_choice import _metric
 from .test_structured import boxes_and_level, decided
@@ -45,7 +46,7 @@ def _chain(seed: int, n: int, hidden: tuple[int, ...], act: str, gain: float = 2
     return Problem(system, net.double(), 0.1, system.P)
 
 
-@settings(max_examples=12, deadline=None)
+@settings(max_examples=examples(12), deadline=None)
 # a case where the first layer's f' errors decide the bound (leaving out the W0 half of their
 # rank-one pairs fails here)
 @example(seed=0, act="elu", depth=2, n=2, scale=1e-3, level=0.0)
@@ -130,7 +131,7 @@ def test_rank_structure_decides_boxes_the_independent_form_cannot() -> None:
     assert bool((sampled > level).any())
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=examples(10), deadline=None)
 @given(seed=st.integers(0, 10_000), act=st.sampled_from(activations.names()),
        n=st.integers(2, 4), scale=st.sampled_from([0.05, 0.3]),
        level=st.sampled_from([0.0, 2.0]))
@@ -165,7 +166,7 @@ def test_first_layer_pairs_majorise_every_error_pattern(seed: int, act: str, n: 
         assert_majorised(c0 + 0.5 * (E + E.transpose(1, 2)), out, gen)
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=examples(10), deadline=None)
 @given(seed=st.integers(0, 10_000), act=st.sampled_from(activations.names()),
        n=st.integers(2, 4), scale=st.sampled_from([0.05, 0.3]),
        level=st.sampled_from([0.0, 2.0]), coupled=st.booleans())
@@ -216,7 +217,7 @@ def test_coupled_beta_terms_decide_boxes_the_pair_form_cannot() -> None:
     assert bool((sampled[new] <= level).all())
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(seed=st.integers(0, 10_000), h=st.integers(2, 12), h1=st.integers(2, 12),
        spread=st.sampled_from([1e-3, 1.0, 1e3]))
 def test_scaled_majorant_dominates_delta_h_delta(seed: int, h: int, h1: int,
