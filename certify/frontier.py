@@ -9,17 +9,17 @@ slots moved to the front, in slot order) only when more than half the used slots
 amortised O(1) per box.
 
 Choosing the batch is a `topk`, not a sort, and on a large frontier not over all of it: two
-candidate pools hold the slots whose upper bound is at least `_tau_top` (every such live
-slot, the worst boxes) and at most `_tau_bot` (the nearest to closing), each about
+candidate pools (`_Pools`) hold the slots whose upper bound is at least tau_top (every such
+live slot: the worst boxes) and at most tau_bot (the nearest to closing), each about
 sqrt(count * k) slots when built. A take selects within the pools (O(pool)); `add` puts new
 slots past a threshold into its pool; a pool is rebuilt from the whole frontier (O(count))
 only when it runs short of a batch, grows past 4x its built size, or a compaction moves the
 slots. The worst k of the frontier are the worst k of the top pool whenever that pool holds
-at least k live slots (every slot outside it is below `_tau_top`, every slot inside at or
+at least k live slots (every slot outside it is below tau_top, every slot inside at or
 above), and the same for the nearest, so the pools change the cost, not the boxes taken
-(up to the order among equal bounds). Measured on 4 M open boxes of 7 dimensions, k = 2048:
-197 ms a take with the full scan; on the 2x10 six-state chain's 2-worker proof the full scan
-was the driver's largest cost.
+(up to the order among equal bounds). Measured (`bench/frontier.py`, 4 M open boxes of 7
+dimensions, k = 2048): 207 ms a take with the full scan, 8 ms from the pools; on the 2x10
+six-state chain's 2-worker proof the full scan had been the driver's largest cost.
 
 Everything is a function of the frontier's contents and the order of the calls only, so two
 runs that add and take the same boxes in the same order take the same batches (branch and
