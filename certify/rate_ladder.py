@@ -24,6 +24,13 @@ class RateLadder:
     attempts: list[tuple[float, str, float]]  # (rate, status, seconds)
 
 
+#: boxes the first target may take; each later one at most LADDER_GROWTH times the boxes of
+#: the last proved (examples/vdp2_lmi.ckpt: 256, 256, 736, 2,272, 3,648 and 22,400 boxes for
+#: successive halvings of the gap)
+LADDER_FIRST_BOXES = 16_384
+LADDER_GROWTH = 8
+
+
 def raise_rate(problem: Problem, lower: float, upper: float, *, seconds: float,
                max_boxes: int = 2_000_000, rel_tol: float = 1e-4,
                progress: Progress | None = None) -> RateLadder:
@@ -36,11 +43,15 @@ def raise_rate(problem: Problem, lower: float, upper: float, *, seconds: float,
     (sampled upper 1.119) proves in 0.2 s.
 
     Each target halves the gap to `upper`, until it is below rel_tol |upper|. A target gets
-    at most 4x the time of the last proved one (at least 1 s; in all at most `seconds`): the
-    proofs grow as the margin shrinks, and the first target not decided ends the ladder. A
-    VIOLATED target (a sound witness) is an upper bound and the ladder goes on below it."""
+    at most LADDER_GROWTH times the boxes of the last proved one (LADDER_FIRST_BOXES for the
+    first; all within `max_boxes` each and `seconds` in all): the proofs grow as the margin
+    shrinks, and the first target not decided ends the ladder. The caps are in boxes, not
+    seconds, so where `seconds` does not run out the ladder climbs to the same rate on a
+    slow machine as on a fast one (with caps of 4x the last proof's time it stopped at 1.115
+    or 1.118 on vdp2_lmi, by the machine's load). A VIOLATED target (a sound witness) is an
+    upper bound and the ladder goes on below it."""
     t_start = time.perf_counter()
-    last = 0.25
+    cap = LADDER_FIRST_BOXES
     attempts: list[tuple[float, str, float]] = []
     violated = False
     while upper - lower > rel_tol * abs(upper):
@@ -51,13 +62,14 @@ def raise_rate(problem: Problem, lower: float, upper: float, *, seconds: float,
         if not lower < target < upper:  # no float between them
             break
         t0 = time.perf_counter()
-        out = prove_mpdi(problem, lam=target, seconds=min(left, max(4.0 * last, 1.0)),
-                         max_boxes=max_boxes, progress=progress,
-                         task=f"rate decision at {target:.6g}", estimate_points=0)
+        out = prove_mpdi(problem, lam=target, seconds=left, max_boxes=min(max_boxes, cap),
+                         progress=progress, task=f"rate decision at {target:.6g}",
+                         estimate_points=0)
         took = time.perf_counter() - t0
         attempts.append((target, out.status.value, round(took, 3)))
         if out.status is Status.PROVED:
-            lower, last = target, took
+            lower = target
+            cap = max(LADDER_FIRST_BOXES, LADDER_GROWTH * out.stats.boxes_processed)
         elif out.status is Status.VIOLATED:
             upper, violated = target, True
         else:

@@ -76,3 +76,43 @@ def test_rate_proof_gives_up_below_a_rate_already_proved() -> None:
     assert stopped.lower <= stopped.upper_sampled
     went_on = prove_rate(prob, give_up=(2048, -1e6), **kw)
     assert went_on.stats.boxes_processed >= 8192
+
+
+def test_ladder_climbs_as_far_when_the_machine_slows_down(monkeypatch) -> None:
+    """The ladder's caps are boxes, not seconds: on examples/vdp2_lmi.ckpt the same targets
+    are tried with the same outcomes when the clock runs 5x faster from the end of the first
+    decision on (a machine loaded mid-run: with caps of 4x the last proof's time, the second
+    target was cut short and the ladder stopped at the first). Only the total `seconds` is
+    on the clock."""
+    import time
+
+    import certify.rate_ladder as rate_ladder
+    from certify import checkpoint
+
+    path = Path(__file__).parents[1] / "examples" / "vdp2_lmi.ckpt"
+    prob = checkpoint.load(str(path)).problem
+    args = (prob, 1.10, 1.1188308628907166)
+    kw = dict(seconds=300.0, rel_tol=2e-3)
+    steady = raise_rate(*args, **kw)
+    real = time.perf_counter
+    since: list[float] = []  # real time when the load arrived
+
+    def loaded() -> float:
+        now = real()
+        return now if not since else since[0] + 5.0 * (now - since[0])
+
+    decide = rate_ladder.prove_mpdi
+
+    def first_then_load(*a, **k):
+        out = decide(*a, **k)
+        if not since:
+            since.append(real())
+        return out
+
+    monkeypatch.setattr(time, "perf_counter", loaded)
+    monkeypatch.setattr(rate_ladder, "prove_mpdi", first_then_load)
+    slowed = raise_rate(*args, **kw)
+    monkeypatch.undo()
+    assert [a[:2] for a in slowed.attempts] == [a[:2] for a in steady.attempts]
+    assert slowed.lower == steady.lower > 1.11
+    assert sum(a[1] == "PROVED" for a in steady.attempts) >= 3
