@@ -102,6 +102,9 @@ def test_inconclusive_exit_3_and_allow_unknown(workdir, capsys):
     assert cert["checks"]["mpdi"]["status"] == "UNKNOWN"
     assert cert["checks"]["mpdi"]["lower"] < 0
     assert "raise proof_seconds or max_boxes" in cert["checks"]["mpdi"]["message"]
+    # a serial CPU run also names the ways to spread the proof
+    assert "Dask workers (--workers, --scheduler) or a GPU (--device cuda)" in \
+        cert["checks"]["mpdi"]["message"]
     code, _, _ = run_cli(capsys, *args, "--allow-unknown", "--quiet")
     assert code == 0
     code, _, _ = run_cli(capsys, "run", str(path), "--skip", "simulation,lipschitz,rate",

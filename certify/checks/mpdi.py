@@ -168,13 +168,17 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
                      "violated"), **common)
     st = outcome.stats
     ahead = completion_text(st.estimated_boxes, st.estimate_rel_stderr, st.boxes_processed)
+    serial_cpu = (settings.workers <= 1 and not settings.scheduler
+                  and not settings.device.startswith("cuda"))
+    spread = ("; or spread the proof over Dask workers (--workers, --scheduler) or a GPU "
+              "(--device cuda)" if serial_cpu else "")
     return MpdiResult(
         status=Status.UNKNOWN, upper=outcome.upper, proof=outcome.stats,
         seconds=time.perf_counter() - t0,
         message=(f"proof budget spent (proof_seconds={settings.proof_seconds:g}, max_boxes="
                  f"{settings.max_boxes}); no counterexample (largest lam_max(D) found "
                  f"{common['lower']:.4g}), best proved upper bound {best}; raise proof_seconds "
-                 "or max_boxes" + (f": {ahead}" if ahead else "")), **common)
+                 "or max_boxes" + (f": {ahead}" if ahead else "") + spread), **common)
 
 
 def _fmt(values: list[float]) -> str:
