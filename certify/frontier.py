@@ -241,8 +241,9 @@ class _Pools:
         return self.top
 
     def bottom_live(self, alive: torch.Tensor) -> torch.Tensor:
-        bottom = self.bottom if self.bottom is not None else self.top[:0]
-        self.bottom = bottom[alive[bottom]]
+        if self.bottom is None:
+            raise ValueError("pools built without nearest_half have no bottom pool")
+        self.bottom = self.bottom[alive[self.bottom]]
         return self.bottom
 
     def bloated(self) -> bool:
