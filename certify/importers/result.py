@@ -131,7 +131,7 @@ class ImportedModel:
 
 
 def _structure(out: int, n: int, p: int, asked: str | None, recorded: str | None,
-               path: str, where: str) -> str:
+               path: str, where: str, can_record: bool) -> str:
     """The gain structure: asked for (--structure), else recorded in the file's metadata,
     else decided by the output width; with p = 1 (n = n*p) a model must say which."""
     if asked is not None and recorded is not None and asked != recorded:
@@ -144,8 +144,8 @@ def _structure(out: int, n: int, p: int, asked: str | None, recorded: str | None
             raise ModelImportError(
                 f"{path}: with one output (p = 1) the {out} values the model gives are either "
                 f"the gain k itself (--structure direct) or G in k = G (y - h(xhat)) "
-                f"(--structure structural); say which (or record it at export: metadata "
-                f"{STRUCTURE_KEY})")
+                f"(--structure structural); say which"
+                + (f" (or record it at export: metadata {STRUCTURE_KEY})" if can_record else ""))
         structure = "direct" if out == n else "structural" if out == n * p else None
     if structure not in wanted or out != wanted[structure]:
         need = (f"{wanted.get(structure)} ({structure})" if structure is not None
@@ -178,7 +178,7 @@ def finish(layers: list[Layer], activation: str | None, *, n: int, p: int,
                                f"{first.W.shape[1]} values; the spec needs n+p = {n + p} "
                                f"(xhat: {n}, y: {p})")
     structure = _structure(last.W.shape[0], n, p, structure, recorded_structure, path,
-                           last.where)
+                           last.where, can_record=source_format != "state_dict")
     if len(layers) > 1 and activation is None:
         raise ModelImportError(f"{path}: no activation between the linear layers")
     activation = check_activation(activation or "tanh", path)
