@@ -115,6 +115,11 @@ class Bounds:
 
 
 def _gamma(k: int, unit: float) -> float:
+    """k u / (1 - k u): the relative error bound of a k-term sum; meaningless once k u ~ 1."""
+    if k * unit >= 0.5:
+        raise ModelImportError(f"a layer sums {k} terms in a precision of {unit:.1g}: too "
+                               "imprecise for its rounding to be bounded (export in float32 or "
+                               "float64)")
     return k * unit / (1 - k * unit)
 
 
