@@ -36,8 +36,10 @@ def mlp(activation: str, n: int = 3, p: int = 2, out: int | None = None, seed: i
                          nn.Linear(5, n * p if out is None else out)).double().eval()
 
 
-def export(model: nn.Module, path, how: str, inputs: tuple[torch.Tensor, ...]) -> str:
-    """Write `model` the way a user's training script would."""
+def export(model: nn.Module, path, how: str, inputs: tuple[torch.Tensor, ...],
+           structure: str | None = None) -> str:
+    """Write `model` the way a user's training script would (with `structure`, recorded as
+    the README says: ONNX metadata_props, a TorchScript extra file)."""
     path = str(path)
     if how.startswith("onnx"):
         names = ["z"] if len(inputs) == 1 else ["xhat", "y"]
@@ -46,10 +48,16 @@ def export(model: nn.Module, path, how: str, inputs: tuple[torch.Tensor, ...]) -
             torch.onnx.export(model, inputs, path, dynamo=False, opset_version=int(how[4:]),
                               input_names=names, output_names=["k"],
                               dynamic_axes={name: {0: "batch"} for name in names})
-    elif how == "script":
-        torch.jit.script(model).save(path)
-    elif how == "trace":
-        torch.jit.trace(model, inputs).save(path)
+        if structure is not None:
+            import onnx
+
+            proto = onnx.load(path)
+            onnx.helper.set_model_props(proto, {"certify.structure": structure})
+            onnx.save(proto, path)
+    elif how in ("script", "trace"):
+        module = torch.jit.script(model) if how == "script" else torch.jit.trace(model, inputs)
+        extra = {} if structure is None else {"certify.structure": structure}
+        torch.jit.save(module, path, _extra_files=extra)
     else:
         torch.save(model.state_dict(), path)
     return path
@@ -176,7 +184,7 @@ def test_certificate_numbers_equal_native_checkpoint(tmp_path, monkeypatch, caps
     net = near_linear_gain(activation)
     checkpoint.save(tmp_path / "native.ckpt", system=system, network=net, lam=system.lam)
     export(as_sequential(net, activation), tmp_path / "model.onnx", "onnx17",
-           (torch.zeros(1, 3, dtype=torch.float64),))
+           (torch.zeros(1, 3, dtype=torch.float64),), structure="direct")  # p = 1: recorded
     flags = ("--max-boxes", "400", "--skip", "simulation")
     native_code, _, err = run_cli(capsys, "run", "native.ckpt", "--json", "native.json", *flags)
     assert native_code in (0, 1, 3), err

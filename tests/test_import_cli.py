@@ -12,6 +12,8 @@ import pytest
 import torch
 from torch import nn
 
+from certify import checkpoint
+
 from .cli_helpers import run_cli, save_linear
 from .conftest import LINEAR_SPEC
 from .test_import import export, mlp
@@ -96,7 +98,7 @@ def test_state_dict_needs_a_c1_activation(workdir, capsys):
     assert "activation 'relu' is refused" in err and "D would be discontinuous" in err
     assert "unknown activation 'mish'" in import_refused(capsys, path, "--activation", "mish")
     code, out, err = run_cli(capsys, "import", path, "--system", "spec.toml",
-                             "--activation", "tanh", "-o", "sd.ckpt")
+                             "--activation", "tanh", "--structure", "direct", "-o", "sd.ckpt")
     assert code == 0 and "state_dict, tanh, hidden [6, 5], direct" in out, err
 
 
@@ -164,3 +166,35 @@ def test_damaged_zip_names_are_bad_input_for_run_too(workdir, capsys):
     data[name] = 0xE9  # not UTF-8 on its own; the entry is flagged as UTF-8
     path.write_bytes(bytes(data))
     assert "damaged" in refused(capsys, "run", str(path))
+
+
+# ----- p = 1: the output width does not say what the network outputs -------------------------
+@pytest.mark.parametrize("how", ("onnx17", "script", "state_dict"))
+def test_structure_is_never_guessed_for_one_output(workdir, capsys, how):
+    """n = n*p: k itself or G of k = G (y - h)? Exit 2 with both choices on one line."""
+    path = export(mlp("tanh", n=2, p=1, out=2), f"m.{how}", how, Z)
+    flags = ("--activation", "tanh") if how == "state_dict" else ()
+    err = import_refused(capsys, path, *flags)
+    assert "with one output (p = 1)" in err
+    assert "(--structure direct)" in err and "(--structure structural)" in err
+    for structure in ("direct", "structural"):
+        code, out, err = run_cli(capsys, "import", path, "--system", "spec.toml", "-o",
+                                 f"{structure}.ckpt", "--structure", structure, *flags)
+        assert code == 0 and f", {structure}" in out, err
+        assert checkpoint.load(f"{structure}.ckpt").problem.network.structure == structure
+
+
+@pytest.mark.parametrize("how", ("onnx17", "script"))
+def test_structure_recorded_at_export_is_used(workdir, capsys, how):
+    """The README's export lines record the structure (ONNX metadata_props, a TorchScript
+    extra file); a flag that disagrees, or a value that is neither, is exit 2."""
+    path = export(mlp("tanh", n=2, p=1, out=2), f"m.{how}", how, Z, structure="structural")
+    code, out, err = run_cli(capsys, "import", path, "--system", "spec.toml", "-o", "m.ckpt")
+    assert code == 0 and ", structural" in out, err
+    assert checkpoint.load("m.ckpt").problem.network.structure == "structural"
+    err = import_refused(capsys, path, "--structure", "direct")
+    assert "--structure direct disagrees with the model's metadata (certify.structure = " \
+           "structural)" in err
+    bad = export(mlp("tanh", n=2, p=1, out=2), f"bad.{how}", how, Z, structure="G")
+    assert "metadata certify.structure = 'G'; it must be 'direct' or 'structural'" in \
+        import_refused(capsys, bad)

@@ -66,7 +66,7 @@ SILU = [helper.make_node("Sigmoid", ["u"], ["sg"], name="s1"),
 ])
 def test_matmul_add_and_reordered_patterns(tmp_path, activation, nodes, extra):
     path = write(tmp_path / "m.onnx", first_layer() + nodes + second_layer("h"), extra=extra)
-    imported = read_model(path, 2, 1)
+    imported = read_model(path, 2, 1, structure="direct")
     assert imported.activation == activation and imported.hidden == [4]
     assert np.array_equal(imported.layers[0].W, W1.T) and np.array_equal(imported.layers[1].b, B2)
 
@@ -74,7 +74,7 @@ def test_matmul_add_and_reordered_patterns(tmp_path, activation, nodes, extra):
 def test_matmul_add_network_values(tmp_path):
     path = write(tmp_path / "m.onnx", first_layer() + [
         helper.make_node("Tanh", ["u"], ["h"], name="act")] + second_layer("h"))
-    net = read_model(path, 2, 1).network()
+    net = read_model(path, 2, 1, structure="direct").network()
     z = RNG.normal(size=(8, 3))
     expected = np.tanh(z @ W1 + B1) @ W2 + B2
     np.testing.assert_allclose(net(torch.as_tensor(z)).numpy(), expected, rtol=0, atol=1e-12)
@@ -107,30 +107,35 @@ def test_matmul_add_network_values(tmp_path):
 def test_graphs_that_are_not_a_supported_chain_are_refused(tmp_path, nodes, extra, message):
     path = write(tmp_path / "m.onnx", first_layer() + nodes, extra=extra)
     with pytest.raises(ModelImportError, match=re.escape(message)):
-        read_model(path, 2, 1)
+        read_model(path, 2, 1, structure="direct")
 
 
 def test_torchscript_dropout_in_eval_mode_is_a_no_op(tmp_path):
     model = nn.Sequential(nn.Linear(3, 4), nn.Tanh(), nn.Dropout(0.1), nn.Linear(4, 2))
     model = model.double().eval()
-    imported = read_model(export(model, tmp_path / "d.pt", "script", ()), 2, 1)
+    imported = read_model(export(model, tmp_path / "d.pt", "script", ()), 2, 1,
+                          structure="direct")
     assert imported.hidden == [4]
     model.train()
     with pytest.raises(ModelImportError, match=r"\(aten::dropout\): dropout in training mode"):
-        read_model(export(model, tmp_path / "t.pt", "script", ()), 2, 1)
+        read_model(export(model, tmp_path / "t.pt", "script", ()), 2, 1, structure="direct")
 
 
 def test_structure_for_p_1_and_activation_that_disagrees(tmp_path):
     path = write(tmp_path / "m.onnx", first_layer() + [
         helper.make_node("Tanh", ["u"], ["h"], name="act")] + second_layer("h"))
-    assert read_model(path, 2, 1).structure == "direct"  # n = n*p = 2: direct unless asked
+    with pytest.raises(ModelImportError, match=r"with one output \(p = 1\) the 2 values .* "
+                                               r"\(--structure direct\) or .*"
+                                               r"\(--structure structural\); say which"):
+        read_model(path, 2, 1)  # n = n*p = 2: never guessed
+    assert read_model(path, 2, 1, structure="direct").structure == "direct"
     structural = read_model(path, 2, 1, structure="structural")
     assert structural.structure == "structural"
     assert structural.network().architecture()["structure"] == "structural"
     with pytest.raises(ModelImportError, match=r"uses tanh \(node 'act' \(Tanh\)\); "
                                                "--activation sigmoid disagrees"):
-        read_model(path, 2, 1, activation="sigmoid")
-    assert read_model(path, 2, 1, activation="Tanh").activation == "tanh"
+        read_model(path, 2, 1, activation="sigmoid", structure="direct")
+    assert read_model(path, 2, 1, activation="Tanh", structure="direct").activation == "tanh"
 
 
 def test_transposed_weight_initializer(tmp_path):
@@ -140,11 +145,12 @@ def test_transposed_weight_initializer(tmp_path):
              helper.make_node("Add", ["m1", "B1"], ["u"], name="bias1"),
              helper.make_node("Tanh", ["u"], ["h"], name="act")] + second_layer("h")
     path = write(tmp_path / "m.onnx", nodes, extra=(("W1t", W1.T.copy()),))
-    imported = read_model(path, 2, 1)
+    imported = read_model(path, 2, 1, structure="direct")
     assert np.array_equal(imported.layers[0].W, W1.T)
     with pytest.raises(ModelImportError, match=r"node 'tr2' \(Transpose\): its operand"):
         read_model(write(tmp_path / "bad.onnx", first_layer() + [
-            helper.make_node("Transpose", ["u"], ["h"], name="tr2")] + second_layer("h")), 2, 1)
+            helper.make_node("Transpose", ["u"], ["h"], name="tr2")] + second_layer("h")), 2, 1,
+            structure="direct")
 
 
 class HandWritten(nn.Module):
@@ -164,7 +170,8 @@ class HandWritten(nn.Module):
 
 def test_torchscript_written_by_hand(tmp_path):
     model = HandWritten().double()
-    imported = read_model(export(model, tmp_path / "h.pt", "script", ()), 2, 1)
+    imported = read_model(export(model, tmp_path / "h.pt", "script", ()), 2, 1,
+                          structure="direct")
     assert imported.activation == "silu" and imported.hidden == [4]
     z = torch.as_tensor(RNG.normal(size=(8, 3)))
     torch.testing.assert_close(imported.network()(z), model(z).detach(), rtol=0, atol=1e-12)
@@ -183,4 +190,4 @@ def test_input_operations_that_are_not_a_normalisation(tmp_path, op, inputs, mes
              helper.make_node("Tanh", ["u"], ["h"], name="act")] + second_layer("h")
     extra = (scalar("one", 1.0), scalar("zero", 0.0), ("three", np.array([1.0, 2.0])))
     with pytest.raises(ModelImportError, match=re.escape(message)):
-        read_model(write(tmp_path / "m.onnx", nodes, extra=extra), 2, 1)
+        read_model(write(tmp_path / "m.onnx", nodes, extra=extra), 2, 1, structure="direct")

@@ -5,7 +5,11 @@ Both readers (ONNX, TorchScript) walk their graph in order and report each opera
 
     z = concat(xhat, y) -> Linear -> act -> Linear -> act -> ... -> Linear
 
-Elementwise operations after a linear layer build a small expression tree of that layer's
+The model input is used exactly once, as the chain's input: the two inputs of a two-input
+model (xhat first, then y, by position) meet in one Concat, in either order (a Concat of (y, xhat)
+is honoured by reordering the first layer's columns, which is exact); any other use of an input
+(a bias, a residual add, a second branch) is refused like other skip connections, naming the
+node. Elementwise operations after a linear layer build a small expression tree of that layer's
 output u; when the tree is read by the next linear layer (or would be the output) it must be
 one of the known activations, matched structurally (never by evaluating it):
 tanh(u), sigmoid(u), softplus(u), elu(u) (alpha = 1), gelu(u) (exact), u * sigmoid(u) (SiLU),
@@ -21,13 +25,21 @@ recognised or refused with one line naming the node.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Any, NoReturn
 
 import numpy as np
 
-from certify.importers.patterns import U, match_activation
+from certify.importers.patterns import U, constant_deviation, match_activation
 from certify.importers.result import NOT_C1, Layer, ModelImportError, check_activation
+
+
+def _columns_to_z(a: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """`a` (columns, or entries of a vector, in the model's input order) in z's order."""
+    out = np.empty_like(a)
+    out[..., cols] = a
+    return out
 
 
 @dataclass(frozen=True)
@@ -49,26 +61,37 @@ class Const:
     name: str
 
 
+#: what each of a two-input model's inputs is, by position
+PART_NAMES = ("xhat", "y")
+#: input names (lower case, letters only) that say which input is which
+_X_NAMES = {"xhat", "x", "xh", "xest", "estimate", "state", "states"}
+_Y_NAMES = {"y", "ymeas", "meas", "measurement", "measurements"}
+
+
 @dataclass(frozen=True, eq=False)
 class Part:
-    """One of two model inputs (xhat or y) before they are concatenated, as scale * input +
-    shift when the model normalises it (scale, shift None: as given)."""
+    """One of two model inputs (index 0: xhat, 1: y) before they are concatenated, as
+    scale * input + shift when the model normalises it (scale, shift None: as given)."""
 
     index: int
     width: int | None
     scale: np.ndarray | None = None
     shift: np.ndarray | None = None
+    name: str = ""
 
 
 @dataclass(frozen=True, eq=False)
 class Post:
     """The input z (k = 0; normalised as scale * z + shift where the model does so) or the
-    activation output after k linear layers."""
+    activation output after k linear layers. For k = 0, `order` is the input each block of the
+    model's vector comes from ((0, 1): xhat then y, as certify's z; (1, 0): the model joined
+    (y, xhat)); scale and shift are in the model's order."""
 
     k: int
     width: int | None
     scale: np.ndarray | None = None
     shift: np.ndarray | None = None
+    order: tuple[int, ...] = (0, 1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,6 +102,8 @@ class Pre:
     b: np.ndarray
     node: Node
     reads: int  # the k of the Post(k) it reads: a layer joins the chain only at position k
+    #: a folded input normalisation: (W, b, s, t) as the model computes W (s z + t) + b
+    fold: tuple[np.ndarray, ...] | None = None
 
     @property
     def width(self) -> int:
@@ -112,6 +137,9 @@ class ChainBuilder:
         self.activation: str | None = None
         self.activation_node: Node | None = None
         self.notes: list[str] = []
+        self.names: dict[int, str] = {}  # id(value) -> the last tensor name holding it
+        #: largest relative deviation of an activation pattern's constants from the exact ones
+        self.constant_deviation = 0.0
 
     # ----- bookkeeping --------------------------------------------------------------------
     def fail(self, where: Node | str, why: str) -> NoReturn:
@@ -124,6 +152,20 @@ class ChainBuilder:
 
     def set(self, name: str, value: Any) -> None:
         self.values[name] = value
+        if value is not None:
+            self.names[id(value)] = name
+
+    def describe(self, value: Any) -> str:
+        """What a symbolic value is, in a refusal's words."""
+        if isinstance(value, Part):
+            return f"the model input '{value.name}' ({PART_NAMES[value.index]})"
+        if isinstance(value, Post):
+            return "the model input" if value.k == 0 else f"the activation after layer {value.k}"
+        if isinstance(value, (Pre, Shaped)):
+            return f"the output of {value.node}"
+        if isinstance(value, Elem):
+            return f"the output of {value.node}"
+        return "a value that is not a constant"
 
     def constant(self, value: Any, node: Node, what: str) -> Const:
         if not isinstance(value, Const):
@@ -150,26 +192,59 @@ class ChainBuilder:
                              f"(xhat: {self.n}, then y: {self.p})")
         self.set(name, Post(0, self.n + self.p))
 
+    def input_names(self, names: list[str]) -> None:
+        """Two inputs are xhat, then y, by position; names that say the opposite ('y' first,
+        'xhat' second) are refused rather than read against the model's intent."""
+        if len(names) != 2:
+            return
+        first, second = (re.sub(r"[^a-z]", "", re.sub(r"\.\d+$", "", nm.lower()))
+                         for nm in names)
+        if first in _Y_NAMES and second in _X_NAMES:
+            self.fail(f"inputs ('{names[0]}', '{names[1]}')",
+                      "their names say y comes first; certify reads a two-input model by "
+                      "position as (xhat, y): export it with forward(xhat, y)")
+
     def input_part(self, name: str, index: int, width: int | None) -> None:
-        self.set(name, Part(index, width))
+        """Input `index` of a two-input model: xhat (n values) first, then y (p values)."""
+        need = (self.n, self.p)[index]
+        if width is not None and width != need:
+            self.fail(f"input '{name}'", f"has {width} values; certify reads a two-input model "
+                                         f"by position as xhat ({self.n} values) first, then y "
+                                         f"({self.p})")
+        self.set(name, Part(index, width, name=name))
+
+    def part_width(self, part: Part) -> int:
+        return (self.n, self.p)[part.index]
 
     def concat(self, node: Node, parts: list[Any], axis: int) -> Post:
+        """The two inputs joined, in either order: (xhat, y) is certify's z; (y, xhat) is
+        recorded as `order` and honoured in the first layer (its columns reordered)."""
         if axis not in (1, -1):
             self.fail(node, f"concatenates along axis {axis}; xhat and y are joined along "
                             "the feature axis (1 or -1)")
-        if len(parts) != 2 or not all(isinstance(v, Part) for v in parts) \
-                or parts[0] is parts[1]:
-            self.fail(node, "only the two model inputs (xhat, y) may be concatenated")
-        first, second = parts
-        if (first.width, second.width) not in ((self.n, self.p), (None, None), (self.n, None),
-                                               (None, self.p)):
-            self.fail(node, f"joins inputs of widths {first.width} and {second.width}; the "
-                            f"spec needs xhat ({self.n} values) first, then y ({self.p})")
-        if first.scale is None and second.scale is None:
-            return Post(0, self.n + self.p)
-        scale, shift = zip(*(self.affine_vectors(part, width, node)
-                             for part, width in ((first, self.n), (second, self.p))))
-        return Post(0, self.n + self.p, np.concatenate(scale), np.concatenate(shift))
+        for v in parts:
+            if not isinstance(v, Part):
+                self.fail(node, f"concatenates {self.describe(v)}; only the two model inputs "
+                                "(xhat, y) may be concatenated, once each")
+        order = tuple(part.index for part in parts)
+        if sorted(order) != [0, 1]:
+            used = ", ".join(PART_NAMES[i] for i in order)
+            self.fail(node, f"concatenates ({used}); only the two model inputs (xhat, y) may "
+                            "be concatenated, once each")
+        if order != (0, 1):
+            self.notes.append(f"{node} joins the inputs as (y, xhat); the first layer's columns "
+                              "are reordered to read certify's z = (xhat, y) (exact)")
+        if all(part.scale is None and part.shift is None for part in parts):
+            return Post(0, self.n + self.p, order=order)
+        scale, shift = zip(*(self.affine_vectors(part, self.part_width(part), node)
+                             for part in parts))
+        return Post(0, self.n + self.p, np.concatenate(scale), np.concatenate(shift), order)
+
+    def z_columns(self, order: tuple[int, ...]) -> np.ndarray:
+        """For a model vector joined in `order`, the column of z = (xhat, y) each of its
+        entries is."""
+        blocks = {0: np.arange(self.n), 1: np.arange(self.n, self.n + self.p)}
+        return np.concatenate([blocks[i] for i in order])
 
     # ----- input normalisation, folded into the first layer -------------------------------
     def affine_vectors(self, value: Post | Part, width: int, node: Node
@@ -205,13 +280,16 @@ class ChainBuilder:
         else:
             scale, shift = scale / cv, shift / cv
         if isinstance(value, Part):
-            return Part(value.index, value.width, scale, shift)
-        return Post(0, value.width, scale, shift)
+            return Part(value.index, value.width, scale, shift, value.name)
+        return Post(0, value.width, scale, shift, value.order)
 
     # ----- linear layers ------------------------------------------------------------------
-    def linear(self, node: Node, x: Any, W: Const, b: Const | None) -> Pre:
-        """u = W h + b for W [out, in]; h must be the latest activation output (or z)."""
+    def linear(self, node: Node, x: Any, W: Any, b: Any) -> Pre:
+        """u = W h + b for W [out, in]; h must be the latest activation output (or z). The
+        bias b is None, a constant holding None (no bias) or a constant tensor; anything else
+        (a model input or a computed value as the bias) is a skip connection, refused."""
         h = self.activate(x, node)
+        W = self.constant(W, node, "weight")
         Wa = self.finite(W, node)
         if Wa.ndim != 2:
             self.fail(node, f"weight '{W.name}' has shape {list(Wa.shape)}; a matrix is needed")
@@ -219,13 +297,24 @@ class ChainBuilder:
             self.fail(node, f"weight '{W.name}' reads {Wa.shape[1]} values but its input has "
                             f"{h.width}")
         out = Wa.shape[0]
-        ba = np.zeros(out) if b is None else self.bias(b, out, node)
-        if h.scale is not None:  # W (s z + t) + b = (W diag s) z + (b + W t)
+        if b is not None and not isinstance(b, Const):
+            self.fail(node, f"uses {self.describe(b)} as its bias: a skip connection; only a "
+                            "chain of layers (constant biases) is supported")
+        ba = np.zeros(out) if b is None or b.value is None else self.bias(b, out, node)
+        fold = None
+        if h.scale is not None or h.shift is not None:  # W (s z + t) + b = (W diag s) z + (b + W t)
             scale, shift = self.affine_vectors(h, Wa.shape[1], node)
+            fold = (Wa, ba, scale, shift)
             Wa, ba = Wa * scale[None, :], ba + Wa @ shift
             self.notes.append(f"input normalisation folded into the first layer ({node}): "
                               "exact up to one float64 rounding per weight")
-        return Pre(np.ascontiguousarray(Wa), ba, node, h.k)
+        if h.k == 0 and h.order != (0, 1):  # the model reads (y, xhat): reorder the columns
+            cols = self.z_columns(h.order)
+            Wa = _columns_to_z(Wa, cols)
+            if fold is not None:
+                fold = (_columns_to_z(fold[0], cols), fold[1], _columns_to_z(fold[2], cols),
+                        _columns_to_z(fold[3], cols))
+        return Pre(np.ascontiguousarray(Wa), ba, node, h.k, fold)
 
     def bias(self, b: Const, out: int, node: Node) -> np.ndarray:
         arr = self.finite(b, node)
@@ -260,6 +349,7 @@ class ChainBuilder:
             self.fail(x.node, f"uses {name} but {self.activation_node} uses "
                               f"{self.activation}; certify's gain has one activation")
         self.activation, self.activation_node = name, x.node
+        self.constant_deviation = max(self.constant_deviation, constant_deviation(x.expr))
         self.seal(x.pre)
         return Post(len(self.layers), x.pre.width)
 
@@ -269,14 +359,18 @@ class ChainBuilder:
         if pre.reads != len(self.layers):
             self.fail(pre.node, "its output or input is shared with another branch: only a "
                                 "chain of layers is supported")
-        self.layers.append(Layer(pre.W, pre.b, str(pre.node)))
+        self.layers.append(Layer(pre.W, pre.b, str(pre.node), self.names.get(id(pre)),
+                                 pre.fold))
 
     # ----- elementwise --------------------------------------------------------------------
     def add(self, node: Node, a: Any, b: Any) -> Any:
         """A bias folded into the layer (u + c), else an elementwise sum."""
         for pre, c in ((a, b), (b, a)):
             if isinstance(pre, Pre) and isinstance(c, Const):
-                return Pre(pre.W, pre.b + self.bias(c, pre.width, node), pre.node, pre.reads)
+                bias = self.bias(c, pre.width, node)
+                fold = None if pre.fold is None else (*pre.fold[:1], pre.fold[1] + bias,
+                                                      *pre.fold[2:])
+                return Pre(pre.W, pre.b + bias, pre.node, pre.reads, fold)
         return self.binary(node, "add", a, b)
 
     def binary(self, node: Node, op: str, a: Any, b: Any) -> Any:
@@ -295,7 +389,7 @@ class ChainBuilder:
                     self.fail(node, f"constant '{v.name}' is NaN or Inf")
                 exprs.append(("c", float(arr.reshape(-1)[0])))
             else:
-                expr, pre = self.expression(v, node)
+                expr, pre = self.expression(v, node, b if v is a else a)
                 exprs.append(expr)
                 pres.append(pre)
         if not pres:
@@ -309,14 +403,23 @@ class ChainBuilder:
         expr, pre = self.expression(x, node)
         return Elem((op, expr), pre, node)
 
-    def expression(self, v: Any, node: Node) -> tuple[tuple, Pre]:
+    def expression(self, v: Any, node: Node, other: Any = None) -> tuple[tuple, Pre]:
+        """The expression tree of `v`, an operand of an elementwise node (`other`: the node's
+        other operand, for the refusal's words)."""
         if isinstance(v, Pre):
             return U, v
         if isinstance(v, Elem):
             return v.expr, v.pre
-        if isinstance(v, Post) and v.k == 0:
-            self.fail(node, "acts on the model input before any linear layer")
-        self.fail(node, "acts on a value that is not one layer's output (u = W h + b)")
+        if isinstance(v, (Part, Post)) and (isinstance(v, Part) or v.k == 0):
+            if isinstance(other, (Pre, Elem, Post)) and not (isinstance(other, Post)
+                                                              and other.k == 0):
+                self.fail(node, f"combines {self.describe(v)} with {self.describe(other)}: a "
+                                "skip connection; only a chain of layers is supported (the "
+                                "model input is read once, by the first layer)")
+            self.fail(node, f"acts on {self.describe(v)} before any linear layer (only an "
+                            "input normalisation by constants may come before it)")
+        self.fail(node, f"acts on {self.describe(v)}, which is not one layer's output "
+                        "(u = W h + b)")
 
     def non_c1(self, node: Node, what: str) -> NoReturn:
         self.fail(node, f"{what} is not C^1: {NOT_C1}")

@@ -12,6 +12,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from certify.checkpoint import Checkpoint, save, versions
 from certify.errors import CertifyError
 from certify.importers import ImportedModel, read_model
@@ -27,7 +29,7 @@ def imported_problem(args: argparse.Namespace, model_path: str
     """The spec, the model read against it, and lam, P (flags, else the spec's)."""
     system: System = load_system(args.system)
     model = read_model(model_path, system.n, system.p, activation=args.activation,
-                       structure=args.structure)
+                       structure=args.structure, box=np.vstack([system.X, system.Y]))
     lam = system.lam if args.lam is None else validate_lam(args.lam, "--lam")
     P = system.P if args.metric is None else validate_metric(
         parse_metric(args.metric, system.n), system.n, "--metric")

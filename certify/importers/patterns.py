@@ -35,21 +35,40 @@ def _close(value: float, exact: float) -> bool:
     return abs(value - exact) <= GELU_CONSTANT_RTOL * abs(exact)
 
 
-def _is_erf_gelu(expr: tuple) -> bool:
-    """0.5 * u * (1 + erf(u / sqrt 2)), any order, constants up to float32 rounding."""
+def _erf_gelu_constants(expr: tuple) -> tuple[float, float, float] | None:
+    """(c1, c2, c3) of c1 * u * (c2 + erf(c3 * u)), factors in any order; None if not so."""
     scale, factors = _factors(expr)
-    if not _close(scale, 0.5) or len(factors) != 2 or U not in factors:
-        return False
+    if len(factors) != 2 or U not in factors:
+        return None
     other = factors[1] if factors[0] == U else factors[0]
     if other[0] != "add":
-        return False
+        return None
     terms = [other[1], other[2]]
-    one = [t for t in terms if t[0] == "c" and _close(t[1], 1.0)]
+    one = [t for t in terms if t[0] == "c"]
     erf = [t for t in terms if t[0] == "erf"]
     if len(one) != 1 or len(erf) != 1:
-        return False
+        return None
     inner_scale, inner = _factors(erf[0][1])
-    return inner == [U] and _close(inner_scale, 1.0 / math.sqrt(2.0))
+    return (scale, one[0][1], inner_scale) if inner == [U] else None
+
+
+_GELU_EXACT = (0.5, 1.0, 1.0 / math.sqrt(2.0))
+
+
+def _is_erf_gelu(expr: tuple) -> bool:
+    """0.5 * u * (1 + erf(u / sqrt 2)), any order, constants up to float32 rounding."""
+    found = _erf_gelu_constants(expr)
+    return found is not None and all(_close(c, e) for c, e in zip(found, _GELU_EXACT))
+
+
+def constant_deviation(expr: tuple) -> float:
+    """The largest relative deviation of a matched pattern's constants from the exact ones
+    (the erf form of GELU written with float32 roundings); 0 for the other patterns. The
+    network certified uses the exact constants; the import check allows this much."""
+    found = _erf_gelu_constants(expr)
+    if found is None or not _is_erf_gelu(expr):
+        return 0.0
+    return max(abs(c - e) / abs(e) for c, e in zip(found, _GELU_EXACT))
 
 
 def match_activation(expr: tuple) -> str | None:
