@@ -259,7 +259,8 @@ def build_parser(with_train: bool = True) -> argparse.ArgumentParser:
     p = sub.add_parser("import", parents=[common],
                        help="turn an ONNX, TorchScript or state_dict model into a checkpoint")
     p.add_argument("model", help="model.onnx, a TorchScript file, or a state_dict (.pt)")
-    _model_flags(p, "the system the model observes (built-in name or spec path; required)")
+    _model_flags(p, f"the system the model observes (built-in name: {systems}; or a spec "
+                    "path; required)")
     p.add_argument("-o", "--output", required=True, metavar="PATH", help="checkpoint to write")
     p.set_defaults(func=_dispatch("import"))
 

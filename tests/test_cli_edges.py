@@ -256,7 +256,7 @@ def test_help_lists_every_builtin_system_and_preset(capsys):
     names = builtin_system_names()
     assert {"vdp", "duffing", "lorenz", "vdp2", "vdp3"} <= set(names)
     listed = ", ".join(names)
-    for argv in (["train"], ["check"], ["systems"], ["run"]):
+    for argv in (["train"], ["check"], ["systems"], ["run"], ["import"]):
         assert listed in _help(*argv, capsys=capsys), argv
     text = _help("train", capsys=capsys)
     readme = (ROOT / "README.md").read_text()
@@ -413,6 +413,19 @@ def test_a_malformed_scheduler_is_one_line_before_anything_connects(tmp_path, ad
     assert "scheduler must be a Dask scheduler address" in err and address in err, err
     assert "Exception ignored" not in err and "torch" not in (imported or [])
     assert not (tmp_path / "c.json").exists()
+
+
+@pytest.mark.parametrize("address", ["inproc://elsewhere/1/2", "tls://127.0.0.1:1"])
+def test_a_scheduler_that_cannot_be_used_is_one_line_without_an_ignored_traceback(tmp_path,
+                                                                                  address):
+    """Well-formed, but refused by the client as it connects (an in-process address of
+    another process; TLS without its configuration): the client that failed is closed at
+    once, so nothing is printed after the one line when the interpreter exits."""
+    code, out, err, _ = probe("run", str(VDP), "--scheduler", address, cwd=tmp_path)
+    assert code == 2, err
+    _one_error_line(err)
+    assert f"--scheduler {address}: cannot connect to a Dask scheduler" in err, err
+    assert "Exception ignored" not in err
 
 
 def test_a_malformed_scheduler_in_the_policy_file_is_refused(workdir, capsys):
