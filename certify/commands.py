@@ -23,7 +23,19 @@ REPORT_FLAGS = ("html", "pdf", "json", "junit")
 STDOUT = "-"
 
 
-# ----- output paths ---------------------------------------------------------------------
+# ----- inputs and outputs ---------------------------------------------------------------
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """Whether paths `a` and `b` name one file: the same inode where both exist (hard links,
+    symbolic links, `./x` and `../dir/x`, a case-insensitive file system), else the same
+    resolved path (symbolic links followed, `.` and `..` removed)."""
+    try:
+        if os.path.samefile(a, b):
+            return True
+    except OSError:  # one of them does not exist (yet)
+        pass
+    return os.path.normcase(os.path.realpath(a)) == os.path.normcase(os.path.realpath(b))
+
+
 def check_output_path(path: str, flag: str, *, allow_stdout: bool = False) -> None:
     """Refuse, before any work, an output path whose file cannot be created.
 
@@ -52,19 +64,120 @@ def check_output_path(path: str, flag: str, *, allow_stdout: bool = False) -> No
     os.unlink(probe)
 
 
-def check_outputs(args: argparse.Namespace, flags: tuple[str, ...]) -> None:
-    """Check every output flag of `args` that is set; the same file may not be named twice."""
-    seen: dict[str, str] = {}
-    for flag in flags:
-        path = getattr(args, flag, None)
-        if path is None:
+def check_paths(outputs: list[tuple[str, str | None]],
+                inputs: list[tuple[str, str | Path | None]] = (),  # type: ignore[assignment]
+                *, stdout_ok: tuple[str, ...] = ("--json",)) -> None:
+    """The one check of a command's files, before any work: every output (flag, path) that is
+    set must not be any input (what, path), nor another output, and must be creatable.
+
+    Inputs are never overwritten: an output that is the checkpoint, the model, the spec, the
+    policy file or the certificate being read is refused (one line, exit 2), whatever path
+    names it. `-` (stdout, for the flags in `stdout_ok`) is not a file.
+    """
+    named = [(flag, str(path)) for flag, path in outputs if path is not None]
+    given = [(what, path) for what, path in inputs if path is not None]
+    seen: list[tuple[str, str]] = []
+    for flag, path in named:
+        if path != STDOUT:
+            for what, source in given:
+                if same_file(path, source):
+                    raise CertifyError(f"{flag} {path}: is {what} ({source}); an input is "
+                                       "never overwritten: name a new file")
+        check_output_path(path, flag, allow_stdout=flag in stdout_ok)
+        if path == STDOUT:
             continue
-        check_output_path(path, f"--{flag}", allow_stdout=flag == "json")
-        key = path if path == STDOUT else os.path.realpath(path)
-        if key in seen:
-            raise CertifyError(f"--{flag} {path}: the same file is already the "
-                               f"--{seen[key]} output")
-        seen[key] = flag
+        for other_flag, other in seen:
+            if same_file(path, other):
+                raise CertifyError(f"{flag} {path}: the same file is already the "
+                                   f"{other_flag} output")
+        seen.append((flag, path))
+
+
+def report_outputs(args: argparse.Namespace) -> list[tuple[str, str | None]]:
+    """The report flags of `run` and `report` as (flag, path)."""
+    return [(f"--{flag}", getattr(args, flag, None)) for flag in REPORT_FLAGS]
+
+
+def builtin_system_names() -> list[str]:
+    """The shipped systems' names, read from the package's folder (nothing imported)."""
+    from importlib import resources
+
+    folder = resources.files("certify") / "systems"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def system_argument(value: str) -> Path | None:
+    """What a system argument names, decided as `certify.system.load_system` decides it but
+    without importing it (an unknown name is a cheap error, so it must be a fast one): None
+    for a built-in name, the spec's path for a file; `SpecError` for anything else, with the
+    closest built-in name when the value looks like a typo of one."""
+    from certify.errors import SpecError
+
+    names = builtin_system_names()
+    if value in names:
+        return None
+    path = Path(value)
+    if path.suffix == ".toml" or path.exists():
+        if not path.is_file():
+            raise SpecError(f"spec file {value} not found")
+        return path
+    import difflib
+
+    close = difflib.get_close_matches(value, names, n=1, cutoff=0.6)
+    hint = f"; did you mean '{close[0]}'?" if close else ""
+    raise SpecError(f"unknown system '{value}'{hint} (built-ins: {', '.join(names)}; or give "
+                    "the path of a .toml spec)")
+
+
+def stage_file(path: str | Path, data: bytes) -> str:
+    """Write `data` to a new temporary file beside `path` (same directory, so that renaming
+    it onto `path` is atomic), flushed to disk with the mode a new file gets; returns its
+    name. Nothing is left behind when this raises."""
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual mode
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return tmp
+
+
+def commit_files(contents: dict[str, bytes]) -> None:
+    """Write every file of `contents` (path -> bytes) or none: each is staged beside its
+    target first, then all are renamed into place together.
+
+    Interrupts (Ctrl-C) are held back throughout (`certify.cli.INTERRUPTS.deferred`) and
+    looked at between files: one that came while staging, including one Python dropped
+    inside a finaliser while the reports were drawn, removes the staged files and touches no
+    target; one during the renames lets them finish. Each target is therefore the file it
+    was before or the complete new one, no temporary file is left, and the interrupt is
+    raised at the end either way.
+    """
+    from certify.cli import INTERRUPTS
+
+    staged: list[tuple[str, str]] = []
+    with INTERRUPTS.deferred():
+        try:
+            for path, data in contents.items():
+                if INTERRUPTS.received:
+                    raise KeyboardInterrupt
+                staged.append((stage_file(path, data), path))
+            if INTERRUPTS.received:
+                raise KeyboardInterrupt
+            for tmp, path in staged:
+                os.replace(tmp, path)
+        except BaseException:
+            for tmp, _ in staged:
+                Path(tmp).unlink(missing_ok=True)
+            raise
+    INTERRUPTS.check()
 
 
 def human_stream(args: argparse.Namespace) -> TextIO:
@@ -74,36 +187,64 @@ def human_stream(args: argparse.Namespace) -> TextIO:
 
 # ----- systems ----------------------------------------------------------------------------
 def cmd_systems(args: argparse.Namespace) -> int:
-    """List the built-in systems (read from their TOML files, nothing built), or print one."""
+    """List the built-in systems, or print one with its Jacobian.
+
+    The list, a built-in system and an unknown name are answered from the spec files and
+    sympy alone (torch is not imported: these are the quick answers); a user's spec file is
+    loaded and validated in full (`certify.system.load_system`).
+    """
+    from certify.config import tomllib
+
+    names = builtin_system_names()
     if args.name is None:
         from importlib import resources
 
-        from certify.config import tomllib
-
         folder = resources.files("certify") / "systems"
-        for entry in sorted(folder.iterdir(), key=lambda p: p.name):
-            if not entry.name.endswith(".toml"):
-                continue
-            spec = tomllib.loads(entry.read_text())
-            print(f"{entry.name[:-5]:<10} n={len(spec.get('states', []))} "
+        for name in names:
+            spec = tomllib.loads((folder / f"{name}.toml").read_text())
+            print(f"{name:<10} n={len(spec.get('states', []))} "
                   f"p={len(spec.get('outputs', []))}  {spec.get('description', '')}")
         return 0
-    from certify.system import builtin_names, builtin_text, load_system
+    path = system_argument(args.name)
+    if path is None:
+        text = builtin_spec_text(args.name)
+        print(text.rstrip())
+        print(f"# Jf = {spec_jacobian(tomllib.loads(text))}")
+        return 0
+    from certify.system import load_system
 
-    system = load_system(args.name)
-    if args.name in builtin_names():
-        print(builtin_text(args.name).rstrip())
-    else:
-        print(system.source.rstrip())
+    system = load_system(path)
+    print(system.source.rstrip())
     print(f"# Jf = {system.jf_expr.tolist()}")
     return 0
+
+
+def builtin_spec_text(name: str) -> str:
+    """The TOML text of a built-in system."""
+    from importlib import resources
+
+    return (resources.files("certify") / "systems" / f"{name}.toml").read_text()
+
+
+def spec_jacobian(spec: dict[str, Any]) -> list[list[Any]]:
+    """Jf of a (shipped, already validated) spec, by the same parser and sympy calls as
+    `certify.system.System`, without importing the rest of it (torch)."""
+    import sympy
+
+    from certify.parse import parse_expression
+
+    symbols = {s: sympy.Symbol(s, real=True) for s in spec["states"]}
+    f = [parse_expression(text, symbols, f"f[{i}]") for i, text in enumerate(spec["f"])]
+    x = sympy.Matrix([symbols[s] for s in spec["states"]])
+    return sympy.Matrix(f).jacobian(x).tolist()
 
 
 # ----- check ------------------------------------------------------------------------------
 def cmd_check(args: argparse.Namespace) -> int:
     """Pre-flight of a spec as given: 0 passes, 1 fails (with the metric that would fix it
     when one is found), 3 undecided."""
-    check_outputs(args, ("json",))
+    check_paths([("--json", args.json)], [("the spec being checked",
+                                            system_argument(args.system))])
     from certify.checks.metric import synthesize_metric
     from certify.checks.necessary import check_necessary
     from certify.results import Status, to_jsonable
@@ -151,14 +292,13 @@ def _write_json(path: str, text: str) -> None:
         sys.stdout.write(text)
         sys.stdout.flush()
         return
-    from certify.checkpoint import atomic_write_bytes
-
-    atomic_write_bytes(path, text.encode("utf-8"))
+    commit_files({path: text.encode("utf-8")})
 
 
 # ----- train ------------------------------------------------------------------------------
 def cmd_train(args: argparse.Namespace) -> int:
-    check_output_path(args.output, "-o")
+    check_paths([("-o", args.output)], [("the spec being trained for",
+                                         system_argument(args.system))])
     from training.command import run_train
 
     return run_train(args)
@@ -169,23 +309,23 @@ def cmd_import(args: argparse.Namespace) -> int:
     """A model trained elsewhere (ONNX, TorchScript, state_dict) -> a normal checkpoint."""
     if args.system is None:
         raise CertifyError("certify import needs --system SPEC (the system the model observes)")
-    check_output_path(args.output, "-o")
-    if os.path.realpath(args.output) == os.path.realpath(args.model):
-        raise CertifyError(f"-o {args.output}: is the model itself; name a new checkpoint")
+    check_paths([("-o", args.output)], [("the model being imported", args.model),
+                                        ("the --system spec", system_argument(args.system))])
     from certify.importers.command import run_import
 
     return run_import(args)
 
 
 # ----- run, report ------------------------------------------------------------------------
-def _flag_settings(args: argparse.Namespace) -> dict[str, Any]:
-    def csv(value: str | None) -> tuple[str, ...] | None:
-        return None if value is None else tuple(x.strip() for x in value.split(",") if x.strip())
+def _csv(value: str | None) -> tuple[str, ...] | None:
+    return None if value is None else tuple(x.strip() for x in value.split(",") if x.strip())
 
+
+def _flag_settings(args: argparse.Namespace) -> dict[str, Any]:
     return {
         "grid_points": args.grid_points, "proof_seconds": args.proof_seconds,
         "max_boxes": args.max_boxes, "noise": args.noise, "seed": args.seed,
-        "required": csv(args.require), "skip": csv(args.skip),
+        "required": _csv(args.require), "skip": _csv(args.skip),
         "allow_unknown": True if args.allow_unknown else None, "sim_time": args.sim_time,
         "adversarial_starts": args.adversarial_starts,
         "workers": getattr(args, "workers", None), "scheduler": getattr(args, "scheduler", None),
@@ -193,9 +333,51 @@ def _flag_settings(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def _check_policy_flags(args: argparse.Namespace) -> None:
+    """--require and --skip in the words of the flags: the MPDI is the certificate, so it is
+    always required and always run (`certify.settings.CERTIFICATE_CHECK`). Unknown names are
+    left to the settings' own message."""
+    from certify.settings import CERTIFICATE_CHECK, CHECK_NAMES
+
+    required, skip = _csv(args.require), _csv(args.skip)
+    if required is not None and CERTIFICATE_CHECK not in required \
+            and set(required) <= set(CHECK_NAMES):
+        others = ",".join(c for c in required if c != CERTIFICATE_CHECK)
+        raise CertifyError(f"--require {args.require!r}: the MPDI is the certificate and is "
+                           "always required; name the other checks beside it, e.g. "
+                           f"--require {','.join(filter(None, (CERTIFICATE_CHECK, others)))}")
+    if skip is not None and CERTIFICATE_CHECK in skip:
+        raise CertifyError(f"--skip {args.skip}: the MPDI is the certificate and always runs; "
+                           "bound its time with --proof-seconds or --max-boxes instead")
+
+
+def _run_inputs(args: argparse.Namespace) -> list[tuple[str, str | Path | None]]:
+    """The files `certify run` reads: the checkpoint (or model), the --system spec, and the
+    policy file (--config, else the pyproject.toml found, unless --no-config)."""
+    from certify.config import find_pyproject
+
+    model = args.system is not None
+    inputs: list[tuple[str, str | Path | None]] = [
+        (f"the {'model' if model else 'checkpoint'} being verified", args.checkpoint)]
+    if model:
+        inputs.append(("the --system spec", system_argument(args.system)))
+    if args.config:
+        inputs.append(("the --config file", args.config))
+    elif not args.no_config:
+        inputs.append(("the pyproject.toml the policy is read from", find_pyproject()))
+    return inputs
+
+
 def cmd_run(args: argparse.Namespace) -> int:
-    """Verify a checkpoint; write the reports asked for; exit with the verdict's code."""
-    check_outputs(args, REPORT_FLAGS)
+    """Verify a checkpoint; write the reports asked for; exit with the verdict's code.
+
+    Everything that can be refused from the arguments alone (paths, a missing input, an
+    unknown system, the policy) is refused before torch is even imported."""
+    check_paths(report_outputs(args), _run_inputs(args))
+    if not Path(args.checkpoint).exists():
+        what = "model" if args.system is not None else "checkpoint"
+        raise CertifyError(f"{what} {args.checkpoint} not found")
+    _check_policy_flags(args)
     from certify.config import load_settings
     from certify.display import ProgressDisplay, budgets_from
 
@@ -203,6 +385,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         _flag_settings(args), Path(args.config) if args.config else None,
         use_pyproject=not args.no_config)
     from certify.certificate import exit_code
+    from certify.cli import INTERRUPTS
     from certify.device import resolve_device
     from certify.executor import executor_from_settings
     from certify.importers.command import checkpoint_for_run
@@ -218,12 +401,14 @@ def cmd_run(args: argparse.Namespace) -> int:
                   + (f", policy from {config_path}" if config_path else "")
                   + (f", on {executor.description}" if executor.remote else ""),
                   file=sys.stderr)
-        display = ProgressDisplay(quiet=args.quiet, budgets=budgets_from(settings))
+        display = ProgressDisplay(quiet=args.quiet, budgets=budgets_from(settings),
+                                  interrupted=INTERRUPTS.check)
         args.display = display  # the error handler names the step that was running
         try:
             wants_figures = any(getattr(args, k) for k in ("html", "pdf", "json"))
             cert = verify(ckpt, settings, progress=display, figures=wants_figures,
                           executor=executor)
+            INTERRUPTS.check()  # one Python dropped inside a finaliser during the checks
             write_outputs(cert, args, display)
         finally:
             display.close()
@@ -237,7 +422,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     """Re-render reports from a saved JSON certificate (no verification)."""
     if not any(getattr(args, k) for k in REPORT_FLAGS):
         raise CertifyError("nothing to write: give --html, --pdf, --junit or --json")
-    check_outputs(args, REPORT_FLAGS)
+    check_paths(report_outputs(args), [("the certificate being re-rendered", args.certificate)])
     from certify.certificate import Certificate
     from certify.display import ProgressDisplay
 
@@ -253,20 +438,21 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def write_outputs(cert: Any, args: argparse.Namespace, display: Any) -> None:
-    """Write the reports asked for, as one step ("reports") of the progress display."""
-    targets = {k: getattr(args, k, None) for k in REPORT_FLAGS}
-    if not any(targets.values()):
+    """Write the reports asked for, as one step ("reports") of the progress display: all
+    rendered in memory, then written together or not at all (`commit_files`)."""
+    targets = {k: getattr(args, k, None) for k in REPORT_FLAGS if getattr(args, k, None)}
+    if not targets:
         return
     display.start_step("reports")
     t0 = time.perf_counter()
-    to_stdout = targets.get("json") == STDOUT
-    if to_stdout:
-        targets["json"] = None
-    if any(targets.values()):
-        from reports.render import write_reports
+    files = {k: path for k, path in targets.items() if path != STDOUT}
+    if files:
+        from reports.render import render_reports
 
-        write_reports(cert, **targets, trajectories=bool(getattr(args, "trajectories", False)))
-    if to_stdout:
+        data = render_reports(cert, trajectories=bool(getattr(args, "trajectories", False)),
+                              **{k: True for k in files})
+        commit_files({path: data[k] for k, path in files.items()})
+    if targets.get("json") == STDOUT:
         _write_json(STDOUT, cert.to_json() + "\n")
     display.finish_step("reports", "written", time.perf_counter() - t0)
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TextIO
 
@@ -40,12 +41,19 @@ def budgets_from(settings: Any) -> dict[str, tuple[float, int]]:
 
 
 class ProgressDisplay:
-    """A `certify.progress.Progress` with steps, drawn on `stream` (stderr by default)."""
+    """A `certify.progress.Progress` with steps, drawn on `stream` (stderr by default).
+
+    `interrupted`, when given, is called at every step and task update and raises to stop
+    the work (the CLI passes `certify.cli.INTERRUPTS.check`, so a Ctrl-C that Python dropped
+    inside a finaliser still ends the run at the next update, not minutes later).
+    """
 
     def __init__(self, stream: TextIO | None = None, *, quiet: bool = False,
                  rich: bool | None = None, heartbeat: float = 2.0,
-                 budgets: dict[str, tuple[float, int]] | None = None) -> None:
+                 budgets: dict[str, tuple[float, int]] | None = None,
+                 interrupted: Callable[[], None] | None = None) -> None:
         self.stream = stream if stream is not None else sys.stderr
+        self._interrupted = interrupted or (lambda: None)
         self.quiet = quiet
         isatty = getattr(self.stream, "isatty", lambda: False)()
         self.use_rich = (isatty if rich is None else rich) and not quiet
@@ -66,6 +74,7 @@ class ProgressDisplay:
 
     # ----- steps ---------------------------------------------------------------------
     def start_step(self, name: str) -> None:
+        self._interrupted()
         with self._lock:
             self.current_step = name
             self._step_started = time.monotonic()
@@ -110,6 +119,7 @@ class ProgressDisplay:
                                                     info=self._info(state))
 
     def update(self, task: str, advance: float = 1.0, **fields: object) -> None:
+        self._interrupted()
         with self._lock:
             state = self._tasks.get(task)
             if state is None:

@@ -148,6 +148,15 @@ class PendingChunks:
         self._futures = None
 
 
+def _close_failed_client(client: Any) -> None:
+    """Close a `Client` whose constructor raised, quietly and at once (best effort)."""
+    try:
+        client.close(timeout=2)
+    except Exception:  # it never connected: nothing to report
+        pass
+    client.status = "closed"  # its __del__ then has nothing left to do
+
+
 def _call_with_payload(fn: Callable[..., Any], payload: Any, item: tuple) -> Any:
     """Task body of `DaskExecutor.map_chunks` (module level: picklable): arguments and
     result cross the wire as numpy arrays (`to_wire`)."""
@@ -173,14 +182,19 @@ class DaskExecutor:
             address = str(scheduler).strip()
             if not address:
                 raise SettingsError("--scheduler must be an address like tcp://host:8786")
+            # made in two steps, so that a client whose connection failed can be closed
+            # here: left to its __del__, it would try again at exit, time out and print an
+            # ignored traceback after the one-line error
+            client = Client.__new__(Client)
             try:
-                self.client = Client(address, timeout=f"{connect_timeout}s",
-                                     set_as_default=False)
+                client.__init__(address, timeout=f"{connect_timeout}s", set_as_default=False)
             except (OSError, TimeoutError, ValueError, TypeError) as exc:
+                _close_failed_client(client)
                 reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
                 raise SettingsError(f"--scheduler {address}: cannot connect to a Dask "
                                     f"scheduler within {connect_timeout:g} s ({reason})"
                                     ) from None
+            self.client = client
             self.workers = max(1, len(self.client.scheduler_info().get("workers", {})))
             self.description = f"dask scheduler {address} ({self.workers} workers)"
         else:

@@ -9,6 +9,7 @@ Checks never mutate settings; the certificate echoes them.
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,6 +18,12 @@ from certify.errors import SettingsError
 #: the checks `verify()` runs (each is `CHECK` in certify/checks/<name>.py), in this order
 #: unless one needs another's result (see certify.checks.registry)
 CHECK_NAMES = ("necessary", "mpdi", "rate", "residual", "lipschitz", "bounds", "simulation")
+#: the check that is the certificate: always run, always required, whatever the policy says
+#: (a policy may add checks beside it, never drop it; see `validate`)
+CERTIFICATE_CHECK = "mpdi"
+#: a local Dask cluster may have at most this many processes per CPU this process may use
+#: (more only compete for the same cores while each still pays its start-up)
+WORKERS_PER_CPU = 2
 
 
 @dataclass(frozen=True)
@@ -38,11 +45,12 @@ class VerifySettings:
     sim_dt: float = 2e-3
     sim_initial_conditions: int = 6
     seed: int = 0
-    required: tuple[str, ...] = ("mpdi",)  # checks whose failure means exit 1
+    required: tuple[str, ...] = ("mpdi",)  # checks whose failure means exit 1; mpdi always
     allow_unknown: bool = False  # treat an UNKNOWN required check as a pass (exit 0)
-    skip: tuple[str, ...] = ()  # checks not run at all
+    skip: tuple[str, ...] = ()  # checks not run at all (never mpdi)
     device: str = "cpu"  # torch device of the grid, falsifier and proofs ("cpu", "cuda")
-    workers: int = 1  # Dask worker processes of a local cluster (1: serial, no cluster)
+    workers: int = 1  # Dask worker processes of a local cluster (1: serial, no cluster;
+    # at most `max_local_workers()`)
     scheduler: str = ""  # address of a running Dask scheduler (wins over workers)
 
     def __post_init__(self) -> None:
@@ -84,6 +92,14 @@ def validate(s: VerifySettings, source: str = "settings") -> None:
         v = getattr(s, name)
         if not isinstance(v, tuple) or any(c not in CHECK_NAMES for c in v):
             raise _fail(source, name, f"a list of check names from {list(CHECK_NAMES)}", v)
+    if CERTIFICATE_CHECK not in s.required:
+        raise SettingsError(f"{source} required must include {CERTIFICATE_CHECK}: the MPDI is "
+                            "the certificate and cannot be dropped (list other checks beside "
+                            f"it, e.g. {[CERTIFICATE_CHECK, 'residual']}); got {list(s.required)}")
+    if CERTIFICATE_CHECK in s.skip:
+        raise SettingsError(f"{source} skip cannot include {CERTIFICATE_CHECK}: the MPDI is the "
+                            "certificate and always runs (bound its time with proof_seconds or "
+                            f"max_boxes instead); got {list(s.skip)}")
     for name in ("allow_unknown", "float32_screen"):
         if not isinstance(getattr(s, name), bool):
             raise _fail(source, name, "true or false", getattr(s, name))
@@ -93,6 +109,59 @@ def validate(s: VerifySettings, source: str = "settings") -> None:
         raise _fail(source, "device", "'cpu' or 'cuda' (or 'cuda:N')", s.device)
     if not isinstance(s.scheduler, str) or any(c.isspace() for c in s.scheduler.strip()):
         raise _fail(source, "scheduler", "an address like 'tcp://host:8786'", s.scheduler)
+    if s.scheduler.strip():
+        check_scheduler_address(s.scheduler.strip(), source)
+    elif s.workers > max_local_workers():
+        cap = max_local_workers()
+        raise SettingsError(f"{source} workers must be at most {cap} ({WORKERS_PER_CPU} per "
+                            f"CPU, {cap // WORKERS_PER_CPU} here: more local processes only "
+                            "compete for them; for more, run a Dask cluster and give its "
+                            f"address, --scheduler); got {s.workers}")
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity where the OS has one)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # pragma: no cover - macOS, Windows
+        return max(1, os.cpu_count() or 1)
+
+
+def max_local_workers() -> int:
+    """The largest `workers` a local Dask cluster may have: `WORKERS_PER_CPU` per usable CPU."""
+    return WORKERS_PER_CPU * usable_cpus()
+
+
+def check_scheduler_address(address: str, source: str = "settings") -> None:
+    """Refuse a malformed Dask scheduler address before anything connects.
+
+    Parsed by Dask's own rules (`distributed.comm`: the scheme must be a known transport and an
+    IP transport needs host:port with a port in 1..65535); whether anything answers there is
+    for the connection to find out. Without dask installed nothing is checked here (the
+    executor then says how to install it).
+    """
+    try:
+        from distributed.comm import registry
+        from distributed.comm.addressing import parse_address
+    except ImportError:  # pragma: no cover - dask is an optional extra
+        return
+    need = "a Dask scheduler address like 'tcp://host:8786'"
+    try:
+        scheme, location = parse_address(address)
+        backend = registry.get_backend(scheme)
+    except (ValueError, TypeError) as exc:
+        raise SettingsError(f"{source} scheduler must be {need} ({exc}); "
+                            f"got {address!r}") from None
+    try:
+        host, port = backend.get_address_host_port(location)
+    except NotImplementedError:  # not an IP transport (inproc, ucx): nothing more to check
+        return
+    except (ValueError, TypeError) as exc:
+        raise SettingsError(f"{source} scheduler must be {need} ({exc}); "
+                            f"got {address!r}") from None
+    if not host or not 0 < int(port) < 65536:
+        raise SettingsError(f"{source} scheduler must be {need} (host and a port in "
+                            f"1..65535); got {address!r}")
 
 
 FIELD_NAMES = tuple(f.name for f in dataclasses.fields(VerifySettings) if f.init)

@@ -23,8 +23,8 @@ from certify.figuredata import FigureData, GridMap
 from certify.parallel import torch_threads
 from certify.problem import Problem
 from certify.progress import NullProgress, Progress, finish_step, start_step
-from certify.results import CheckFailure
-from certify.settings import VerifySettings
+from certify.results import CheckFailure, Status
+from certify.settings import CERTIFICATE_CHECK, VerifySettings
 
 MAP_RESOLUTION = 61  # per axis, for the report's maps
 MAP_Y_SAMPLES = 41  # total samples over Y (and the other states) per map pixel
@@ -72,7 +72,7 @@ def _verify(checkpoint: Checkpoint, settings: VerifySettings, progress: Progress
         timings["figures"] = time.perf_counter() - t0
         finish_step(progress, "figures", "done", timings["figures"])
     timings["total"] = time.perf_counter() - t_all
-    verdict, summary = decide_verdict(checks, context.required, settings.allow_unknown)
+    verdict, summary = certificate_verdict(checks, context.required, settings.allow_unknown)
     network = problem.network.architecture()
     network["has_linear_gain"] = bool(torch.any(problem.network.K != 0))
     training = checkpoint.training or {}
@@ -87,6 +87,25 @@ def _verify(checkpoint: Checkpoint, settings: VerifySettings, progress: Progress
         versions=versions(), timings=timings, figures=context.figures,
         created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     )
+
+
+def certificate_verdict(checks: dict[str, Any], required: list[str],
+                        allow_unknown: bool) -> tuple[str, str]:
+    """`certify.certificate.decide_verdict`, with the MPDI as the certificate: it is always
+    required (added to `required` here should the settings ever have dropped it; they refuse
+    to), and CERTIFIED needs it PROVED, whatever `allow_unknown` says: that waiver is for the
+    other required checks, never for the certificate itself.
+    """
+    if CERTIFICATE_CHECK not in required:
+        required.insert(0, CERTIFICATE_CHECK)
+    verdict, summary = decide_verdict(checks, required, allow_unknown)
+    mpdi = checks.get(CERTIFICATE_CHECK)
+    status = mpdi.status if mpdi is not None else Status.SKIPPED
+    if verdict == "CERTIFIED" and status != Status.PROVED:
+        verdict = "INCONCLUSIVE"
+        summary = (f"not established: {CERTIFICATE_CHECK} ({status.value}): the MPDI is the "
+                   "certificate and must be PROVED (allow_unknown never waives it)")
+    return verdict, summary
 
 
 def _state_grid(problem: Problem) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:

@@ -1,7 +1,13 @@
 """Shared pieces of the command-line tests: a fast policy, a linear ground-truth checkpoint,
-and running `certify.cli.main` in-process with its exit code and both streams."""
+running `certify.cli.main` in-process with its exit code and both streams, and running it in
+a fresh interpreter (`probe`: which heavy libraries it imported)."""
 
 from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -44,3 +50,27 @@ def run_cli(capsys, *argv) -> tuple[int, str, str]:
     code = main(list(argv))
     out = capsys.readouterr()
     return code, out.out, out.err
+
+
+ROOT = Path(__file__).resolve().parents[1]
+HEAVY = ("torch", "sympy", "cvxpy", "matplotlib", "scipy")
+# runs the CLI in a fresh interpreter, then lists the heavy libraries it imported
+PROBE = ("import sys; from certify.cli import main; rc = main(sys.argv[1:]); "
+         f"print('IMPORTED', sorted(m for m in {HEAVY!r} if m in sys.modules)); sys.exit(rc)")
+
+
+def fresh_env() -> dict[str, str]:
+    """The environment for a child interpreter that imports this tree's certify."""
+    path = os.environ.get("PYTHONPATH", "")
+    return {**os.environ, "PYTHONPATH": str(ROOT) + (os.pathsep + path if path else "")}
+
+
+def probe(*argv: str, cwd: Path | None = None) -> tuple[int, str, str, list[str] | None]:
+    """(exit code, stdout without the probe line, stderr, heavy modules imported) of
+    `certify ARGV` in a fresh interpreter."""
+    proc = subprocess.run([sys.executable, "-c", PROBE, *argv], capture_output=True,
+                          text=True, timeout=300, cwd=cwd, env=fresh_env())
+    lines = proc.stdout.splitlines()
+    imported = eval(lines[-1].split(" ", 1)[1]) if lines and lines[-1].startswith("IMPORTED") \
+        else None
+    return proc.returncode, "\n".join(lines[:-1]), proc.stderr, imported

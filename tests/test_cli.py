@@ -105,8 +105,11 @@ def test_inconclusive_exit_3_and_allow_unknown(workdir, capsys):
     # a serial CPU run also names the ways to spread the proof
     assert "Dask workers (--workers, --scheduler) or a GPU (--device cuda)" in \
         cert["checks"]["mpdi"]["message"]
-    code, _, _ = run_cli(capsys, *args, "--allow-unknown", "--quiet")
-    assert code == 0
+    # allow_unknown waives UNKNOWN for the other required checks, never for the MPDI: the
+    # certificate itself must be PROVED to certify
+    code, out, _ = run_cli(capsys, *args, "--allow-unknown", "--quiet")
+    assert code == 3 and out.startswith("INCONCLUSIVE"), out
+    assert "must be PROVED" in out
     code, _, _ = run_cli(capsys, "run", str(path), "--skip", "simulation,lipschitz,rate",
                          "--quiet")
     assert code == 0  # with the default budget the same gain is proved

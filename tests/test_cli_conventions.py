@@ -11,32 +11,16 @@ import shutil
 import subprocess
 import sys
 from importlib import metadata
-from pathlib import Path
 
 import pytest
 
 from certify.cli import main
 from certify.settings import CHECK_NAMES
 
-from .cli_helpers import FAST_POLICY, run_cli, save_linear
+from .cli_helpers import FAST_POLICY, ROOT, probe, run_cli, save_linear
 from .conftest import LINEAR_SPEC
 
-ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = str(ROOT / "examples" / "vdp_certified.ckpt")
-HEAVY = ("torch", "sympy", "cvxpy", "matplotlib", "scipy")
-# runs the CLI in a fresh interpreter, then lists the heavy libraries it imported
-PROBE = ("import sys; from certify.cli import main; rc = main(sys.argv[1:]); "
-         f"print('IMPORTED', sorted(m for m in {HEAVY!r} if m in sys.modules)); sys.exit(rc)")
-
-
-def probe(*argv: str, cwd: Path | None = None) -> tuple[int, str, str, list[str]]:
-    """(exit code, stdout without the probe line, stderr, heavy modules imported)."""
-    proc = subprocess.run([sys.executable, "-c", PROBE, *argv], capture_output=True,
-                          text=True, timeout=300, cwd=cwd)
-    lines = proc.stdout.splitlines()
-    imported = eval(lines[-1].split(" ", 1)[1]) if lines and lines[-1].startswith("IMPORTED") \
-        else None
-    return proc.returncode, "\n".join(lines[:-1]), proc.stderr, imported
 
 
 @pytest.fixture
@@ -128,11 +112,16 @@ def test_bash_completion_completes_commands_and_check_lists(tmp_path, capsys):
     assert "run" in complete("certify", "r") and "report" in complete("certify", "r")
     assert complete("certify", "run", "x.ckpt", "--req") == ["--require"]
     assert complete("certify", "run", "x.ckpt", "--require", "mpdi,ra") == ["mpdi,rate"]
-    assert complete("certify", "run", "x.ckpt", "--skip", "") == list(CHECK_NAMES)
+    # the MPDI is the certificate: --skip never offers it (it would be refused)
+    assert complete("certify", "run", "x.ckpt", "--skip", "") == \
+        [c for c in CHECK_NAMES if c != "mpdi"]
+    assert complete("certify", "run", "x.ckpt", "--skip", "rate,m") == []
     assert complete("certify", "completion", "") == ["bash", "zsh", "fish"]
+    assert complete("certify", "train", "vdp", "--preset", "") == ["paper", "tiny", "certified"]
     assert "bashcompinit" in generate("zsh")
     fish = generate("fish")
-    assert "__fish_seen_subcommand_from run' -l require -x -a '(__certify_checks)'" in fish
+    assert ("__fish_seen_subcommand_from run' -l require -x -a "
+            f"'(__certify_checks {' '.join(CHECK_NAMES)})'") in fish
 
 
 def test_check_exit_codes_follow_the_spec_as_given(tmp_path, capsys):

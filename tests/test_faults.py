@@ -134,7 +134,7 @@ def test_escape_outside_every_check_is_exit_4_in_one_line(workdir, capsys, monke
 def test_escape_while_writing_reports_names_the_step(workdir, capsys, monkeypatch):
     import reports.render
 
-    monkeypatch.setattr(reports.render, "write_reports", _overflow)
+    monkeypatch.setattr(reports.render, "render_reports", _overflow)  # what `run` calls
     path = save_linear(workdir / "lin.ckpt")
     code, _, err = run_cli(capsys, "run", path, "--junit", "c.xml", "--quiet")
     assert code == 4

@@ -17,8 +17,10 @@ from certify.results import Status
 from .cli_helpers import FAST_POLICY, A, C, K, run_cli, save_problem
 from .planted import linear_problem
 
-ONLY_LIPSCHITZ = ("--require", "lipschitz", "--skip",
-                  "simulation,mpdi,rate,residual,necessary,bounds")
+# the Lipschitz check beside the MPDI, which always runs (it is the certificate) on a short
+# budget: the verdict is the MPDI's, the Lipschitz result is what these tests read
+ONLY_LIPSCHITZ = ("--require", "mpdi,lipschitz", "--skip",
+                  "simulation,rate,residual,necessary,bounds", "--proof-seconds", "2")
 
 
 @pytest.fixture
@@ -59,7 +61,7 @@ def test_zero_output_layer_gives_the_exact_constant_and_certifies(workdir, capsy
 def test_huge_output_layer_does_not_overflow(workdir, capsys):
     path = save_problem(workdir / "huge.ckpt", _network_problem(1e155))
     code, out, err = run_cli(capsys, "run", path, "--json", "c.json", *ONLY_LIPSCHITZ)
-    assert code == 0, out + err
+    assert code in (0, 1, 3), out + err  # the MPDI's verdict; no crash
     lip = json.loads((workdir / "c.json").read_text())["checks"]["lipschitz"]
     assert lip["status"] == "PROVED" and lip["lipsdp_verified"]
     assert 1e150 < lip["sampled"] <= lip["value"] < 1e160
@@ -73,7 +75,7 @@ def test_ipm_failure_falls_back_to_clarabel_and_is_rechecked(workdir, capsys, mo
     monkeypatch.setattr(sdp, "lipsdp_pdip", broken)
     path = save_problem(workdir / "net.ckpt", _network_problem(1.0))
     code, out, err = run_cli(capsys, "run", path, "--json", "c.json", *ONLY_LIPSCHITZ)
-    assert code == 0, out + err
+    assert code in (0, 1, 3), out + err  # the MPDI's verdict; no crash
     lip = json.loads((workdir / "c.json").read_text())["checks"]["lipschitz"]
     assert lip["status"] == "PROVED" and lip["lipsdp_verified"]
     assert lip["solver"]["solver"] == "CLARABEL" and "fallback after" in lip["solver"]["message"]
@@ -90,7 +92,7 @@ def test_both_solvers_failing_is_a_reason_not_a_crash(workdir, capsys, monkeypat
     assert "interior point failed" in res.message and "Clarabel" in res.message
     path = save_problem(workdir / "net.ckpt", _network_problem(1.0))
     code, out, err = run_cli(capsys, "run", path, "--json", "c.json", *ONLY_LIPSCHITZ)
-    assert code in (0, 3), out + err  # the naive or local bound may still prove L
+    assert code in (0, 1, 3), out + err  # the MPDI's verdict; no crash
     lip = json.loads((workdir / "c.json").read_text())["checks"]["lipschitz"]
     assert "simulated solver fault" in lip["message"] and "Traceback" not in err
 

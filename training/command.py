@@ -17,7 +17,7 @@ import numpy as np
 from certify import checkpoint
 from certify.errors import CertifyError, SettingsError
 from certify.system import load_system, parse_metric
-from training.presets import PRESETS, make_config
+from training.presets import PRESETS, make_config, preset_summary
 from training.train import train
 
 
@@ -36,11 +36,14 @@ def parse_hidden(text: str) -> tuple[int, ...]:
 
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     """The arguments of `certify train`."""
-    parser.add_argument("system", help="built-in system name (vdp, duffing) or a spec .toml path")
+    from certify.cli import systems_text
+
+    parser.add_argument("system", help=f"built-in system name ({systems_text()}) or a spec "
+                                       ".toml path")
     parser.add_argument("-o", "--output", required=True, help="checkpoint file to write (.ckpt)")
-    parser.add_argument("--preset", default="paper",
-                        help=f"training recipe: {', '.join(PRESETS)} (default: paper, the "
-                             "source method reproduced)")
+    recipes = "; ".join(f"{name}: {preset_summary(name)}" for name in PRESETS)
+    parser.add_argument("--preset", default="paper", choices=list(PRESETS), metavar="PRESET",
+                        help=f"training recipe (default: paper). {recipes}")
     parser.add_argument("--lam", type=float, default=None,
                         help="contraction rate lam (default: the system's)")
     parser.add_argument("--metric", default=None,
