@@ -13,7 +13,7 @@ import torch
 
 from certify.bounds.interval_ops import nan_min
 from certify.intervals import TINY, Interval, down, gamma, up, widen_down, widen_up
-from certify.linalg import eigvalsh
+from certify.linalg import dwarfed, eigvalsh
 
 U = 2.0**-53
 MAX_VERTEX_DIM = 8  # beyond 2^8 vertices per box, the first-order term joins the remainder
@@ -160,38 +160,32 @@ def _lam3_certified(S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return mu, ok
 
 
-#: `_lam2_upper` also forms its cancellation-free bound where the textbook one keeps fewer
-#: than about 40 of its 53 bits
-CANCELLED = 2.0**-40
-
-
 def _lam2_upper(a: torch.Tensor, babs: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     """Upper bound of (a+c)/2 + sqrt(((a-c)/2)^2 + b^2), rounded up (increasing in a, c, |b|).
 
-    Where the two terms of that form cancel to below CANCELLED of their size (a diagonal entry
-    far larger in magnitude than the rest: -1e39 beside -0.5 leaves a bound near +1e23), the
-    smaller of it and the same value written without cancellation, max(a, c) + b^2 / (d +
-    hypot(d, b)) with d = |a - c| / 2: d and the hypot rounded down (the libm result widened
-    by LIBM_ULPS), the quotient, product and sum rounded up, and |b| in its place (an upper
-    bound: hypot(d, b) >= |b|) where d, the hypot or their sum overflows or vanishes.
-    Elsewhere the textbook bound alone, bit for bit."""
+    Where a negative diagonal entry dwarfs the others (`certify.linalg.dwarfed`: -1e39
+    beside -0.5, where this form rounds to about +1e23), the smaller of it and the same value
+    written without cancellation, max(a, c) + b^2 / (d + hypot(d, b)) with d = |a - c| / 2:
+    d and the hypot rounded down (the libm result widened by LIBM_ULPS), the quotient,
+    product and sum rounded up, and |b| in its place (an upper bound: hypot(d, b) >= |b|)
+    where d, the hypot or their sum overflows or vanishes. Elsewhere the textbook bound
+    alone, bit for bit."""
     m = up(0.5 * up(a + c))
     dlt = up((a - c).abs()) * 0.5
     hyp = widen_up(torch.hypot(dlt, babs))
     out = up(m + hyp)
-    cancelled = out.abs() < CANCELLED * torch.maximum(m.abs(), hyp)
-    if bool(cancelled.any()):
-        ac, cc, bb = a[cancelled], c[cancelled], babs[cancelled]
+    swap = dwarfed(a, babs, c)
+    if bool(swap.any()):
+        ac, cc, bb = a[swap], c[swap], babs[swap]
         d = down((ac - cc).abs()) * 0.5
         den = down(d + widen_down(torch.hypot(d, bb)))
         ok = torch.isfinite(den) & (den > 0)
         term = torch.where(ok, torch.minimum(up(bb * up(bb / torch.where(ok, den, 1.0))), bb),
                            bb)
-        term = torch.where(bb == 0, torch.zeros_like(bb), term)
-        alt = up(torch.maximum(ac, cc) + term)
+        top = torch.maximum(ac, cc)
+        alt = torch.where(bb == 0, top, up(top + term))  # b = 0: max(a, c) itself, exact
         out = out.clone()
-        out[cancelled] = torch.where(torch.isnan(alt), out[cancelled],
-                                     torch.minimum(out[cancelled], alt))
+        out[swap] = torch.where(torch.isnan(alt), out[swap], torch.minimum(out[swap], alt))
     return out
 
 
