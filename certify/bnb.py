@@ -28,6 +28,20 @@ With an `executor` of more than one worker and a picklable `remote = (chunk_fn, 
 concatenated in order, so the boxes, bounds and verdict are those of the serial run for the
 same box budget and lag (up to the last bits of BLAS products whose blocking depends on the
 chunk size; bounds stay sound either way).
+
+The time budget (`seconds`, counted from `started`) holds within a few seconds whatever a
+box costs (`RoundClock`): a round evaluated in this process is evaluated in one call where its
+predicted time fits (the cost per box is measured on every evaluation, and before the first
+round by two small timing probes of it, thrown away), so a run that finishes within its
+budget evaluates the same boxes in the same calls as with no clock (and a first round of at
+most SETUP_SECONDS_ANYWAY is evaluated even when a caller's set-up used the budget up); a
+round that may not fit is evaluated in chunks sized to the time left, the clock read between
+them, and a round on an executor is waited for until the deadline, then cancelled.
+Soundness of a round cut short: a box not evaluated keeps its parent's bound (a bound over a
+superset; a first-round box has none: NaN, so the upper bound is +inf), stays open and is not
+counted as processed; the run stops there, so its verdict is UNKNOWN unless every box closed
+(nothing closes unevaluated, except in maximisation mode a box whose parent's bound is
+already below the closing level).
 """
 
 from __future__ import annotations
@@ -74,6 +88,9 @@ class BoxEval:
     upper: torch.Tensor  # [N] sound upper bound over the box (NaN: unknown)
     centre_value: torch.Tensor  # [N] value at the centre in float64 (a lower bound of the max)
     score: torch.Tensor | None = None  # [N, d] split score (None: widest scaled dimension)
+    #: [N] bool: which boxes were evaluated (None: all). A box not evaluated (its round ran
+    #: out of time, `RoundClock`) has upper and centre_value NaN and score 0
+    done: torch.Tensor | None = None
 
 
 @dataclass
@@ -147,6 +164,150 @@ def split(box: Box, dims: torch.Tensor) -> Box:
     return Box(torch.cat([lo1, lo2]), torch.cat([hi1, hi2]), torch.cat([depth, depth]))
 
 
+class OutOfTime(Exception):
+    """A proof's set-up (before its first round) ran past the deadline of its budget: the
+    proof stops there, UNKNOWN (raised by the set-up steps that read the clock, e.g.
+    `certify.bounds.mpdi.plain_screen_pays`)."""
+
+
+def check_clock(deadline: float | None) -> None:
+    """Raise `OutOfTime` when `deadline` (a `time.perf_counter()` value) has passed."""
+    if deadline is not None and time.perf_counter() > deadline:
+        raise OutOfTime
+
+
+#: a round predicted to take at most this many seconds is evaluated in one call whatever the
+#: time left (the overshoot it can cause is this small)
+ROUND_SECONDS_ANYWAY = 1.0
+#: a first round predicted to take at most this many seconds is evaluated in one call even
+#: when the budget ran out before it (a caller's set-up, a loaded machine), so that a small
+#: budget on a cheap problem still gives a bound; a caller's set-up (e.g.
+#: `certify.prover.mpdi_decision`) stops at max(budget, this)
+SETUP_SECONDS_ANYWAY = 3.0
+#: boxes of the two timing probes of the first round (their difference cancels the fixed
+#: cost of a call); only where a box would have to cost more than MAX_BOX_SECONDS for the
+#: round not to fit are they skipped
+PROBE_BOXES = (4, 32)
+MAX_BOX_SECONDS = 1.0
+#: the smallest chunk of a round evaluated against the clock
+MIN_CHUNK = 8
+
+
+def unevaluated(n: int, d: int, device: torch.device | str = "cpu") -> BoxEval:
+    """The `BoxEval` of n boxes [n, d] that were not evaluated (`BoxEval.done`)."""
+    nan = torch.full((n,), math.nan, dtype=torch.float64, device=device)
+    return BoxEval(upper=nan, centre_value=nan.clone(),
+                   score=torch.zeros(n, d, dtype=torch.float64, device=device),
+                   done=torch.zeros(n, dtype=torch.bool, device=device))
+
+
+class RoundClock:
+    """`evaluate` against a deadline (a `time.perf_counter()` value), for the rounds of one
+    branch and bound evaluated in this process (module docstring).
+
+    A round of N boxes is evaluated in one call when its predicted time, fixed + per_box N,
+    is at most max(ROUND_SECONDS_ANYWAY, half the time left) and there is time left, or, for
+    the first round, at most max(SETUP_SECONDS_ANYWAY, half the time left) whatever the time
+    left: then the call is the one `evaluate(lo, hi)` of a run without a clock, and the
+    boxes and bounds are the same bit for bit (evaluating in pieces can change the last bits
+    of BLAS products). Otherwise the
+    round is evaluated in chunks of at least MIN_CHUNK boxes, each sized to half the time
+    left, the clock read between them; the boxes left when the deadline passes are returned
+    unevaluated (`unevaluated`, `BoxEval.done`) and `expired` is set. The cost per box is
+    measured on every call (the last one counts); before the first measurement a round
+    larger than the probes is timed by evaluating its first PROBE_BOXES[0] and
+    PROBE_BOXES[1] boxes (results thrown away: only the time is used), unless even a box
+    cost of MAX_BOX_SECONDS would fit. Nothing here changes a bound; it only chooses how
+    many boxes are evaluated per call and when to stop."""
+
+    def __init__(self, evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval],
+                 deadline: float, box_seconds: float | None = None) -> None:
+        self.evaluate = evaluate
+        self.deadline = deadline
+        self.per_box = box_seconds  # seconds per box (None: not measured yet)
+        self.fixed = 0.0  # seconds per call beside the boxes (from the probes)
+        self.expired = False
+        self.first = True  # the next call is the first round
+
+    def left(self) -> float:
+        return self.deadline - time.perf_counter()
+
+    def predict(self, n: int) -> float:
+        return self.fixed + (self.per_box or 0.0) * n
+
+    def _timed(self, lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+        t = time.perf_counter()
+        out = self.evaluate(lo, hi)
+        self.per_box, self.fixed = (time.perf_counter() - t) / max(len(lo), 1), 0.0
+        return out
+
+    def _probe(self, lo: torch.Tensor, hi: torch.Tensor) -> None:
+        a, b = PROBE_BOXES
+        t = time.perf_counter()
+        self.evaluate(lo[:a], hi[:a])
+        ta = time.perf_counter() - t
+        t = time.perf_counter()
+        self.evaluate(lo[:b], hi[:b])
+        tb = time.perf_counter() - t
+        self.per_box = max(tb - ta, 0.0) / (b - a)
+        self.fixed = max(tb - self.per_box * b, 0.0)
+
+    def __call__(self, lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+        n, left = len(lo), self.left()
+        first, self.first = self.first, False
+        if left <= 0 and not first:
+            self.expired = True
+            return unevaluated(n, lo.shape[1], lo.device)
+        anyway = SETUP_SECONDS_ANYWAY if first else ROUND_SECONDS_ANYWAY
+        room = max(anyway, 0.5 * left)
+        if self.per_box is None and n > PROBE_BOXES[1] and room < MAX_BOX_SECONDS * n:
+            self._probe(lo, hi)
+            left = self.left()
+            room = max(anyway, 0.5 * left)
+        if self.per_box is None or ((left > 0 or first) and self.predict(n) <= room):
+            return self._timed(lo, hi)
+        return self._chunked(lo, hi)
+
+    def _chunked(self, lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+        n = len(lo)
+        parts: list[BoxEval] = []
+        start = 0
+        while start < n:
+            left = self.left()
+            if left <= 0:
+                break
+            per_box = max(self.per_box or 0.0, 1e-9)
+            m = max(MIN_CHUNK, int((0.5 * left - self.fixed) / per_box))
+            stop = min(n, start + m)
+            parts.append(self._timed(lo[start:stop], hi[start:stop]))
+            start = stop
+        if start < n:
+            self.expired = True
+            parts.append(unevaluated(n - start, lo.shape[1], lo.device))
+        return join(parts)
+
+
+def join(parts: list[BoxEval]) -> BoxEval:
+    """The `BoxEval`s of consecutive pieces of a round as one, in order (a score only when
+    every piece evaluated has one; `done` only where some box was not evaluated)."""
+    if len(parts) == 1:
+        return parts[0]
+    done = None
+    if any(p.done is not None for p in parts):
+        done = torch.cat([p.done if p.done is not None
+                          else torch.ones(len(p.upper), dtype=torch.bool,
+                                          device=p.upper.device) for p in parts])
+    score = None
+    if all(p.score is not None for p in parts if p.done is None or bool(p.done.any())):
+        d = next((p.score.shape[1] for p in parts if p.score is not None), 0)
+        score = torch.cat([p.score if p.score is not None
+                           else torch.zeros(len(p.upper), d, dtype=torch.float64,
+                                            device=p.upper.device) for p in parts])
+    return BoxEval(upper=torch.cat([p.upper for p in parts]),
+                   centre_value=torch.cat([p.centre_value for p in parts]), score=score,
+                   done=done)
+
+
 def branch_and_bound(
     root_lo: torch.Tensor,
     root_hi: torch.Tensor,
@@ -171,6 +332,8 @@ def branch_and_bound(
     executor: Any = None,
     remote: tuple[Callable[..., BoxEval], Any] | None = None,
     lag: int = PIPELINE_LAG,
+    started: float | None = None,
+    box_seconds: float | None = None,
 ) -> BnBOutcome:
     """Sound upper bound of max f over [root_lo, root_hi] [d], refining the worst boxes first.
 
@@ -184,14 +347,19 @@ def branch_and_bound(
     N boxes have been evaluated, the run stops as if its budget were spent when the largest
     bound of the merged boxes, open or closed, is still above `level` (the caller has a
     better way past that level); the check only chooses when to stop, the bound is then
-    formed as for any budgeted run. Budgets: `seconds` and `max_boxes` (boxes
-    evaluated). `first_round`: the root is first split into about that many equal boxes
+    formed as for any budgeted run. Budgets: `seconds` (wall clock from `started`, a
+    `time.perf_counter()` value, default the call: a caller's own set-up counts in its
+    budget) and `max_boxes` (boxes evaluated); the time budget is held inside long rounds
+    (module docstring, `RoundClock`; `box_seconds`: a caller's estimate of the seconds a box
+    costs, e.g. from an earlier run on the same problem, which spares the timing probes).
+    `first_round`: the root is first split into about that many equal boxes
     (default and at most `batch`). `executor` / `remote`: where each round's children are
     evaluated; `lag`: rounds in flight before the oldest is merged (module docstring). The
     outcome depends on `lag` and the budgets, not on the executor.
     """
     progress = progress or NullProgress()
     t0 = time.perf_counter()
+    deadline = (t0 if started is None else started) + seconds
     if remote is not None and executor is not None:
         from certify.executor import round_batch
 
@@ -278,22 +446,37 @@ def branch_and_bound(
             violated = True
 
     frontier = Frontier(d, device=root_lo.device)
-    rounds = RoundPipeline(evaluate, executor, remote)
-    in_flight: deque[Box] = deque()  # the boxes of each round in flight, oldest first
+    clock = RoundClock(evaluate, deadline, box_seconds)
+    rounds = RoundPipeline(clock, executor, remote)
+    # the boxes of each round in flight, oldest first, with their parents' bounds
+    in_flight: deque[tuple[Box, torch.Tensor]] = deque()
     scanned_level = -math.inf  # the frontier holds no box closed at this level
+    cut_short = False  # some dispatched box was not evaluated in time
+    # an executor's first round is waited for at least SETUP_SECONDS_ANYWAY (as RoundClock
+    # evaluates a cheap first round in this process whatever the time left)
+    first_wait = [time.perf_counter() + SETUP_SECONDS_ANYWAY]
 
-    def dispatch(box: Box) -> None:
+    def dispatch(box: Box, parent_upper: torch.Tensor) -> None:
         nonlocal processed
         rounds.dispatch(box.lo, box.hi)
-        in_flight.append(box)
+        in_flight.append((box, parent_upper))
         processed += len(box)
 
     def merge() -> None:
         """The oldest round in flight: best point, violation, then its boxes closed, set
-        aside (too deep) or added to the frontier, in order."""
-        nonlocal violated, scanned_level, stuck_count, stuck_max
-        box = in_flight.popleft()
-        ev = rounds.collect()
+        aside (too deep) or added to the frontier, in order. A box its round did not
+        evaluate in time keeps its parent's bound and is not counted as processed."""
+        nonlocal violated, scanned_level, stuck_count, stuck_max, processed, cut_short
+        box, parent_upper = in_flight.popleft()
+        ev = rounds.collect(max(deadline, first_wait.pop()) if first_wait else deadline)
+        if ev is None:  # an executor's round not back by the deadline (cancelled)
+            ev = unevaluated(len(box), d, root_lo.device)
+        if ev.done is not None and not bool(ev.done.all()):
+            skipped = ~ev.done
+            processed -= int(skipped.sum())
+            cut_short = True
+            ev = BoxEval(upper=torch.where(skipped, parent_upper, ev.upper),
+                         centre_value=ev.centre_value, score=ev.score)
         update_best(ev, box)
         if threshold is not None and best > threshold and stop_on_violation:
             violated = True
@@ -315,8 +498,10 @@ def branch_and_bound(
         frontier.add(box.lo[keep], box.hi[keep], box.depth[keep], ub[keep],
                      ev.score[keep] if ev.score is not None else None)
 
-    dispatch(initial_grid(root_lo, root_hi, batch if first_round is None
-                          else max(1, min(first_round, batch))))
+    first = initial_grid(root_lo, root_hi, batch if first_round is None
+                         else max(1, min(first_round, batch)))
+    dispatch(first, torch.full((len(first),), math.nan, dtype=torch.float64,
+                               device=root_lo.device))  # the root has no bound
     budget_hit = False
     last_report = t0
     try:
@@ -333,7 +518,7 @@ def branch_and_bound(
                 last_report = now
             if len(frontier) == 0 or violated:
                 break
-            if now - t0 > seconds or processed >= max_boxes:
+            if now > deadline or cut_short or clock.expired or processed >= max_boxes:
                 budget_hit = True
                 break
             if give_up is not None and processed >= give_up[0]:
@@ -344,10 +529,11 @@ def branch_and_bound(
             # the boxes to refine: the worst ones; in decision mode half of the batch is the
             # boxes nearest to closing instead, so that a budgeted run closes regions early
             # while the worst boxes (counterexamples) are still refined
-            lo, hi, depth, wscore = frontier.take(batch, threshold is not None)
+            lo, hi, depth, wscore, ub = frontier.take(batch, threshold is not None,
+                                                      with_upper=True)
             kids = split(Box(lo, hi, depth), split_dimensions(lo, hi, wscore, scale))
             max_seen_depth = max(max_seen_depth, int(kids.depth.max()))
-            dispatch(kids)
+            dispatch(kids, torch.cat([ub, ub]))  # split() puts the first halves first
         while in_flight:  # stopped: merge what was dispatched (the bound covers it all)
             merge()
     finally:

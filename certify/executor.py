@@ -142,6 +142,22 @@ class PendingChunks:
             except _lost_work_errors() as exc:
                 self._lost(exc)
 
+    def wait(self, seconds: float) -> bool:
+        """Whether every chunk is back within `seconds` (a round to be submitted again
+        after lost workers counts as back: `result()` handles it)."""
+        if self._futures is None:
+            return True
+        from distributed import wait
+
+        try:
+            with self._executor.client.as_current():  # `wait` looks for a default client
+                wait(self._futures, timeout=seconds)
+        except TimeoutError:
+            return False
+        except _lost_work_errors() + (_cancelled_group(),):
+            return True  # `result()` submits the round again
+        return True
+
     def cancel(self) -> None:
         if self._futures:
             self._executor.client.cancel(self._futures)
@@ -284,6 +300,15 @@ def _lost_work_errors() -> tuple[type[BaseException], ...]:
     from distributed.scheduler import KilledWorker
 
     return (KeyError, CancelledError, DaskCancelled, CommClosedError, KilledWorker)
+
+
+def _cancelled_group() -> type[BaseException]:
+    """What `distributed.wait` raises for futures cancelled under it (a lost payload)."""
+    try:
+        from distributed.client import FuturesCancelledError
+    except ImportError:  # older Dask: cancelled futures raise CancelledError there
+        from distributed import CancelledError as FuturesCancelledError
+    return FuturesCancelledError
 
 
 def _worker_environment() -> Any:

@@ -22,8 +22,8 @@ from certify.errors import SpecError
 from certify.parse import FUNCTION_NAMES, parse_expression
 
 __all__ = ["FUNCTIONS", "DERIVED_FUNCTIONS", "parse_expression", "evaluate",
-           "compile_torch", "compile_torch_rows", "compile_numpy_rows", "function_name",
-           "TORCH"]
+           "compile_torch", "compile_torch_rows", "compile_numpy_rows", "folded_constants",
+           "function_name", "TORCH"]
 
 #: Whitelisted functions: name -> (sympy function, torch point function).
 FUNCTIONS: dict[str, tuple[Any, Callable[[torch.Tensor], torch.Tensor]]] = {
@@ -287,6 +287,18 @@ def compile_torch(expr: sympy.Expr, symbols: Sequence[sympy.Symbol]) -> Compiled
         return v[out]
 
     return run
+
+
+def folded_constants(exprs: Sequence[sympy.Expr], symbols: Sequence[sympy.Symbol]
+                     ) -> list[float]:
+    """The Python numbers a compiled tape of `exprs` (`compile_torch_rows`) combines with
+    the tensors, in tape order: the literal operands and the folded constant sub-expressions
+    (exponents included). Each meets tensors of the evaluation's dtype, so each must fit it
+    (a float beyond float32's range cannot be applied to a float32 tensor)."""
+    tape = _Tape(symbols)
+    for e in exprs:
+        tape.emit(e)
+    return [float(c) for c in tape.constants]
 
 
 def compile_torch_rows(exprs: Sequence[sympy.Expr], symbols: Sequence[sympy.Symbol],

@@ -85,16 +85,17 @@ class Frontier:
         """Slot indices of the live boxes, in slot order."""
         return torch.nonzero(self.alive[:self.used]).squeeze(1)
 
-    def take(self, k: int, nearest_half: bool) -> tuple[torch.Tensor, ...]:
+    def take(self, k: int, nearest_half: bool, with_upper: bool = False
+             ) -> tuple[torch.Tensor, ...]:
         """Remove and return (lo, hi, depth, score) of the `k` boxes to refine: the largest
         upper bounds (NaN counts as +inf), worst first; with `nearest_half`, only the first
         (k+1)//2 of them, then the k//2 smallest (nearest to closing). All when k >= count.
-        On a frontier of more than POOL_MIN boxes the choice is made in the candidate pools
-        (module docstring)."""
+        `with_upper`: their upper bounds too, as a fifth item. On a frontier of more than
+        POOL_MIN boxes the choice is made in the candidate pools (module docstring)."""
         if self.count > max(self.POOL_MIN, 8 * k) and self._unpooled <= 0:
             pick = self._take_pooled(k, nearest_half)
             if pick is not None:
-                return self._remove(pick)
+                return self._remove(pick, with_upper)
             self._unpooled = 16  # the pools could not be separated: scan for a while
         self._unpooled -= 1
         live = self.live()
@@ -110,11 +111,14 @@ class Frontier:
             pick = live[torch.cat([worst, near])]
         else:
             pick = live[torch.topk(key, k).indices]
-        return self._remove(pick)
+        return self._remove(pick, with_upper)
 
-    def _remove(self, pick: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def _remove(self, pick: torch.Tensor, with_upper: bool = False
+                ) -> tuple[torch.Tensor, ...]:
         out = (self.lo[pick], self.hi[pick], self.depth[pick],
                self.score[pick] if self.score is not None else None)
+        if with_upper:
+            out = (*out, self.ub[pick])
         self._drop(pick)
         return out
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import torch
 
 from certify.gain import gain_at_points
-from certify.linalg import eigvalsh
+from certify.linalg import dwarfed, eigvalsh
 from certify.network import GainNetwork
 from certify.system import System
 
@@ -44,13 +44,26 @@ def contraction_matrix(Jf: torch.Tensor, dk_dx: torch.Tensor, P: torch.Tensor,
 
 
 def lam_max(S: torch.Tensor) -> torch.Tensor:
-    """Largest eigenvalue of symmetric matrices [B, n, n] -> [B] (closed form for n <= 2)."""
+    """Largest eigenvalue of symmetric matrices [B, n, n] -> [B] (closed form for n <= 2).
+
+    n = 2: (a + c)/2 + hypot((a - c)/2, b), except where a negative diagonal entry dwarfs the
+    others (`certify.linalg.dwarfed`: -1e39 beside -0.5, where that form returns 0): there the equal
+    max(a, c) + b^2 / (d + hypot(d, b)), d = |a - c|/2, which has no cancellation. Elsewhere
+    the values are the textbook form's, bit for bit."""
     n = S.shape[-1]
     if n == 1:
         return S[:, 0, 0]
     if n == 2:
         a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
-        return 0.5 * (a + c) + torch.hypot(0.5 * (a - c), b)
+        out = 0.5 * (a + c) + torch.hypot(0.5 * (a - c), b)
+        swap = dwarfed(a, b, c)
+        if bool(swap.any()):  # (computed on those points only: no stray gradients)
+            ac, cc, bb = a[swap], c[swap], b[swap].abs()
+            d = 0.5 * (ac - cc).abs()  # > 0 there
+            # b^2 / (d + hypot(d, b)) as |b| (|b| / (d + hypot)): no overflow
+            out = out.clone()
+            out[swap] = torch.maximum(ac, cc) + bb * (bb / (d + torch.hypot(d, bb)))
+        return out
     finite = torch.isfinite(S).all(dim=-1).all(dim=-1)
     if bool(finite.all()):
         return eigvalsh(S)[..., -1]

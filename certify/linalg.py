@@ -56,3 +56,20 @@ def eigh(S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(eigenvalues ascending [..., n], eigenvectors as columns [..., n, n]) of symmetric
     matrices [..., n, n] (lower triangle used)."""
     return _batched(lambda A: tuple(torch.linalg.eigh(A)), S)
+
+
+#: `certify.kernels.lam_max` (n = 2) and `certify.bounds.eigen._lam2_upper` switch to their
+#: cancellation-free forms where a negative diagonal entry is more than this many times
+#: larger in magnitude than the other diagonal entry and the off-diagonal one (the eigenvalue
+#: then lies at the small entries' scale, which the textbook form rounds away)
+SPREAD = 2.0**26
+
+
+def dwarfed(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """Where the 2 x 2 symmetric [[a, b], [b, c]] has a negative diagonal entry that dwarfs
+    the other entries (SPREAD), and those are not both 0: bool, same shape (False where any
+    entry is NaN)."""
+    big = torch.maximum(a.abs(), c.abs())
+    small = torch.maximum(torch.minimum(a.abs(), c.abs()), b.abs())
+    negative = torch.where(a.abs() >= c.abs(), a, c) < 0
+    return negative & (small > 0) & (big > SPREAD * small)

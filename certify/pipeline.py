@@ -13,12 +13,15 @@ so serial, one and many workers give the same boxes, bounds and verdict bit for 
 
 `RoundPipeline` is the transport: `dispatch(lo, hi)` starts a round (in this process: lazily,
 on an executor: its chunks are submitted at once, `Executor.submit_chunks`), `collect()`
-waits for the oldest round and returns its `BoxEval` (chunks concatenated in order).
+waits for the oldest round and returns its `BoxEval` (chunks concatenated in order);
+`collect(deadline)` waits for an executor's round only until then (None: not back in time,
+cancelled; a round in this process honours the deadline through its `evaluate`,
+`certify.bnb.RoundClock`).
 """
 
 from __future__ import annotations
 
-import dataclasses
+import time
 from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -104,17 +107,20 @@ class RoundPipeline:
         else:
             self._rounds.append(submit(chunk_fn, payload, items))
 
-    def collect(self) -> BoxEval:
-        """Wait for the oldest round in flight; its evaluation, chunks in order."""
-        parts = self._rounds.popleft().result()
-        if len(parts) == 1:
-            return parts[0]
-        score = None
-        if all(p.score is not None for p in parts):
-            score = torch.cat([p.score for p in parts])
-        return dataclasses.replace(parts[0], upper=torch.cat([p.upper for p in parts]),
-                                   centre_value=torch.cat([p.centre_value for p in parts]),
-                                   score=score)
+    def collect(self, deadline: float | None = None) -> BoxEval | None:
+        """Wait for the oldest round in flight; its evaluation, chunks in order. With a
+        `deadline` (a `time.perf_counter()` value), a round on an executor that can be waited
+        for with a timeout (`wait(seconds) -> bool`) and is not back by then is cancelled
+        and None returned."""
+        from certify.bnb import join
+
+        pending = self._rounds.popleft()
+        wait = getattr(pending, "wait", None)
+        if deadline is not None and wait is not None:
+            if not wait(max(0.0, deadline - time.perf_counter())):
+                pending.cancel()
+                return None
+        return join(list(pending.result()))
 
     def cancel(self) -> None:
         """Drop every round in flight (an error ends the run)."""

@@ -9,13 +9,21 @@ proved; NaN/Inf anywhere leaves the box UNKNOWN; a violation is a concrete float
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from certify.bnb import Box, BoxEval, branch_and_bound
+from certify.bnb import (
+    SETUP_SECONDS_ANYWAY,
+    Box,
+    BoxEval,
+    OutOfTime,
+    branch_and_bound,
+    initial_grid,
+)
 from certify.bounds.mpdi import (
     CROWN_GAIN,
     choose_preconditioner,
@@ -42,6 +50,15 @@ __all__ = ["ProofOutcome", "RateOutcome", "prove_mpdi", "prove_rate", "ROUNDING"
 #: the MPDI proof's first round is batch / COARSE_START boxes where the plain interval bound
 #: closes boxes on the problem (`prove_mpdi`)
 COARSE_START = 4
+#: the time limit of an unfinished proof's tree estimate: this share of the proof's
+#: `seconds`, at least ESTIMATE_MIN_SECONDS (`prove_mpdi`)
+ESTIMATE_SHARE = 0.25
+ESTIMATE_MIN_SECONDS = 2.0
+
+
+def estimate_seconds(seconds: float) -> float:
+    """The time limit of the tree estimate after a proof with budget `seconds` ran out."""
+    return max(ESTIMATE_MIN_SECONDS, ESTIMATE_SHARE * seconds)
 
 
 @dataclass
@@ -98,9 +115,11 @@ def _plain_screen(problem: Problem, lam: float, pc: Preconditioner, taylor: bool
 
 
 def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bool | str = True,
-                    crown: bool = True, plain_screen: bool | None = None):
+                    crown: bool = True, plain_screen: bool | None = None,
+                    deadline: float | None = None):
     """The MPDI box evaluation (`plain_screen`: `_plain_screen`'s answer when the caller
-    already has it)."""
+    already has it; `deadline`: a proof's budget, `certify.bnb.OutOfTime` past it while
+    the evaluation is being set up)."""
     n = problem.n
     P = problem.P_t
     gain = CROWN_GAIN
@@ -108,7 +127,7 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
     if plain_screen is None:
         plain_screen = _plain_screen(problem, lam, pc, taylor, crown)
     if crown and taylor is True and not direct_mixed(problem, pc):
-        gain = estimate_crown_gain(problem.network, rlo, rhi)
+        gain = estimate_crown_gain(problem.network, rlo, rhi, deadline=deadline)
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
         # boxes the plain interval bound already proves skip the Taylor / relaxation work
@@ -125,11 +144,12 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
     return evaluate
 
 
-def _mpdi_preconditioner(problem: Problem, lam: float, taylor: bool | str) -> Preconditioner:
+def _mpdi_preconditioner(problem: Problem, lam: float, taylor: bool | str,
+                         deadline: float | None = None) -> Preconditioner:
     """The congruence for the MPDI proof: probed (`choose_preconditioner`) for the default
     prover, M ~ L^-1 for the plain-interval and "interval" comparison provers."""
     if taylor is True:
-        return choose_preconditioner(problem, lam)
+        return choose_preconditioner(problem, lam, deadline=deadline)
     return make_preconditioner(problem.P_t)
 
 
@@ -184,19 +204,24 @@ class DecisionSetup:
 
 
 def mpdi_decision(problem: Problem, lam: float, taylor: bool | str = True, crown: bool = True,
-                  batch: int = 1024) -> DecisionSetup:
+                  batch: int = 1024, deadline: float | None = None) -> DecisionSetup:
     """The `DecisionSetup` of `prove_mpdi` at rate `lam` (also used by bench/tree_size.py,
-    which follows the same tree)."""
-    pc = _mpdi_preconditioner(problem, lam, taylor)
+    which follows the same tree). `deadline` (a `time.perf_counter()` value): the probes
+    that choose the bounds read the clock between their pieces and raise
+    `certify.bnb.OutOfTime` once it has passed (they choose only, so the setup does not
+    depend on it otherwise)."""
+    pc = _mpdi_preconditioner(problem, lam, taylor, deadline)
     lo, hi = _root(problem)
     # where the plain bound probe closes part of the root split into 1024 boxes (Van der Pol
     # instances, 55-79%), coarser boxes close too: a coarse first round saves refining them
     # (2x10 Van der Pol, seeds 0-9: 1391 -> 873 boxes, median; vdp_certified: 3012 -> 2020);
     # where it closes nothing, every region needs that depth and the full first round saves
     # the coarse levels (3x30 Van der Pol: 4472 boxes against 4780 from a quarter-size one)
-    coarse = crown and taylor is True and plain_screen_pays(problem, lam, pc)
+    coarse = crown and taylor is True and plain_screen_pays(problem, lam, pc,
+                                                            deadline=deadline)
     plain_screen = _plain_screen(problem, lam, pc, taylor, crown, pays=coarse)
-    return DecisionSetup(_mpdi_evaluator(problem, lam, pc, taylor, crown, plain_screen), lo, hi,
+    return DecisionSetup(_mpdi_evaluator(problem, lam, pc, taylor, crown, plain_screen,
+                                         deadline), lo, hi,
                          batch // COARSE_START if coarse else batch)
 
 
@@ -205,7 +230,7 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
                seeds: object | None = None, batch: int = 1024, taylor: bool | str = True,
                keep_leaves: int = 5000, crown: bool = True,
                executor: object | None = None, task: str = "mpdi proof",
-               estimate_points: int = 256) -> ProofOutcome:
+               estimate_points: int = 256, box_seconds: float | None = None) -> ProofOutcome:
     """Decide D(xhat, y) <= 0 over X x Y for rate `lam` (default problem.lam) and P.
 
     PROVED: every sub-box has a sound bound lam_max(D) <= 0. VIOLATED: a point (a box
@@ -215,16 +240,29 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
     the forward Taylor models without backward linear bound propagation (the pre-issue-9 prover).
     `executor`: where the rounds' boxes are evaluated (default `current_executor()`; the
     verdict and bounds do not depend on it). `task`: the name the progress display shows.
+    `seconds` counts from this call (the set-up of the bounds too) and holds within a few
+    seconds however slow a box is (`certify.bnb.RoundClock`: boxes a round had no time for
+    stay open with their parent's bound, and the proof is then UNKNOWN); the set-up itself
+    stops at max(seconds, SETUP_SECONDS_ANYWAY) and a cheap first round is always evaluated,
+    so that a small budget on a cheap problem still gives a bound; `box_seconds`: an
+    estimate of a box's cost, e.g. from an earlier proof on the problem (spares the timing
+    probes of the first round).
     A proof that spent its budget estimates, by random descents (batches of `estimate_points`
     while the standard error is above 20%, within 16 batches and 5% of the boxes the proof
     evaluated), how many boxes a complete one needs (`certify.tree_estimate`; in `stats` and
-    the message).
+    the message); the estimate has its own time limit, `estimate_seconds(seconds)`, after the
+    proof's.
     """
     from certify.executor import current_executor
 
+    started = time.perf_counter()
     progress = progress or NullProgress()
     lam = float(problem.lam if lam is None else lam)
-    setup = mpdi_decision(problem, lam, taylor, crown, batch)
+    try:
+        setup = mpdi_decision(problem, lam, taylor, crown, batch,
+                              deadline=started + max(seconds, SETUP_SECONDS_ANYWAY))
+    except OutOfTime:
+        return _spent_in_setup(problem, seconds, max_boxes, time.perf_counter() - started)
     lo, hi = setup.lo, setup.hi
     n = problem.n
     executor = current_executor() if executor is None else executor
@@ -234,7 +272,8 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
         progress=progress, task=task,
         seeds=_seed_box(seeds, lo.shape[0], problem.device), keep_leaves=keep_leaves,
         executor=executor,
-        remote=_mpdi_remote(problem, lam, taylor, crown, executor))
+        remote=_mpdi_remote(problem, lam, taylor, crown, executor), started=started,
+        box_seconds=box_seconds)
     cex = None
     if out.best_point is not None:
         pt = out.best_point[None]
@@ -258,16 +297,33 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
                "raise proof_seconds or max_boxes")
         if out.stats.budget_exhausted and not out.stuck and estimate_points > 0:
             # more descents while the estimate is rough, within 5% of the proof's boxes
+            st = out.stats
+            first_depth = int(initial_grid(lo, hi, setup.first_round).depth[0])
             est = estimate_tree(setup.evaluate, lo, hi, setup.first_round, estimate_points,
                                 target_rel_stderr=0.2, max_points=16 * estimate_points,
-                                max_evaluations=max(4096, out.stats.boxes_processed // 20))
-            st = out.stats
-            st.estimated_boxes, st.estimate_rel_stderr = est.boxes, est.rel_stderr
+                                max_evaluations=max(4096, st.boxes_processed // 20),
+                                seconds=estimate_seconds(seconds),
+                                box_seconds=st.seconds / max(st.boxes_processed, 1),
+                                levels=max(1, st.max_depth - first_depth + 1))
+            if math.isfinite(est.boxes):
+                st.estimated_boxes, st.estimate_rel_stderr = est.boxes, est.rel_stderr
             tail = completion_text(est.boxes, est.rel_stderr, st.boxes_processed)
             msg += "; " + tail if tail else ""
     upper = out.upper if math.isfinite(out.upper) else float("inf")
     return ProofOutcome(status=status, upper=upper, lower=out.lower, counterexample=cex,
                         stats=out.stats, boxes=out.leaves, message=msg)
+
+
+def _spent_in_setup(problem: Problem, seconds: float, max_boxes: int,
+                    elapsed: float) -> ProofOutcome:
+    """The UNKNOWN outcome of a decision whose budget ran out before its first round."""
+    stats = ProofStats(boxes_processed=0, seconds=elapsed, budget_exhausted=True,
+                       rounding=ROUNDING, volume_history=[[0.0, 0.0], [elapsed, 0.0]])
+    return ProofOutcome(status=Status.UNKNOWN, upper=float("inf"), lower=-math.inf,
+                        counterexample=None, stats=stats,
+                        message=(f"proof budget spent (seconds={seconds}, max_boxes="
+                                 f"{max_boxes}) while the bounds were being set up, before "
+                                 "the first box; raise proof_seconds"))
 
 
 def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_000_000,
@@ -290,7 +346,9 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     `coarse_after`: see `branch_and_bound` (the tolerance relaxes after that many boxes).
     `give_up = (N, rate)`: after N boxes, stop (budget spent) unless the bound so far
     already proves more than `rate` (`branch_and_bound`'s give_up at phi = -2 rate).
+    `seconds` counts from this call and holds however slow a box is (as in `prove_mpdi`).
     """
+    started = time.perf_counter()
     progress = progress or NullProgress()
     pc = make_preconditioner(problem.P_t)
     lo, hi = _root(problem)
@@ -298,7 +356,14 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     P = problem.P_t
 
     level = _Level(rel_tol, tol)
-    gain = estimate_crown_gain(problem.network, lo, hi)
+    try:
+        gain = estimate_crown_gain(problem.network, lo, hi,
+                                   deadline=started + max(seconds, SETUP_SECONDS_ANYWAY))
+    except OutOfTime:  # no time left for a single box: no bound
+        return RateOutcome(lower=None, upper_sampled=math.inf,
+                           stats=ProofStats(seconds=time.perf_counter() - started,
+                                            budget_exhausted=True, rounding=ROUNDING),
+                           worst=None)
 
     def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
         c = 0.5 * (blo + bhi)
@@ -319,7 +384,8 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
                            seconds=seconds, max_boxes=max_boxes, batch=batch,
                            progress=progress, task="rate proof", coarse_after=coarse_after,
                            give_up=None if give_up is None else (give_up[0], -2.0 * give_up[1]),
-                           seeds=_seed_box(seeds, lo.shape[0], problem.device))
+                           seeds=_seed_box(seeds, lo.shape[0], problem.device),
+                           started=started)
     lower = -out.upper / 2.0 if math.isfinite(out.upper) else None
     worst = None
     upper_sampled = -out.lower / 2.0 if math.isfinite(out.lower) else float("inf")

@@ -52,6 +52,7 @@ def raise_rate(problem: Problem, lower: float, upper: float, *, seconds: float,
     upper bound and the ladder goes on below it."""
     t_start = time.perf_counter()
     cap = LADDER_FIRST_BOXES
+    box_seconds = None  # a box's cost, measured by the last decision (spares its probes)
     attempts: list[tuple[float, str, float]] = []
     violated = False
     while upper - lower > rel_tol * abs(upper):
@@ -64,8 +65,10 @@ def raise_rate(problem: Problem, lower: float, upper: float, *, seconds: float,
         t0 = time.perf_counter()
         out = prove_mpdi(problem, lam=target, seconds=left, max_boxes=min(max_boxes, cap),
                          progress=progress, task=f"rate decision at {target:.6g}",
-                         estimate_points=0)
+                         estimate_points=0, box_seconds=box_seconds)
         took = time.perf_counter() - t0
+        if out.stats.boxes_processed > 0 and out.stats.boxes_per_second > 0:
+            box_seconds = 1.0 / out.stats.boxes_per_second
         attempts.append((target, out.status.value, round(took, 3)))
         if out.status is Status.PROVED:
             lower = target

@@ -17,12 +17,15 @@ out.
 
 Nothing here is a bound or part of a verdict: the estimate only tells a user whether a
 larger budget is worth it (`certify.prover.prove_mpdi`), and bench/tree_size.py measures
-the prover with it.
+the prover with it. Its own time limit (`estimate_tree(seconds=...)`) keeps a network whose
+boxes are slow from turning a budgeted proof into a long one: the batches of descents are
+sized to it and a batch not finished in time is left out (no batch finished: no estimate).
 """
 
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -46,10 +49,13 @@ class TreeEstimate:
 
 def leaf_depths(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], lo: torch.Tensor,
                 hi: torch.Tensor, first_round: int, z: torch.Tensor, threshold: float = 0.0,
-                max_depth: int = 80) -> tuple[torch.Tensor, int]:
+                max_depth: int = 80, deadline: float | None = None
+                ) -> tuple[torch.Tensor | None, int]:
     """(depth of the closed leaf containing each point z [P, d] of the root box [lo, hi], -1
     where stuck; box evaluations spent) in the decision tree of `evaluate` at `threshold`
-    whose first round splits the root into about `first_round` boxes."""
+    whose first round splits the root into about `first_round` boxes. `deadline` (a
+    `time.perf_counter()` value): the clock is read before each level, and past it the
+    descents stop unfinished (depths None)."""
     scale = (hi - lo).clamp_min(1e-300)
     z = z.to(device=lo.device, dtype=torch.float64)
     points = z.shape[0]
@@ -62,6 +68,8 @@ def leaf_depths(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], lo: t
     active = torch.arange(points, device=lo.device)
     evaluations = 0
     while len(active):
+        if deadline is not None and time.perf_counter() > deadline:
+            return None, evaluations
         ev = evaluate(blo[active], bhi[active])
         evaluations += len(active)
         closed = (ev.upper <= threshold) & torch.isfinite(ev.upper)
@@ -78,6 +86,10 @@ def leaf_depths(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], lo: t
         pick = ar + m * upper.long()
         blo[active], bhi[active], depth[active] = kids.lo[pick], kids.hi[pick], kids.depth[pick]
     return leaf.cpu(), evaluations
+
+
+#: the fewest descents in a batch sized to a time limit (`estimate_tree`)
+MIN_POINTS = 16
 
 
 def summarize(leaf: torch.Tensor, evaluations: int, first_round: int = 0) -> TreeEstimate:
@@ -109,22 +121,36 @@ def estimate_tree(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], lo:
                   hi: torch.Tensor, first_round: int, points: int = 256, seed: int = 0,
                   threshold: float = 0.0, max_depth: int = 80, *,
                   target_rel_stderr: float | None = None, max_points: int | None = None,
-                  max_evaluations: int | None = None) -> TreeEstimate:
+                  max_evaluations: int | None = None, seconds: float | None = None,
+                  box_seconds: float | None = None, levels: int | None = None
+                  ) -> TreeEstimate:
     """`points` seeded uniform descents (drawn on the CPU: the same points on every device)
     through the decision tree of `evaluate`, summarised. With `target_rel_stderr`, further
     batches of `points` descents (the next seeds) follow until the relative standard error
     is at most that, or `max_points` descents or `max_evaluations` box evaluations are spent:
-    budgets in descents and boxes, never in seconds, so the estimate depends on the inputs
-    alone."""
+    budgets in descents and boxes, so the estimate depends on the inputs alone, except
+    where the time limit `seconds` binds: then the batches hold fewer descents, as many as
+    fit in it at `box_seconds` per box evaluation and about `levels` evaluations per descent
+    (when both are given; at least MIN_POINTS), and a batch the clock stops is left out. No
+    batch finished: an estimate of nan boxes from 0 descents."""
+    deadline = None if seconds is None else time.perf_counter() + seconds
+    if seconds is not None and box_seconds is not None and levels is not None:
+        fit = int(seconds / max(box_seconds * max(levels, 1), 1e-12))
+        points = max(MIN_POINTS, min(points, fit))
     leaves: list[torch.Tensor] = []
     evaluations, batch = 0, 0
+    est = summarize(torch.empty(0, dtype=torch.long), 0, first_round)
     while True:
         gen = torch.Generator().manual_seed(seed + batch)
         u = torch.rand(points, lo.shape[0], generator=gen, dtype=torch.float64)
         z = lo.cpu() + (hi - lo).cpu() * u
-        leaf, spent = leaf_depths(evaluate, lo, hi, first_round, z, threshold, max_depth)
-        leaves.append(leaf)
+        leaf, spent = leaf_depths(evaluate, lo, hi, first_round, z, threshold, max_depth,
+                                  deadline)
         evaluations += spent
+        if leaf is None:  # out of time: the batch is left out
+            est.evaluations = evaluations
+            return est
+        leaves.append(leaf)
         batch += 1
         est = summarize(torch.cat(leaves), evaluations, first_round)
         if (target_rel_stderr is None or est.rel_stderr <= target_rel_stderr

@@ -67,13 +67,13 @@ def test_an_unknown_proof_reports_how_many_boxes_a_complete_one_takes() -> None:
 
 
 def test_the_mpdi_check_says_how_far_an_unfinished_proof_is() -> None:
-    """The MPDI check with a proof budget too small: UNKNOWN, and its message and reported
+    """The MPDI check with a box budget too small: UNKNOWN, and its message and reported
     numbers carry the estimate."""
     from certify.checks.mpdi import CHECK, check_mpdi
     from certify.settings import VerifySettings
 
     problem, _ = make_instance(InstanceSpec(2, 10, 2.0, 2, 0.02, 0))
-    res = check_mpdi(problem, VerifySettings(proof_seconds=1e-3, grid_points=2000))
+    res = check_mpdi(problem, VerifySettings(max_boxes=200, grid_points=2000))
     assert res.status is Status.UNKNOWN
     assert "a complete proof would evaluate about" in res.message
     cert = SimpleNamespace(settings={})

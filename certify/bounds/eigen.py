@@ -12,8 +12,8 @@ from __future__ import annotations
 import torch
 
 from certify.bounds.interval_ops import nan_min
-from certify.intervals import TINY, Interval, down, gamma, up, widen_up
-from certify.linalg import eigvalsh
+from certify.intervals import TINY, Interval, down, gamma, up, widen_down, widen_up
+from certify.linalg import dwarfed, eigvalsh
 
 U = 2.0**-53
 MAX_VERTEX_DIM = 8  # beyond 2^8 vertices per box, the first-order term joins the remainder
@@ -161,11 +161,32 @@ def _lam3_certified(S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _lam2_upper(a: torch.Tensor, babs: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-    """Upper bound of (a+c)/2 + sqrt(((a-c)/2)^2 + b^2), rounded up (increasing in a, c, |b|)."""
+    """Upper bound of (a+c)/2 + sqrt(((a-c)/2)^2 + b^2), rounded up (increasing in a, c, |b|).
+
+    Where a negative diagonal entry dwarfs the others (`certify.linalg.dwarfed`: -1e39
+    beside -0.5, where this form rounds to about +1e23), the smaller of it and the same value
+    written without cancellation, max(a, c) + b^2 / (d + hypot(d, b)) with d = |a - c| / 2:
+    d and the hypot rounded down (the libm result widened by LIBM_ULPS), the quotient,
+    product and sum rounded up, and |b| in its place (an upper bound: hypot(d, b) >= |b|)
+    where d, the hypot or their sum overflows or vanishes. Elsewhere the textbook bound
+    alone, bit for bit."""
     m = up(0.5 * up(a + c))
     dlt = up((a - c).abs()) * 0.5
     hyp = widen_up(torch.hypot(dlt, babs))
-    return up(m + hyp)
+    out = up(m + hyp)
+    swap = dwarfed(a, babs, c)
+    if bool(swap.any()):
+        ac, cc, bb = a[swap], c[swap], babs[swap]
+        d = down((ac - cc).abs()) * 0.5
+        den = down(d + widen_down(torch.hypot(d, bb)))
+        ok = torch.isfinite(den) & (den > 0)
+        term = torch.where(ok, torch.minimum(up(bb * up(bb / torch.where(ok, den, 1.0))), bb),
+                           bb)
+        top = torch.maximum(ac, cc)
+        alt = torch.where(bb == 0, top, up(top + term))  # b = 0: max(a, c) itself, exact
+        out = out.clone()
+        out[swap] = torch.where(torch.isnan(alt), out[swap], torch.minimum(out[swap], alt))
+    return out
 
 
 def lam_max_upper_interval(A: Interval, level: float | None = None) -> torch.Tensor:

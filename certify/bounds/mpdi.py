@@ -16,6 +16,7 @@ from certify.bounds.preconditioner import (
     Preconditioner,
     _congruence,
     candidate_preconditioners,
+    diagonal_preconditioner,
     make_preconditioner,
     to_lam_max_D,
 )
@@ -222,12 +223,14 @@ class CrownGain:
 
 
 def estimate_crown_gain(net, root_lo: torch.Tensor, root_hi: torch.Tensor,
-                        probes: int = 12, scales: tuple[float, ...] = (1 / 256, 1 / 64, 1 / 16)
-                        ) -> CrownGain:
+                        probes: int = 12, scales: tuple[float, ...] = (1 / 256, 1 / 64, 1 / 16),
+                        deadline: float | None = None) -> CrownGain:
     """How much the linear bounds shrink the Jacobian remainder for this network, at a few box
     sizes: at each relative radius, the median ratio of Taylor-model to linear-bound remainders
     over `probes` deterministic boxes inside the root box, clamped to [2, 1e6]. Deterministic
-    in the problem, so every worker of a distributed proof chooses alike."""
+    in the problem, so every worker of a distributed proof chooses alike. `deadline`: a proof's
+    budget, read before each size (`certify.bnb.OutOfTime` once it has passed)."""
+    from certify.bnb import check_clock
     from certify.bounds.crown import forward_bounds, jacobian_crown, to_tm
 
     d = root_lo.shape[0]
@@ -237,6 +240,7 @@ def estimate_crown_gain(net, root_lo: torch.Tensor, root_hi: torch.Tensor,
     cols = list(range(d))
     gains = []
     for s in scales:
+        check_clock(deadline)
         c = root_lo + w * (s + (1 - 2 * s) * u)
         lo, hi = c - w * s, c + w * s
         fb = forward_bounds(net, lo, hi, cols=cols, crown=True)
@@ -258,7 +262,8 @@ def _root_box(problem: Problem) -> torch.Tensor:
 
 
 def plain_screen_pays(problem: Problem, lam: float, pc: Preconditioner, grid: int = 1024,
-                      min_closed: float = 0.02) -> bool:
+                      min_closed: float = 0.02, deadline: float | None = None,
+                      chunk: int = 256) -> bool:
     """Whether the plain interval stage should screen the boxes before the linear bounds: it
     closes at least `min_closed` of the root split into `grid` boxes (the B&B's first round
     at the default batch; one plain-only evaluation of it). Measured on that grid: 55-79% on
@@ -267,26 +272,71 @@ def plain_screen_pays(problem: Problem, lam: float, pc: Preconditioner, grid: in
     Van der Pol instances, where in whole proofs it closed none and cost about an eighth of
     the time. (Random boxes of a given size do not predict this: a proof only refines boxes
     in the hard regions.) Only which bound is computed depends on it, never soundness; it is
-    deterministic in the problem, so every worker of a distributed proof chooses alike."""
-    from certify.bnb import initial_grid
+    deterministic in the problem, so every worker of a distributed proof chooses alike.
+    The boxes are bounded `chunk` at a time (the plain bound of a box does not depend on
+    the others), the `deadline` of a proof's budget read before each chunk
+    (`certify.bnb.OutOfTime` once it has passed)."""
+    from certify.bnb import check_clock, initial_grid
 
     root = _root_box(problem)
     boxes = initial_grid(root[:, 0], root[:, 1], grid)
-    bb = mpdi_box_bounds(problem, boxes.lo, boxes.hi, lam, pc=pc, taylor=False)
-    return float((bb.plain <= 0).double().mean()) >= min_closed
+    closed = 0
+    for a in range(0, len(boxes), chunk):
+        check_clock(deadline)
+        bb = mpdi_box_bounds(problem, boxes.lo[a:a + chunk], boxes.hi[a:a + chunk], lam,
+                             pc=pc, taylor=False)
+        closed += int((bb.plain <= 0).sum())
+    return closed / len(boxes) >= min_closed
+
+
+#: where the magnitudes of D's diagonal at the root's centre span more than this ratio, the
+#: congruence M = diag(|D_ii|^-1/2), which brings that diagonal to -1 or 1, is a candidate too:
+#: float64 keeps about 2^-53 of the largest entry, so a bound on D itself loses the small
+#: ones (a spec with a term -1e39 x1 beside -x2: D's eigenvalue -0.5 is below the rounding
+#: of -1e39). Never the case on the shipped examples, whose candidates stay those of P.
+SCALE_SPREAD = 2.0**26
+
+
+def diagonal_scaling(problem: Problem, lam: float) -> torch.Tensor | None:
+    """|D_ii|^-1/2 [n] at the centre of X x Y (float64 point values; any positive M serves,
+    `certify.bounds.preconditioner`) where those magnitudes span more than SCALE_SPREAD, else
+    None (also where one is 0 or not finite)."""
+    from certify.kernels import contraction_matrix, gain_terms
+
+    root = _root_box(problem)
+    c = (0.5 * (root[:, 0] + root[:, 1]))[None]
+    n = problem.n
+    with torch.no_grad():
+        dk = gain_terms(problem.system, problem.network, c[:, :n], c[:, n:],
+                        with_dy=False).dk_dx
+        D = contraction_matrix(problem.system.jac_f(c[:, :n]), dk, problem.P_t, lam)[0]
+    mag = D.diagonal().abs()
+    if not bool(torch.isfinite(mag).all()) or not bool((mag > 0).all()):
+        return None
+    if float(mag.max()) <= SCALE_SPREAD * float(mag.min()):
+        return None
+    return mag.rsqrt()
 
 
 def choose_preconditioner(problem: Problem, lam: float, probes: int = 24,
-                          scales: tuple[float, ...] = (1 / 16, 1 / 32)) -> Preconditioner:
+                          scales: tuple[float, ...] = (1 / 16, 1 / 32),
+                          deadline: float | None = None) -> Preconditioner:
     """The congruence M (`candidate_preconditioners`) under which the box bounds close the most
     of `probes` deterministic boxes per relative radius in `scales`; ties go to the smaller
     median bound on lam_max(D) over the probes (then the earlier candidate, M ~ L^-1 first).
+    A badly scaled D adds the candidate `diagonal_scaling`.
     The tie-break matters: on examples/vdp2_lmi.ckpt M ~ L^-1 and M = I both close all 48
     probes, and the whole proof takes 88,768 boxes with the first against 256 with the second
     (median bounds -0.24 and -0.76 at radius 1/16). Only tightness depends on the choice,
     never soundness; it is deterministic in the problem, so every worker of a distributed
-    proof chooses alike."""
+    proof chooses alike. `deadline`: a proof's budget, read before each candidate
+    (`certify.bnb.OutOfTime` once it has passed)."""
+    from certify.bnb import check_clock
+
     cands = candidate_preconditioners(problem.P_t)
+    scaling = diagonal_scaling(problem, lam)
+    if scaling is not None:  # a badly scaled D (SCALE_SPREAD)
+        cands = [*cands, diagonal_preconditioner(problem.P_t, scaling, "scaled")]
     if len(cands) == 1:
         return cands[0]
     root = _root_box(problem)
@@ -303,6 +353,7 @@ def choose_preconditioner(problem: Problem, lam: float, probes: int = 24,
     lo, hi = torch.cat(los), torch.cat(his)
     best, best_key = cands[0], None
     for pc in cands:
+        check_clock(deadline)
         bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, screen=None)
         closed = int((bb.upper <= 0).sum())
         ub = torch.nan_to_num(to_lam_max_D(bb.upper, problem.P_t, pc), nan=float("inf"))

@@ -42,7 +42,8 @@ class Preconditioner:
     c_max: float  # upper bound of lam_max(C)
     pos_scale: float = 1.0  # >= 1 / sigma_min(M)^2
     neg_scale: float = 1.0  # <= 1 / ||M||_2^2
-    kind: str = "cholesky"  # "identity", "cholesky", "none" (M = I, P != I) or "diagonal"
+    kind: str = "cholesky"  # "identity", "cholesky", "none" (M = I, P != I), "diagonal"
+    # (M = diag(P_ii^-1/2)) or "scaled" (M = diag(|D_ii|^-1/2), `certify.bounds.mpdi`)
 
 
 def make_preconditioner(P: torch.Tensor) -> Preconditioner:

@@ -18,7 +18,7 @@ import torch
 from certify.checks.base import Check, Context, Presentation, Quantity
 from certify.falsify import SearchOutcome, maximize_over_box
 from certify.figuredata import ProofBoxes
-from certify.gridkernel import GridKernel
+from certify.gridkernel import GridKernel, float32_screen
 from certify.kernels import mpdi_lam_max
 from certify.problem import Problem
 from certify.progress import NullProgress, Progress
@@ -77,6 +77,8 @@ def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | Non
 
     The grid is swept with a float32 copy of the kernel as a screen; every point that could be
     above 0 and every top candidate is re-evaluated in float64 (see `maximize_over_box`).
+    Where a number of the problem does not fit float32 (`certify.gridkernel.float32_misfit`),
+    there is no screen: the sweep runs in float64 alone.
     """
     from certify.device import resolve_device
     from certify.executor import current_executor
@@ -85,13 +87,13 @@ def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | Non
     problem = problem.on(device)  # the grid and the ascent run there (no copy if already)
     lo, hi = joint_box(problem)
     exact = GridKernel(problem, lam)
-    screen = GridKernel(problem, lam, dtype=torch.float32) if settings.float32_screen else None
+    screen = float32_screen(problem, lam) if settings.float32_screen else None
     executor, remote = current_executor(), None
     if executor.remote or executor.workers > 1:  # the sweep on the run's Dask workers
         from certify.remote import mpdi_grid_chunk, mpdi_payload
 
         remote = (executor, mpdi_grid_chunk, mpdi_payload(
-            problem, exact.lam, settings.float32_screen, settings.device))
+            problem, exact.lam, screen is not None, settings.device))
     return maximize_over_box(exact, lo, hi, grid_points=settings.grid_points,
                              starts=settings.adversarial_starts, steps=settings.adversarial_steps,
                              top_k=settings.top_counterexamples, seed=settings.seed,
