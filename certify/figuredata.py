@@ -38,7 +38,8 @@ def round_sig(value: float, digits: int = FIGURE_DIGITS) -> float:
     non-zero value never rounds to zero, so a value > 0 stays > 0)."""
     if value == 0 or not math.isfinite(value):
         return value
-    return float(f"{value:.{digits}g}")
+    r = float(f"{value:.{digits}g}")
+    return r if math.isfinite(r) else value  # near the largest float, rounding up overflows
 
 
 def round_list(values: Any, digits: int = FIGURE_DIGITS) -> Any:

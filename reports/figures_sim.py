@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import textwrap
+import warnings
 from typing import Any
 
 import numpy as np
@@ -128,10 +129,19 @@ def caption_bounds(d: dict[str, Any]) -> str:
     return "; ".join(parts) + "."
 
 
+#: said (as a warning) when the trajectories are asked for but the certificate has none
+NO_STATES = ("the certificate holds no simulated states (they are written only on request: "
+             "certify run --trajectories), so the trajectories figure is left out")
+
+
 def fig_simulation(cert: Certificate) -> Figure | None:
-    """True (solid) and estimated (dashed) states over time, one panel per run."""
+    """True (solid) and estimated (dashed) states over time, one panel per run; None (with a
+    warning, `NO_STATES`) when the certificate was written without them."""
     runs = _runs(cert)
-    if not runs or not runs[0].x:
+    if not runs:
+        return None
+    if not runs[0].x:
+        warnings.warn(NO_STATES, stacklevel=2)
         return None
     names = state_names(cert)
     fig = new_figure(_height(len(runs)))
