@@ -22,7 +22,8 @@ def render_reports(certificate: Certificate, *, html: bool = False, pdf: bool = 
                    trajectories: bool = False) -> dict[str, bytes]:
     """The requested reports as bytes, keyed 'html' / 'pdf' / 'junit' / 'json'.
 
-    `trajectories`: also draw each simulated run's true and estimated states.
+    `trajectories`: also draw each simulated run's true and estimated states, and write them
+    into the JSON (which leaves them out otherwise).
     """
     out: dict[str, bytes] = {}
     figures = []
@@ -31,7 +32,7 @@ def render_reports(certificate: Certificate, *, html: bool = False, pdf: bool = 
 
         figures = render_figures(certificate, trajectories=trajectories)
     if json:
-        out["json"] = (certificate.to_json() + "\n").encode("utf-8")
+        out["json"] = (certificate.to_json(trajectories=trajectories) + "\n").encode("utf-8")
     if junit:
         out["junit"] = render_junit(certificate, unknown=unknown).encode("utf-8")
     if html:
@@ -52,7 +53,8 @@ def write_reports(certificate: Certificate, *, html: PathLike | None = None,
     """Render, then atomically write each report whose path is given; returns the paths.
 
     `unknown` is the JUnit policy for UNKNOWN checks ("failure" or "error"); `trajectories`
-    adds the figure of each simulated run's states to the HTML and PDF.
+    adds the figure of each simulated run's states to the HTML and PDF, and the states to
+    the JSON.
     """
     targets = {k: Path(v) for k, v in (("html", html), ("pdf", pdf), ("junit", junit),
                                        ("json", json)) if v is not None}

@@ -33,6 +33,7 @@ from certify.figuredata import (  # noqa: E402
 from certify.results import Counterexample  # noqa: E402
 from reports import figures as figmod  # noqa: E402
 from reports.figures import drawn  # noqa: E402
+from reports.render import render_reports  # noqa: E402
 
 from .cli_helpers import FAST_POLICY, run_cli, save_linear  # noqa: E402
 
@@ -252,3 +253,7 @@ def test_states_are_written_only_with_trajectories() -> None:
     assert "simulation" in keys
     assert Certificate.from_dict(full).to_json(trajectories=True) == \
         cert.to_json(trajectories=True)
+    # the report writer passes the request on to the JSON
+    for asked in (False, True):
+        data = json.loads(render_reports(cert, json=True, trajectories=asked)["json"])
+        assert all(bool(r["x"]) == asked for r in data["checks"]["simulation"]["runs"])
