@@ -17,6 +17,7 @@ Titles are placed at y=1.0 (the automatic placement measures the tick labels aga
 
 from __future__ import annotations
 
+import re
 import warnings
 from typing import Any
 
@@ -24,6 +25,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import Normalize, TwoSlopeNorm
 from matplotlib.figure import Figure
+from matplotlib.ticker import LogFormatterSciNotation
 
 from reports.content import fmt
 
@@ -37,6 +39,35 @@ STYLE = {
 BOX_COLOURS = {"proved": "#22c55e", "violated": "#dc2626", "unknown": "#f59e0b"}
 STATE_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf",
                  "#bcbd22"]
+
+
+_SUPERSCRIPT = str.maketrans("0123456789-", "\u2070\u00b9\u00b2\u00b3\u2074\u2075\u2076"
+                                            "\u2077\u2078\u2079\u207b")
+
+
+class PlainLogFormatter(LogFormatterSciNotation):
+    """matplotlib's log-axis labels (10^-2, 2x10^1) as plain text with superscript digits:
+    the same labels without mathtext, whose parser costs more than a small figure."""
+
+    def __call__(self, x: float, pos: int | None = None) -> str:
+        label = super().__call__(x, pos)
+        m = re.fullmatch(r"\$\\mathdefault\{(.*)\}\$", label)
+        if m is None:
+            return label
+        body = m.group(1).replace("\\times", "\u00d7")
+        return re.sub(r"\^\{(-?\d+)\}", lambda e: e.group(1).translate(_SUPERSCRIPT), body)
+
+
+def log_axis(axis: Any, *, minor: bool = True) -> None:
+    """Plain-text labels on a log-scaled axis (`PlainLogFormatter`); without `minor`, no
+    minor ticks (decades only, for small panels)."""
+    from matplotlib.ticker import NullLocator
+
+    axis.set_major_formatter(PlainLogFormatter())
+    if minor:
+        axis.set_minor_formatter(PlainLogFormatter(labelOnlyBase=False))
+    else:
+        axis.set_minor_locator(NullLocator())
 
 
 def new_figure(height: float, width: float = WIDTH) -> Figure:

@@ -19,7 +19,15 @@ from matplotlib.ticker import MaxNLocator
 from certify.certificate import Certificate
 from reports.content import fmt
 from reports.figure_data import as_array, check_result
-from reports.figure_kit import BOX_COLOURS, LEGEND_DROP, LEGEND_ROW, grid, mark, new_figure
+from reports.figure_kit import (
+    BOX_COLOURS,
+    LEGEND_DROP,
+    LEGEND_ROW,
+    grid,
+    log_axis,
+    mark,
+    new_figure,
+)
 
 
 def fig_prover(cert: Certificate) -> Figure | None:
@@ -115,6 +123,7 @@ def fig_lipschitz(cert: Certificate) -> Figure | None:
     ax.set_yticks(ypos, [n for n, *_ in items])
     if max(vals) / min(vals) > 20:
         ax.set_xscale("log")
+        log_axis(ax.xaxis)
         ax.set_xlim(min(vals) / 3, max(vals) * 4)
     else:
         ax.set_xlim(0, max(vals) * 1.35)

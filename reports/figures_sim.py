@@ -17,11 +17,10 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
-from matplotlib.ticker import NullLocator
 
 from certify.certificate import Certificate
 from reports.figure_data import as_array, check_result, state_names
-from reports.figure_kit import STATE_COLOURS, grid, mark, new_figure
+from reports.figure_kit import STATE_COLOURS, grid, log_axis, mark, new_figure
 
 #: at most this many runs are drawn (the table lists all)
 MAX_PANELS = 9
@@ -98,7 +97,7 @@ def fig_bounds(cert: Certificate) -> Figure | None:
             mark(fig, "after exit")
         ax.set_title(short_title(run), fontsize=8, y=1.0)
         ax.set_xlim(t.min(), t.max())
-        ax.yaxis.set_minor_locator(NullLocator())  # decades only: small panels
+        log_axis(ax.yaxis, minor=False)  # decades only: small panels
         ax.tick_params(labelsize=7)
         ax.set_xlabel("t (s)", fontsize=7.5)
         ax.grid(alpha=0.3, which="major")

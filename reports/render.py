@@ -8,6 +8,9 @@ each target either as it was or complete.
 
 from __future__ import annotations
 
+import gc
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from certify.certificate import Certificate
@@ -15,6 +18,20 @@ from certify.checkpoint import atomic_write_bytes
 from reports.junit import render_junit
 
 PathLike = str | Path
+
+
+@contextmanager
+def _no_cycle_collection() -> Iterator[None]:
+    """The cyclic garbage collector paused (as it was before, after): drawing allocates
+    many objects, and each full collection would walk the whole heap of the process (in a
+    run, torch's too) several times over. Cycles made meanwhile are collected afterwards."""
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
 
 
 def render_reports(certificate: Certificate, *, html: bool = False, pdf: bool = False,
@@ -27,22 +44,23 @@ def render_reports(certificate: Certificate, *, html: bool = False, pdf: bool = 
     """
     out: dict[str, bytes] = {}
     figures = []
-    if html or pdf:  # matplotlib is imported only when a figure is drawn
-        from reports.figures import render_figures
+    with _no_cycle_collection():
+        if html or pdf:  # matplotlib is imported only when a figure is drawn
+            from reports.figures import render_figures
 
-        figures = render_figures(certificate, trajectories=trajectories)
-    if json:
-        out["json"] = (certificate.to_json(trajectories=trajectories) + "\n").encode("utf-8")
-    if junit:
-        out["junit"] = render_junit(certificate, unknown=unknown).encode("utf-8")
-    if html:
-        from reports.html import render_html
+            figures = render_figures(certificate, trajectories=trajectories)
+        if json:
+            out["json"] = (certificate.to_json(trajectories=trajectories) + "\n").encode()
+        if junit:
+            out["junit"] = render_junit(certificate, unknown=unknown).encode("utf-8")
+        if html:
+            from reports.html import render_html
 
-        out["html"] = render_html(certificate, figures).encode("utf-8")
-    if pdf:
-        from reports.pdf import render_pdf
+            out["html"] = render_html(certificate, figures).encode("utf-8")
+        if pdf:
+            from reports.pdf import render_pdf
 
-        out["pdf"] = render_pdf(certificate, figures)
+            out["pdf"] = render_pdf(certificate, figures)
     return out
 
 
