@@ -15,7 +15,14 @@ Per (tree, example), medians over `--repeat` worker processes, wall and CPU seco
   `figure_s`), `html_s` (template), `pdf_s` (page layout), `junit_s`, `json_s`;
 - `cli_report_s`: wall seconds of `certify report X.json --html --pdf --junit --json`, a
   fresh interpreter (imports of torch and matplotlib included);
-- sizes: `json_bytes`, `json_lines`, `html_bytes`, `pdf_bytes`, PNG bytes per figure.
+- sizes: `json_bytes`, `json_lines`, `html_bytes`, `pdf_bytes`, PNG bytes per figure;
+- `report-maps` lines (with `--maps`, this tree only): seconds of `certify.verify.report_maps`
+  (the run's "figures" step, the maps the reports draw) on the example's checkpoint at 61 and
+  at 41 points per axis.
+
+The trees' modules are byte-compiled once into a cache of this script
+(`PYTHONPYCACHEPREFIX`, as an installed package has them) and each measurement is preceded
+by one untimed run, so no number includes compiling Python sources.
 
 Runs of the two trees alternate, so load from other processes hits both alike; `load` is
 the 1-minute load average when the line was printed. Wall seconds on a shared machine are
@@ -45,9 +52,14 @@ def emit(**record: object) -> None:
     print(json.dumps(record), flush=True)
 
 
+PYCACHE = Path(tempfile.gettempdir()) / "certify-bench-reports-pycache"
+
+
 def _env(tree: Path) -> dict[str, str]:
-    return {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1",
-            "MPLBACKEND": "Agg"}
+    env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1",
+           "MPLBACKEND": "Agg", "PYTHONPYCACHEPREFIX": str(PYCACHE)}
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    return env
 
 
 def make_certificate(tree: Path, example: str, out: Path) -> None:
@@ -126,6 +138,29 @@ def worker(cert_path: str) -> None:
     }))
 
 
+def maps_worker(ckpt_path: str, cert_path: str, repeat: int) -> None:
+    """Seconds of `report_maps` (the run's "figures" step) at 61 and 41 points per axis."""
+    import certify.verify as V
+    from certify import checkpoint
+    from certify.certificate import Certificate
+    from certify.figuredata import FigureData
+
+    problem = checkpoint.load(ckpt_path).problem
+    checks = Certificate.load(cert_path).checks
+    out = {}
+    for points in (61, 41):
+        V.MAP_RESOLUTION = points
+        V.report_maps(problem, checks, FigureData())  # untimed: warm
+        times = []
+        for _ in range(repeat):
+            t = _clock()
+            V.report_maps(problem, checks, FigureData())
+            times.append(_since(t))
+        out[str(points)] = {"wall": _med([w for w, _ in times]),
+                            "cpu": _med([c for _, c in times])}
+    print(json.dumps(out))
+
+
 # ----------------------------------------------------------------------------- driver
 def _worker_once(tree: Path, cert: Path) -> dict:
     proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker",
@@ -160,6 +195,7 @@ def _pairs(samples: list[tuple[float, float]]) -> dict[str, float]:
 
 
 def measure(tree: Path, label: str, example: str, cert: Path, repeat: int) -> dict:
+    _worker_once(tree, cert)  # untimed: byte-compiles, fills the caches
     runs = [_worker_once(tree, cert) for _ in range(repeat)]
     cli = [_cli_report(tree, cert) for _ in range(repeat)]
     text = cert.read_text()
@@ -182,6 +218,9 @@ def measure(tree: Path, label: str, example: str, cert: Path, repeat: int) -> di
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--maps-worker", nargs=2, help=argparse.SUPPRESS)
+    ap.add_argument("--maps", action="store_true",
+                    help="also time the maps of the run's figures step (this tree only)")
     ap.add_argument("--before", default="/work/main", help="the reference tree ('' to skip)")
     ap.add_argument("--after", default=str(ROOT))
     ap.add_argument("--repeat", type=int, default=3)
@@ -192,6 +231,9 @@ def main() -> None:
     args = ap.parse_args()
     if args.worker:
         worker(args.worker)
+        return
+    if args.maps_worker:
+        maps_worker(*args.maps_worker, repeat=args.repeat)
         return
     trees = [(label, Path(p).resolve()) for label, p in (("before", args.before),
                                                          ("after", args.after)) if p]
@@ -212,6 +254,19 @@ def main() -> None:
                  cli_report_s=[b["cli_report_s"], a["cli_report_s"]],
                  ratio_cpu=round(a["run_added_s"]["cpu"] / max(b["run_added_s"]["cpu"], 1e-9),
                                  3),
+                 load=round(os.getloadavg()[0], 2))
+        if args.maps:
+            label, tree = trees[-1]
+            proc = subprocess.run(
+                [sys.executable, str(Path(__file__).resolve()), "--maps-worker",
+                 str(ROOT / "examples" / f"{example}.ckpt"),
+                 str(certs / label / f"{example}.json"), "--repeat", str(args.repeat)],
+                cwd=tempfile.gettempdir(), env=_env(tree), capture_output=True, text=True,
+                timeout=1800)
+            if proc.returncode != 0:
+                raise SystemExit(f"maps worker failed on {example}: {proc.stderr[-800:]}")
+            emit(bench="report-maps", tree=label, example=example,
+                 seconds=json.loads(proc.stdout.strip().splitlines()[-1]),
                  load=round(os.getloadavg()[0], 2))
 
 

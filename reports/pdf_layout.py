@@ -153,9 +153,6 @@ class PdfDocument:
         self.text(PAGE_W - MARGIN_X, PAGE_H - 0.45, f"page {self.page_no}",
                   Run("", 7.5, color=MUTED), ha="right")
 
-    def flush(self) -> None:
-        """Nothing to do: every page is kept by the writer until it closes the document."""
-
     @property
     def room(self) -> float:
         return PAGE_H - MARGIN_BOTTOM - self.y

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 RGB = tuple[float, float, float]
 
-_NAMED = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0), "none": None}
+_NAMED = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
 def rgb(colour: str) -> RGB:
@@ -223,7 +223,7 @@ class PdfWriter:
         from fontTools import subset
         from fontTools.ttLib import TTFont
 
-        tt = TTFont(font.path, lazy=True)
+        tt = TTFont(font.path, lazy=True, recalcTimestamp=False)  # same bytes every time
         for table in _DROP:  # unused here; left out unread (they are most of the parsing)
             if table in tt:
                 del tt[table]
