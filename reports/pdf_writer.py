@@ -1,8 +1,9 @@
 """A small PDF writer: pages of text, filled boxes, lines and PNG images, nothing else.
 
 Text is real text in embedded TrueType fonts: each font is subset to the glyphs used
-(fontTools, outlines only: no layout tables or hinting, which a PDF viewer does not use),
-CID-keyed (Identity-H) with a ToUnicode map, so the text can be searched and copied. A line
+(`subset_truetype`: their outlines and metrics, glyph ids unchanged; no cmap, names or
+layout tables, which a PDF viewer does not use), CID-keyed (Identity-H) with a ToUnicode
+map, so the text can be searched and copied. A line
 of text is as wide as the sum of its glyphs' advances (no kerning), which is how
 `reports.pdf_layout.TextMeasure` measures it. PNG images that are 8-bit RGB and not
 interlaced (what `reports.figures.figure_png` writes) are embedded with their compressed
@@ -220,56 +221,35 @@ class PdfWriter:
 
     def _write_font(self, out: _Objects, font: _Font) -> int:
         """Subset, embed and describe a font; fills `font.gid`; returns its object id."""
-        from fontTools import subset
-        from fontTools.ttLib import TTFont
+        from matplotlib import ft2font
 
-        tt = TTFont(font.path, lazy=True, recalcTimestamp=False)  # same bytes every time
-        for table in _DROP:  # unused here; left out unread (they are most of the parsing)
-            if table in tt:
-                del tt[table]
-        ps_name = tt["name"].getDebugName(6) or "Font"
-        cmap = tt.getBestCmap()
-        missing = sorted(ch for ch in font.chars if ord(ch) not in cmap and ch not in "\n\r")
-        for ch in missing:
-            warnings.warn(f"Glyph {ord(ch)} ({ch!r}) missing from font {ps_name}",
-                          stacklevel=3)
-        head, hhea = tt["head"], tt["hhea"]
-        upm = head.unitsPerEm
-        os2 = tt["OS/2"] if "OS/2" in tt else None
-        cap = getattr(os2, "sCapHeight", 0) or hhea.ascent
-        italic = float(tt["post"].italicAngle) if "post" in tt else 0.0
-        bbox = [head.xMin, head.yMin, head.xMax, head.yMax]
-        opts = subset.Options()
-        opts.layout_features = []
-        opts.hinting = False
-        opts.notdef_outline = True
-        opts.glyph_names = False
-        opts.drop_tables += list(_DROP)
-        sub = subset.Subsetter(opts)
-        sub.populate(unicodes=[ord(ch) for ch in font.chars if ord(ch) in cmap])
-        sub.subset(tt)
-        sub_cmap = tt.getBestCmap()
-        font.gid = {ch: tt.getGlyphID(sub_cmap[ord(ch)]) for ch in font.chars
-                    if ord(ch) in sub_cmap}
-        hmtx = tt["hmtx"]
-        order = tt.getGlyphOrder()
-        widths = {gid: hmtx[order[gid]][0] * 1000 / upm for gid in set(font.gid.values())}
-        buf = io.BytesIO()
-        tt.save(buf)
-        data = buf.getvalue()
+        face = ft2font.FT2Font(font.path)
+        ps_name = face.postscript_name or "Font"
+        for ch in sorted(font.chars):
+            gid = face.get_char_index(ord(ch))
+            font.gid[ch] = gid
+            if gid == 0 and ch not in "\n\r":
+                warnings.warn(f"Glyph {ord(ch)} ({ch!r}) missing from font {ps_name}",
+                              stacklevel=3)
+        with open(font.path, "rb") as fh:
+            data, advances = subset_truetype(fh.read(), set(font.gid.values()))
+        scale = 1000 / face.units_per_EM
+        post = face.get_sfnt_table("post") or {}
+        angle = post.get("italicAngle", (0, 0))
+        italic = angle[0] + angle[1] / 65536 if isinstance(angle, tuple) else float(angle)
         tag = "".join(chr(65 + b % 26) for b in hashlib.sha256(
             (ps_name + "".join(sorted(font.chars))).encode("utf-8")).digest()[:6])
         base = f"{tag}+{ps_name}"
-        scale = 1000 / upm
         file_id = out.stream(f"/Length1 {len(data)} /Filter /FlateDecode",
                              zlib.compress(data, 6))
         desc = out.add(
             f"<< /Type /FontDescriptor /FontName /{base} /Flags {32 | (64 if italic else 0)} "
-            f"/FontBBox [{' '.join(_num(v * scale) for v in bbox)}] "
-            f"/ItalicAngle {_num(italic)} /Ascent {_num(hhea.ascent * scale)} "
-            f"/Descent {_num(hhea.descent * scale)} /CapHeight {_num(cap * scale)} "
-            f"/StemV 80 /FontFile2 {file_id} 0 R >>")
-        w_array = " ".join(f"{g} [{_num(w)}]" for g, w in sorted(widths.items()))
+            f"/FontBBox [{' '.join(_num(v * scale) for v in face.bbox)}] "
+            f"/ItalicAngle {_num(italic)} /Ascent {_num(face.ascender * scale)} "
+            f"/Descent {_num(face.descender * scale)} /CapHeight "
+            f"{_num(face.ascender * scale)} /StemV 80 /FontFile2 {file_id} 0 R >>")
+        w_array = " ".join(f"{g} [{_num(advances[g] * scale)}]"
+                           for g in sorted(set(font.gid.values())))
         cid = out.add(
             f"<< /Type /Font /Subtype /CIDFontType2 /BaseFont /{base} /CIDSystemInfo "
             f"<< /Registry (Adobe) /Ordering (Identity) /Supplement 0 >> /FontDescriptor "
@@ -281,10 +261,80 @@ class PdfWriter:
             f"/DescendantFonts [{cid} 0 R] /ToUnicode {to_unicode} 0 R >>")
 
 
-#: font tables a PDF viewer does not use for CID-keyed TrueType text: layout (GSUB, GPOS,
-#: GDEF, kern, MATH), device metrics and tool tables
-_DROP = ("GSUB", "GPOS", "GDEF", "kern", "MATH", "FFTM", "PfEd", "BDF", "meta", "hdmx",
-         "VDMX", "LTSH", "JSTF", "BASE")
+#: the tables of an embedded TrueType font: outlines, metrics and the hinting programs the
+#: outlines' instructions call (a PDF viewer needs no cmap, names or layout tables: text is
+#: drawn by glyph id)
+_KEEP = (b"cvt ", b"fpgm", b"glyf", b"head", b"hhea", b"hmtx", b"loca", b"maxp", b"prep")
+
+
+def _checksum(table: bytes) -> int:
+    table += b"\0" * (-len(table) % 4)
+    return sum(struct.unpack(f">{len(table) // 4}I", table)) & 0xFFFFFFFF
+
+
+def subset_truetype(data: bytes, gids: set[int]) -> tuple[bytes, dict[int, int]]:
+    """(a TrueType font, advance width in font units per glyph id of `gids`).
+
+    The font keeps the outlines of `gids`, of the glyphs their composite outlines are built
+    of and of .notdef, every other glyph empty: glyph ids are those of `data`, so a PDF draws
+    by them unchanged (CIDToGIDMap /Identity). Only the `_KEEP` tables are kept.
+    """
+    (count,) = struct.unpack(">H", data[4:6])
+    tables = {}
+    for i in range(count):
+        tag, _, off, length = struct.unpack(">4sIII", data[12 + 16 * i:28 + 16 * i])
+        tables[tag] = data[off:off + length]
+    head, glyf = tables[b"head"], tables[b"glyf"]
+    (n,) = struct.unpack(">H", tables[b"maxp"][4:6])
+    long_loca = struct.unpack(">h", head[50:52])[0] == 1
+    offs = struct.unpack(f">{n + 1}{'I' if long_loca else 'H'}",
+                         tables[b"loca"][:(n + 1) * (4 if long_loca else 2)])
+    offs = offs if long_loca else tuple(2 * o for o in offs)
+    need = {0} | {g for g in gids if 0 <= g < n}
+    todo = list(need)
+    while todo:  # composite glyphs: add their components
+        g = todo.pop()
+        body = glyf[offs[g]:offs[g + 1]]
+        if len(body) < 10 or struct.unpack(">h", body[:2])[0] >= 0:
+            continue
+        pos, more = 10, True
+        while more:
+            flags, comp = struct.unpack(">HH", body[pos:pos + 4])
+            pos += 4 + (4 if flags & 0x0001 else 2)
+            pos += 2 if flags & 0x0008 else 4 if flags & 0x0040 else 8 if flags & 0x0080 else 0
+            if comp < n and comp not in need:
+                need.add(comp)
+                todo.append(comp)
+            more = bool(flags & 0x0020)
+    new_glyf, new_offs = bytearray(), []
+    for g in range(n):
+        new_offs.append(len(new_glyf))
+        if g in need:
+            body = glyf[offs[g]:offs[g + 1]]
+            new_glyf += body + b"\0" * (-len(body) % 4)
+    new_offs.append(len(new_glyf))
+    keep = {tag: tables[tag] for tag in _KEEP if tag in tables}
+    keep[b"glyf"] = bytes(new_glyf)
+    keep[b"loca"] = struct.pack(f">{n + 1}I", *new_offs)
+    # long offsets; checkSumAdjustment 0 while the checksums are summed
+    keep[b"head"] = head[:8] + bytes(4) + head[12:50] + struct.pack(">h", 1) + head[52:]
+    tags = sorted(keep)
+    sel = len(tags).bit_length() - 1
+    out = bytearray(struct.pack(">IHHHH", 0x00010000, len(tags), 16 << sel, sel,
+                                16 * len(tags) - (16 << sel)))
+    offset, where = 12 + 16 * len(tags), {}
+    for tag in tags:
+        out += struct.pack(">4sIII", tag, _checksum(keep[tag]), offset, len(keep[tag]))
+        where[tag] = offset
+        offset += len(keep[tag]) + (-len(keep[tag]) % 4)
+    for tag in tags:
+        out += keep[tag] + b"\0" * (-len(keep[tag]) % 4)
+    adjust = (0xB1B0AFBA - _checksum(bytes(out))) & 0xFFFFFFFF
+    out[where[b"head"] + 8:where[b"head"] + 12] = struct.pack(">I", adjust)
+    (metrics,) = struct.unpack(">H", tables[b"hhea"][34:36])
+    hmtx = tables[b"hmtx"]
+    advances = {g: struct.unpack(">H", hmtx[4 * min(g, metrics - 1):][:2])[0] for g in gids}
+    return bytes(out), advances
 
 
 def _to_unicode(gid: dict[str, int]) -> str:
