@@ -22,10 +22,16 @@ from certify.results import (
 
 SCHEMA_NAME = "certify-certificate"
 #: v2: a check may hold a `CheckFailure` record (`"failed": true`) instead of its own
-#: result; a required check in ERROR gives INCONCLUSIVE (v1: NOT CERTIFIED). Figure arrays
-#: are laid out as in v1, so v1 documents are read unchanged.
-SCHEMA_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+#: result; a required check in ERROR gives INCONCLUSIVE (v1: NOT CERTIFIED).
+#: v3: figure arrays at figure size (`certify.figuredata`: maps of at most 41 x 41 points,
+#: 4 significant digits, merged prover boxes with `leaf_counts`); simulated series thinned
+#: to at most 150 samples that keep every run's extremes; the simulated states `x`, `xhat`
+#: written only on request (`trajectories`). v1 and v2 documents are read as they are, their
+#: figure arrays brought to figure size on reading.
+SCHEMA_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
+#: lines of the JSON text are kept within this many characters where a list allows it
+JSON_WIDTH = 100
 
 #: Verdicts, and the exit code of `certify run` for each.
 EXIT_CODES = {"CERTIFIED": 0, "NOT CERTIFIED": 1, "INCONCLUSIVE": 3}
@@ -57,17 +63,29 @@ class Certificate:
     schema_version: int = SCHEMA_VERSION
 
     def __post_init__(self) -> None:
-        self.figures = FigureData.coerce(self.figures)
+        # figure arrays at figure size here, so that reports drawn from this object and
+        # from its saved JSON are the same
+        self.figures = FigureData.coerce(self.figures).compact()
 
     def status_of(self, name: str) -> Status:
         result = self.checks.get(name)
         return Status.SKIPPED if result is None else result.status
 
-    def to_dict(self) -> dict[str, Any]:
-        return to_jsonable(self)
+    def to_dict(self, *, trajectories: bool = False) -> dict[str, Any]:
+        """The JSON form; each simulated run's states `x` and `xhat` only with
+        `trajectories` (they are drawn only on request; empty lists otherwise)."""
+        data = to_jsonable(self)
+        sim = data["checks"].get("simulation")
+        if not trajectories and isinstance(sim, dict):
+            for run in sim.get("runs") or []:
+                if isinstance(run, dict):
+                    run["x"], run["xhat"] = [], []
+        return data
 
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=1, allow_nan=False)
+    def to_json(self, *, trajectories: bool = False) -> str:
+        """The certificate as JSON text a person can open: one key per line, number lists
+        wrapped at `JSON_WIDTH` characters (`format_json`); see `to_dict`."""
+        return format_json(self.to_dict(trajectories=trajectories))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Certificate:
@@ -85,7 +103,7 @@ class Certificate:
                     raise CertifyError(f"certificate has an unknown check '{name}'")
                 checks[name] = result_from_jsonable(name, raw)
             kwargs = {k: v for k, v in data.items() if k not in ("checks", "figures")}
-            # a v1 document is read as it is and re-stamped with the current version
+            # an older document is read as it is and re-stamped with the current version
             kwargs["schema_version"] = SCHEMA_VERSION
             return cls(checks=checks, figures=FigureData.coerce(data.get("figures")),
                        **kwargs)
@@ -102,6 +120,42 @@ class Certificate:
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise CertifyError(f"certificate {path} is not valid JSON ({exc})") from None
         return cls.from_dict(data)
+
+
+def format_json(data: Any, width: int = JSON_WIDTH) -> str:
+    """JSON text of plain data (finite floats; NaN/Inf already spelled as strings): objects
+    one key per line, indented one space per level; a list that fits on its line stays on
+    it; a longer list of scalars is wrapped at `width` characters; any other list has one
+    element per line. `json.loads` gives `data` back."""
+    def scalar(v: Any) -> str:
+        return json.dumps(v, allow_nan=False)
+
+    def fmt(o: Any, ind: int) -> str:
+        pad, inner = " " * ind, " " * (ind + 1)
+        if isinstance(o, dict):
+            if not o:
+                return "{}"
+            return ("{\n" + ",\n".join(f"{inner}{scalar(str(k))}: {fmt(v, ind + 1)}"
+                                        for k, v in o.items()) + "\n" + pad + "}")
+        if not isinstance(o, list):
+            return scalar(o)
+        if not any(isinstance(v, dict) for v in o):
+            flat = json.dumps(o, separators=(", ", ": "), allow_nan=False)
+            if ind + len(flat) <= width:
+                return flat
+        if o and not any(isinstance(v, (dict, list)) for v in o):
+            lines, line = [], ""
+            for item in map(scalar, o):
+                if line and ind + 1 + len(line) + len(item) + 2 > width:
+                    lines.append(line + ",")
+                    line = item
+                else:
+                    line = f"{line}, {item}" if line else item
+            lines.append(line)
+            return "[" + ("\n" + inner).join(lines) + "]"
+        return "[\n" + ",\n".join(inner + fmt(v, ind + 1) for v in o) + "\n" + pad + "]"
+
+    return fmt(data, 0)
 
 
 def decide_verdict(checks: dict[str, Any], required: list[str],

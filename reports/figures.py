@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import matplotlib
+import numpy as np
 from matplotlib.figure import Figure
 
 from certify.certificate import Certificate
@@ -77,10 +78,18 @@ class RenderedFigure:
 
 
 def figure_png(fig: Figure, dpi: int) -> bytes:
-    """PNG bytes of a figure (fixed metadata, so identical inputs give identical bytes)."""
+    """An 8-bit RGB PNG of a figure on white (no alpha channel: the PDF embeds the PNG's
+    data as it is) with no metadata, so identical inputs give identical bytes."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from PIL import Image
+
+    canvas = fig.canvas if isinstance(fig.canvas, FigureCanvasAgg) else FigureCanvasAgg(fig)
+    fig.set_dpi(dpi)
+    fig.patch.set_facecolor("white")
+    canvas.draw()
+    rgb = np.asarray(canvas.buffer_rgba())[..., :3]
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi, facecolor="white",
-                metadata={"Software": None})
+    Image.fromarray(np.ascontiguousarray(rgb)).save(buf, format="png")
     return buf.getvalue()
 
 

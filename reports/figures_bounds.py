@@ -19,7 +19,15 @@ from matplotlib.ticker import MaxNLocator
 from certify.certificate import Certificate
 from reports.content import fmt
 from reports.figure_data import as_array, check_result
-from reports.figure_kit import BOX_COLOURS, mark, new_figure
+from reports.figure_kit import (
+    BOX_COLOURS,
+    LEGEND_DROP,
+    LEGEND_ROW,
+    grid,
+    log_axis,
+    mark,
+    new_figure,
+)
 
 
 def fig_prover(cert: Certificate) -> Figure | None:
@@ -34,8 +42,8 @@ def fig_prover(cert: Certificate) -> Figure | None:
         return None
     panels = int(bool(have_boxes)) + int(bool(hist))
     fig = new_figure(3.6)
-    axs = fig.subplots(1, panels, width_ratios=[1.25, 1] if panels == 2 else None,
-                       squeeze=False)[0]
+    axs = grid(fig, 1, panels, width_ratios=[1.25, 1] if panels == 2 else None, left=0.7,
+               right=0.2, top=0.35, bottom=LEGEND_DROP + LEGEND_ROW + 0.06, wgap=0.8)
     i = 0
     if have_boxes:
         ax = axs[i]
@@ -55,12 +63,15 @@ def fig_prover(cert: Certificate) -> Figure | None:
         ax.set_xlabel(axes[0])
         ax.set_ylabel(axes[1] if len(axes) > 1 else "")
         ax.xaxis.set_major_locator(MaxNLocator(5))
-        ax.set_title(f"Prover's leaf boxes ({fmt(len(lo))})")
-        counts = {k: int(np.sum(status == k)) for k in BOX_COLOURS}
+        leaves = data.counts()  # leaves per status (coinciding projections are merged)
+        counts = {k: int(leaves.get(k, 0)) for k in BOX_COLOURS}
+        ax.set_title(f"Prover's leaf boxes ({fmt(sum(leaves.values()))})", y=1.0)
         mark(fig, "boxes", {k: c for k, c in counts.items() if c})
         ax.legend(handles=[Patch(color=c, label=f"{k} ({fmt(counts[k])})")
                            for k, c in BOX_COLOURS.items()],
-                  loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=3, frameon=False)
+                  loc="upper center", ncol=3, frameon=False, borderaxespad=0.0,
+                  bbox_to_anchor=(0.5, -LEGEND_DROP / (fig.get_size_inches()[1]
+                                                       * ax.get_position().height)))
     if hist:
         ax = axs[i]
         h = as_array(hist)
@@ -72,7 +83,7 @@ def fig_prover(cert: Certificate) -> Figure | None:
         ax.set_ylim(0, 102)
         ax.set_xlabel("prover time (s)")
         ax.set_ylabel("proved volume (%)")
-        ax.set_title("Proved volume over time")
+        ax.set_title("Proved volume over time", y=1.0)
         ax.grid(alpha=0.3)
         if r is not None and r.proof is not None:
             ax.text(0.97, 0.05, f"{fmt(r.proof.boxes_processed)} boxes\n"
@@ -92,7 +103,7 @@ def fig_lipschitz(cert: Certificate) -> Figure | None:
              ("LipSDP", r.lipsdp, "#2563eb", "lipsdp"),
              ("naive", r.naive, "#9333ea", "naive")]
     fig = new_figure(2.3)
-    ax = fig.add_subplot()
+    ax = grid(fig, 1, 1, left=1.25, right=0.25, top=0.35, bottom=0.5)[0]
     vals = [v for _, v, _, _ in items if v is not None and math.isfinite(v) and v > 0]
     if not vals:
         return None
@@ -112,9 +123,10 @@ def fig_lipschitz(cert: Certificate) -> Figure | None:
     ax.set_yticks(ypos, [n for n, *_ in items])
     if max(vals) / min(vals) > 20:
         ax.set_xscale("log")
+        log_axis(ax.xaxis)
         ax.set_xlim(min(vals) / 3, max(vals) * 4)
     else:
         ax.set_xlim(0, max(vals) * 1.35)
     ax.set_xlabel("Lipschitz constant of k in y (L2 \u2192 L2)")
-    ax.set_title("Lipschitz bounds side by side")
+    ax.set_title("Lipschitz bounds side by side", y=1.0)
     return fig

@@ -18,14 +18,28 @@ from matplotlib.figure import Figure
 from certify.certificate import Certificate
 from reports.content import fmt
 from reports.figure_data import check_result, grid_map, state_names
-from reports.figure_kit import heatmap, legend_below, mark, new_figure, point_marker
+from reports.figure_kit import (
+    LEGEND_DROP,
+    LEGEND_ROW,
+    MAP_RIGHT,
+    frame,
+    heatmap,
+    legend_below,
+    mark,
+    new_figure,
+    point_marker,
+)
+
+#: a map's margins in inches: the y tick labels and name; the title; the x axis and one
+#: row of legend below it
+MAP_LEFT, MAP_TOP, MAP_BOTTOM = 0.7, 0.4, LEGEND_DROP + LEGEND_ROW + 0.06
 
 
 def _open_map(fig_height: float, x: np.ndarray, y: np.ndarray, v: np.ndarray, label: str,
               **style: Any) -> tuple[Figure, Axes]:
     """A new figure with one axes holding the heatmap of v over the (x, y) grid."""
     fig = new_figure(fig_height)
-    ax = fig.add_subplot()
+    ax = frame(fig, left=MAP_LEFT, right=MAP_RIGHT, top=MAP_TOP, bottom=MAP_BOTTOM)
     heatmap(fig, ax, x, y, v, label=label, **style)
     return fig, ax
 
@@ -40,7 +54,7 @@ def _finish(ax: Axes, axes: list[str], title: str) -> None:
     """Axis names, title and the legend below the map."""
     ax.set_xlabel(axes[0])
     ax.set_ylabel(axes[1] if len(axes) > 1 else "")
-    ax.set_title(title)
+    ax.set_title(title, y=1.0)
     legend_below(ax)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import textwrap
+import warnings
 from typing import Any
 
 import numpy as np
@@ -19,12 +20,16 @@ from matplotlib.patches import Patch
 
 from certify.certificate import Certificate
 from reports.figure_data import as_array, check_result, state_names
-from reports.figure_kit import STATE_COLOURS, mark, new_figure
+from reports.figure_kit import STATE_COLOURS, grid, log_axis, mark, new_figure
 
 #: at most this many runs are drawn (the table lists all)
 MAX_PANELS = 9
 NCOLS = 3
 PANEL_HEIGHT = 1.75  # inches per row
+#: inches: above the panels, the figure's title and two lines of panel title; below, the
+#: last row's axis and the legend; between rows, an axis and a panel title; between columns,
+#: the tick labels of the next panel
+TOP, BOTTOM, ROW_GAP, COL_GAP, LEFT, RIGHT = 0.64, 0.72, 0.74, 0.55, 0.55, 0.15
 
 
 def _runs(cert: Certificate) -> list[Any]:
@@ -43,16 +48,21 @@ def short_title(run: Any, width: int = 30) -> str:
 
 
 def _grid(fig: Figure, k: int) -> list[Any]:
+    """k panels, NCOLS to a row (only the k axes are made)."""
     ncols = min(NCOLS, k)
-    rows = math.ceil(k / ncols)
-    axs = fig.subplots(rows, ncols, squeeze=False).ravel()
-    for ax in axs[k:]:
-        ax.set_visible(False)
-    return list(axs[:k])
+    return grid(fig, math.ceil(k / ncols), ncols, count=k, left=LEFT, right=RIGHT, top=TOP,
+                bottom=BOTTOM, wgap=COL_GAP, hgap=ROW_GAP)
 
 
 def _height(k: int) -> float:
     return PANEL_HEIGHT * math.ceil(k / min(NCOLS, max(k, 1))) + 0.75
+
+
+def _legend(fig: Figure, handles: list[Any], title: str) -> None:
+    """The figure's legend along its bottom edge and its title along the top."""
+    fig.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, 0.0),
+               ncol=len(handles), frameon=False)
+    fig.suptitle(title, fontsize=10, y=1.0 - 0.06 / fig.get_size_inches()[1], va="top")
 
 
 def _half_diagonal(cert: Certificate) -> float | None:
@@ -85,8 +95,9 @@ def fig_bounds(cert: Certificate) -> Figure | None:
         if run.exit_time is not None:
             ax.axvspan(run.exit_time, t.max(), color="#fecaca", alpha=0.5, lw=0)
             mark(fig, "after exit")
-        ax.set_title(short_title(run), fontsize=8)
+        ax.set_title(short_title(run), fontsize=8, y=1.0)
         ax.set_xlim(t.min(), t.max())
+        log_axis(ax.yaxis, minor=False)  # decades only: small panels
         ax.tick_params(labelsize=7)
         ax.set_xlabel("t (s)", fontsize=7.5)
         ax.grid(alpha=0.3, which="major")
@@ -100,8 +111,7 @@ def fig_bounds(cert: Certificate) -> Figure | None:
                               label="half-diagonal of X"))
     if "after exit" in d:
         handles.append(Patch(color="#fecaca", label="after the first exit (no claim)"))
-    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), frameon=False)
-    fig.suptitle("Simulated error against the proved bound", fontsize=10)
+    _legend(fig, handles, "Simulated error against the proved bound")
     return fig
 
 
@@ -118,10 +128,19 @@ def caption_bounds(d: dict[str, Any]) -> str:
     return "; ".join(parts) + "."
 
 
+#: said (as a warning) when the trajectories are asked for but the certificate has none
+NO_STATES = ("the certificate holds no simulated states (they are written only on request: "
+             "certify run --trajectories), so the trajectories figure is left out")
+
+
 def fig_simulation(cert: Certificate) -> Figure | None:
-    """True (solid) and estimated (dashed) states over time, one panel per run."""
+    """True (solid) and estimated (dashed) states over time, one panel per run; None (with a
+    warning, `NO_STATES`) when the certificate was written without them."""
     runs = _runs(cert)
-    if not runs or not runs[0].x:
+    if not runs:
+        return None
+    if not runs[0].x:
+        warnings.warn(NO_STATES, stacklevel=2)
         return None
     names = state_names(cert)
     fig = new_figure(_height(len(runs)))
@@ -144,7 +163,7 @@ def fig_simulation(cert: Certificate) -> Figure | None:
         if run.exit_time is not None:
             ax.axvline(run.exit_time, color="#b91c1c", lw=1)
             mark(fig, "exit")
-        ax.set_title(short_title(run), fontsize=8)
+        ax.set_title(short_title(run), fontsize=8, y=1.0)
         ax.set_xlim(t.min(), t.max())
         ax.tick_params(labelsize=7)
         ax.set_xlabel("t (s)", fontsize=7.5)
@@ -160,8 +179,7 @@ def fig_simulation(cert: Certificate) -> Figure | None:
         handles.append(Line2D([], [], color="#374151", lw=0.6, ls=":", label="edges of X"))
     if "exit" in d:
         handles.append(Line2D([], [], color="#b91c1c", lw=1, label="first exit"))
-    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), frameon=False)
-    fig.suptitle("Simulation: true and estimated states", fontsize=10)
+    _legend(fig, handles, "Simulation: true and estimated states")
     return fig
 
 

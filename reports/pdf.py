@@ -8,16 +8,24 @@ tables; the same PNG figures as the HTML report).
 
 from __future__ import annotations
 
-import io
-
-import matplotlib
-from matplotlib.backends.backend_pdf import PdfPages
-
 from certify.certificate import Certificate
 from reports import content as C
 from reports import sections as S
 from reports.figures import RenderedFigure, render_figures
-from reports.pdf_layout import CONTENT_W, INK, MARGIN_X, MUTED, PANEL, RC, Cell, PdfDocument, Run
+from reports.pdf_layout import (
+    CONTENT_W,
+    INK,
+    MARGIN_X,
+    MUTED,
+    PAGE_H,
+    PAGE_W,
+    PANEL,
+    PT,
+    Cell,
+    PdfDocument,
+    Run,
+)
+from reports.pdf_writer import PdfWriter
 
 
 def _check_table(doc: PdfDocument, cert: Certificate) -> None:
@@ -97,43 +105,41 @@ def render_pdf(cert: Certificate, figures: list[RenderedFigure] | None = None) -
         by_section.setdefault(fig.section, []).append(fig)
     sy = cert.system or {}
     name = sy.get("name", "system")
-    buf = io.BytesIO()
     meta = {"Title": f"certify report: {name} ({cert.verdict})", "Author": "certify",
             "Subject": cert.summary, "Creator": f"certify {cert.versions.get('certify', '')}",
-            "CreationDate": None}
-    with matplotlib.rc_context(RC), PdfPages(buf, metadata=meta) as pdf:
-        doc = PdfDocument(pdf, f"certify report \u00b7 {name} \u00b7 {cert.verdict}")
-        doc.new_page()
-        doc.para(f"certify report \u00b7 {name}", 16, INK, gap=0.0)
-        if sy.get("description"):
-            doc.para(sy["description"], 9.5, MUTED)
-        _verdict(doc, cert)
-        doc.heading("Checks", 1)
-        _check_table(doc, cert)
-        doc.heading("System, metric and rates", 1)
-        doc.para(C.CONVENTION, 8.5, box="#f8fafc", bar="#94a3b8")
-        doc.kv(C.system_facts(cert))
-        doc.heading("Provenance", 2)
-        doc.kv(C.provenance_facts(cert))
-        doc.heading("Versions and timings", 2)
-        vers, tims = C.kv_pairs(cert.versions), C.timing_pairs(cert)
-        n = max(len(vers), len(tims))
-        vers += [("", "")] * (n - len(vers))
-        tims += [("", "")] * (n - len(tims))
-        doc.table(["Package", "Version", "Step", "Time"],
-                  [[a, b, c, d] for (a, b), (c, d) in zip(vers, tims)], [1, 1, 1, 1])
-        for sec in S.sections(cert):
-            _section(doc, sec, by_section.get(sec.anchor, []))
-        doc.heading("Settings", 1)
-        doc.para("The settings this certificate was checked with. Required checks: "
-                 + (", ".join(cert.required) or C.DASH) + ".", 8.8)
-        pairs = C.kv_pairs(cert.settings)
-        half = (len(pairs) + 1) // 2
-        left, right = pairs[:half], pairs[half:] + [("", "")] * (2 * half - len(pairs))
-        doc.table(["Setting", "Value", "Setting", "Value"],
-                  [[a, b, c, d] for (a, b), (c, d) in zip(left, right)], [1.3, 1, 1.3, 1])
-        doc.para("Only PROVED counts as a proof (PASSED: a simulation found no breach, evidence "
-                 "only); UNKNOWN is never a pass. "
-                 f"Certificate schema {cert.schema} v{cert.schema_version}.", 7.8, MUTED)
-        doc.flush()
-    return buf.getvalue()
+            "Producer": "certify"}
+    pdf = PdfWriter(PAGE_W * PT, PAGE_H * PT, meta)
+    doc = PdfDocument(pdf, f"certify report \u00b7 {name} \u00b7 {cert.verdict}")
+    doc.new_page()
+    doc.para(f"certify report \u00b7 {name}", 16, INK, gap=0.0)
+    if sy.get("description"):
+        doc.para(sy["description"], 9.5, MUTED)
+    _verdict(doc, cert)
+    doc.heading("Checks", 1)
+    _check_table(doc, cert)
+    doc.heading("System, metric and rates", 1)
+    doc.para(C.CONVENTION, 8.5, box="#f8fafc", bar="#94a3b8")
+    doc.kv(C.system_facts(cert))
+    doc.heading("Provenance", 2)
+    doc.kv(C.provenance_facts(cert))
+    doc.heading("Versions and timings", 2)
+    vers, tims = C.kv_pairs(cert.versions), C.timing_pairs(cert)
+    n = max(len(vers), len(tims))
+    vers += [("", "")] * (n - len(vers))
+    tims += [("", "")] * (n - len(tims))
+    doc.table(["Package", "Version", "Step", "Time"],
+              [[a, b, c, d] for (a, b), (c, d) in zip(vers, tims)], [1, 1, 1, 1])
+    for sec in S.sections(cert):
+        _section(doc, sec, by_section.get(sec.anchor, []))
+    doc.heading("Settings", 1)
+    doc.para("The settings this certificate was checked with. Required checks: "
+             + (", ".join(cert.required) or C.DASH) + ".", 8.8)
+    pairs = C.kv_pairs(cert.settings)
+    half = (len(pairs) + 1) // 2
+    left, right = pairs[:half], pairs[half:] + [("", "")] * (2 * half - len(pairs))
+    doc.table(["Setting", "Value", "Setting", "Value"],
+              [[a, b, c, d] for (a, b), (c, d) in zip(left, right)], [1.3, 1, 1.3, 1])
+    doc.para("Only PROVED counts as a proof (PASSED: a simulation found no breach, evidence "
+             "only); UNKNOWN is never a pass. "
+             f"Certificate schema {cert.schema} v{cert.schema_version}.", 7.8, MUTED)
+    return pdf.close()

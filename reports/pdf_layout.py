@@ -1,35 +1,34 @@
-"""The PDF report's page layout: a small flow layout on A4 pages with matplotlib only.
+"""The PDF report's page layout: a small flow layout on A4 pages.
 
 Text is measured from the fonts' advance widths (`TextMeasure`), wrapped to the column and
 drawn as PDF text (TrueType, so it is searchable); tables wrap inside their cells and repeat
-their header after a page break; figures are the report's PNGs embedded at their native
-resolution. `PdfDocument` knows nothing about certificates: `reports.pdf` decides what goes
-on the pages. No system library beyond the Python packages is needed.
+their header after a page break; figures are the report's PNGs embedded as they are, at
+their native resolution. Pages are written by `reports.pdf_writer` (text, boxes, lines,
+images: all this layout draws). `PdfDocument` knows nothing about certificates:
+`reports.pdf` decides what goes on the pages. No system library beyond the Python packages
+is needed (the fonts are matplotlib's DejaVu, read with its FreeType binding and fontTools).
 """
 
 from __future__ import annotations
 
-import io
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-import matplotlib.image as mpimg
 from matplotlib import ft2font
-from matplotlib.backends.backend_pdf import PdfPages
-from matplotlib.figure import Figure
 from matplotlib.font_manager import FontProperties, findfont
-from matplotlib.lines import Line2D
-from matplotlib.patches import FancyBboxPatch, Rectangle
 
 from reports import content as C
 from reports.figures import RenderedFigure
+from reports.pdf_writer import PdfWriter, rgb
 
 PAGE_W, PAGE_H = 8.27, 11.69  # A4, inches
 MARGIN_X, MARGIN_TOP, MARGIN_BOTTOM = 0.7, 0.7, 0.75
 CONTENT_W = PAGE_W - 2 * MARGIN_X
 FONT = "DejaVu Sans"
 INK, MUTED, LINE, PANEL = "#111827", "#4b5563", "#d1d5db", "#f3f4f6"
-RC = {"pdf.fonttype": 42, "pdf.compression": 6, "font.family": FONT}
+PT = 72.0  # points per inch
+#: corner radius of rounded boxes, in inches
+ROUNDING = 0.05
 
 
 @dataclass
@@ -61,6 +60,8 @@ class TextMeasure:
 
     def __init__(self) -> None:
         self._fonts: dict[tuple, ft2font.FT2Font] = {}
+        self._paths: dict[tuple, str] = {}
+        self._ascent: dict[tuple, float] = {}
         self._adv: dict[tuple, float] = {}
 
     def _font(self, run: Run) -> tuple[tuple, ft2font.FT2Font]:
@@ -68,12 +69,26 @@ class TextMeasure:
         font = self._fonts.get(key)
         if font is None:
             prop = FontProperties(family=run.family, weight=run.weight, style=run.style)
-            font = ft2font.FT2Font(findfont(prop))
+            self._paths[key] = findfont(prop)
+            font = ft2font.FT2Font(self._paths[key])
             font.set_size(100, 72)
+            glyph = font.load_char(ord("l"), flags=ft2font.LoadFlags.NO_HINTING)
+            self._ascent[key] = glyph.horiBearingY / 64 / 100  # in em
             self._fonts[key] = font
         return key, font
 
-    def width(self, text: str, run: Run) -> float:
+    def path(self, run: Run) -> str:
+        """The font file `run` is drawn with."""
+        key, _ = self._font(run)
+        return self._paths[key]
+
+    def ascent(self, run: Run) -> float:
+        """From the top of a line of `run` to its baseline, in inches (the height of 'l')."""
+        key, _ = self._font(run)
+        return self._ascent[key] * run.size / PT
+
+    def advance(self, text: str, run: Run) -> float:
+        """The width of `text` as drawn: its glyphs' advances summed, in inches."""
         key, font = self._font(run)
         em = 0.0
         for ch in text:
@@ -83,7 +98,11 @@ class TextMeasure:
                 a = glyph.linearHoriAdvance / 65536 / 100
                 self._adv[(key, ch)] = a
             em += a
-        return em * run.size / 72.0 * 1.01
+        return em * run.size / PT
+
+    def width(self, text: str, run: Run) -> float:
+        """`advance` with 1% to spare (what the layout reserves)."""
+        return self.advance(text, run) * 1.01
 
     def wrap(self, text: str, run: Run, width: float) -> list[str]:
         """Greedy word wrap; words wider than the column (hashes) are cut by characters."""
@@ -117,62 +136,54 @@ def line_height(run: Run) -> float:
 class PdfDocument:
     """Flowing layout on A4 pages; coordinates in inches from the top-left corner."""
 
-    def __init__(self, pdf: PdfPages, footer: str) -> None:
+    def __init__(self, pdf: PdfWriter, footer: str) -> None:
         self.pdf, self.footer = pdf, footer
         self.m = TextMeasure()
-        self.fig: Figure | None = None
+        self.started = False
         self.y = 0.0
         self.page_no = 0
 
     # -- pages
     def new_page(self) -> None:
-        self.flush()
-        self.fig = Figure(figsize=(PAGE_W, PAGE_H))
+        self.pdf.new_page()
+        self.started = True
         self.page_no += 1
         self.y = MARGIN_TOP
         self.text(MARGIN_X, PAGE_H - 0.45, self.footer, Run(self.footer, 7.5, color=MUTED))
         self.text(PAGE_W - MARGIN_X, PAGE_H - 0.45, f"page {self.page_no}",
                   Run("", 7.5, color=MUTED), ha="right")
 
-    def flush(self) -> None:
-        if self.fig is not None:
-            self.pdf.savefig(self.fig)
-            self.fig = None
-
     @property
     def room(self) -> float:
         return PAGE_H - MARGIN_BOTTOM - self.y
 
     def need(self, h: float) -> None:
-        if self.fig is None or h > self.room:
+        if not self.started or h > self.room:
             self.new_page()
 
-    # -- primitives
+    # -- primitives (inches from the top-left corner of the page)
     def text(self, x: float, y: float, s: str, run: Run, ha: str = "left") -> None:
-        assert self.fig is not None
-        self.fig.text(x / PAGE_W, 1 - y / PAGE_H, s, fontsize=run.size, fontweight=run.weight,
-                      color=run.color, family=run.family, style=run.style, ha=ha, va="top")
+        """`s` in the style of `run` (its text is ignored), its top at y."""
+        assert self.started
+        style = Run(s, run.size, run.weight, run.color, run.family, run.style)
+        if ha == "right":
+            x -= self.m.advance(s, style)
+        baseline = y + self.m.ascent(style)
+        self.pdf.text(x * PT, (PAGE_H - baseline) * PT, s, self.m.path(style), run.size,
+                      rgb(run.color))
 
     def rect(self, x: float, y: float, w: float, h: float, color: str, *,
              edge: str | None = None, round_: bool = False) -> None:
-        assert self.fig is not None
-        tr = self.fig.transFigure
-        xy = (x / PAGE_W, 1 - (y + h) / PAGE_H)
-        if round_:
-            patch = FancyBboxPatch(xy, w / PAGE_W, h / PAGE_H, boxstyle="round,pad=0,"
-                                   "rounding_size=0.006", transform=tr, facecolor=color,
-                                   edgecolor=edge or "none", linewidth=0.6)
-        else:
-            patch = Rectangle(xy, w / PAGE_W, h / PAGE_H, transform=tr, facecolor=color,
-                              edgecolor=edge or "none", linewidth=0.6)
-        self.fig.patches.append(patch)
+        assert self.started
+        self.pdf.rect(x * PT, (PAGE_H - y - h) * PT, w * PT, h * PT, rgb(color),
+                      stroke=rgb(edge) if edge else None, lw=0.6,
+                      radius=ROUNDING * PT if round_ else 0.0)
 
     def hline(self, y: float, x0: float = MARGIN_X, x1: float = PAGE_W - MARGIN_X,
               color: str = LINE, lw: float = 0.6) -> None:
-        assert self.fig is not None
-        self.fig.add_artist(Line2D(
-            [x0 / PAGE_W, x1 / PAGE_W], [1 - y / PAGE_H] * 2, transform=self.fig.transFigure,
-            color=color, lw=lw))
+        assert self.started
+        yy = (PAGE_H - y) * PT
+        self.pdf.line(x0 * PT, yy, x1 * PT, yy, rgb(color), lw)
 
     # -- layout of runs
     def layout(self, runs: Sequence[Run], width: float) -> list[tuple[str, Run, float]]:
@@ -304,15 +315,10 @@ class PdfDocument:
         cap_lines = self.layout([cap], CONTENT_W - 0.4)
         cap_h = sum(x[2] for x in cap_lines)
         fits = self.room - cap_h - 0.15
-        if self.fig is not None and h > fits >= 0.72 * h:
+        if self.started and h > fits >= 0.72 * h:
             w, h = w * fits / h, fits  # shrink a little rather than leave half a page empty
         self.need(h + cap_h + 0.15)
-        assert self.fig is not None
-        arr = mpimg.imread(io.BytesIO(fig.png), format="png")[..., :3]
         x0 = MARGIN_X + (CONTENT_W - w) / 2
-        ax = self.fig.add_axes((x0 / PAGE_W, 1 - (self.y + h) / PAGE_H, w / PAGE_W,
-                                h / PAGE_H))
-        ax.imshow(arr, interpolation="none", aspect="auto")
-        ax.set_axis_off()
+        self.pdf.image(fig.png, x0 * PT, (PAGE_H - self.y - h) * PT, w * PT, h * PT)
         self.y += h + 0.05
         self.y = self.draw_lines(MARGIN_X + 0.2, self.y, cap_lines) + 0.15

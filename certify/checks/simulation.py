@@ -30,6 +30,7 @@ import torch
 
 from certify.checks.base import Check, Context, Presentation, Quantity
 from certify.checks.bounds import BOUND_NAMES, bound_curve, initial_value, metric_constants
+from certify.figuredata import FIGURE_DIGITS, round_list
 from certify.integrate import bounded_noise, gaussian_noise, simulate_doubled
 from certify.problem import Problem
 from certify.progress import NullProgress, Progress
@@ -39,8 +40,11 @@ from certify.sim_starts import InitialConditions, choose_starts, source_initial_
 
 #: The source's simulation protocol: white Gaussian measurement noise of this std.
 SOURCE_NOISE_STD = 0.15
-#: Samples kept per run for reports (the check itself uses every step).
-MAX_SAMPLES = 500
+#: Samples kept per run for reports (the check itself uses every step): a panel of the
+#: report's figure is about 330 pixels wide; `keep_samples` chooses which.
+MAX_SAMPLES = 150
+#: significant digits of the kept times (the series keep `FIGURE_DIGITS`)
+TIME_DIGITS = 7
 #: Absolute part of the comparison tolerance (on top of the estimated integration error).
 ATOL = 1e-9
 
@@ -113,10 +117,41 @@ def _first_exit(problem: Problem, x: torch.Tensor, xhat: torch.Tensor, v: torch.
     return first.numpy(), reasons
 
 
-def _thin(T: int, limit: int = MAX_SAMPLES) -> np.ndarray:
-    """At most `limit` sample indices spread evenly over [0, T), increasing, no repeats."""
-    idx = np.linspace(0, T - 1, min(T, limit)).round().astype(np.int64)  # non-decreasing
-    return idx[np.concatenate([[True], idx[1:] != idx[:-1]])]  # np.unique imports numpy.ma
+def keep_samples(error: np.ndarray, *, exit_index: int, worst_index: int | None = None,
+                 limit: int = MAX_SAMPLES) -> np.ndarray:
+    """The steps a run keeps for the reports: at most `limit` (>= 16) indices into error
+    [T], increasing, no repeats.
+
+    Always kept: the first and last step, the last step before the first exit and the exit
+    itself, the worst step (`worst_index`: the largest error / bound, so a breach is always
+    drawn where it happened), the largest and smallest error and the first non-finite one;
+    then, in each of the equal buckets the remaining room allows, the bucket's smallest and
+    largest error, so a spike between two kept steps is never hidden (the error is drawn on
+    a log scale: its dips matter as much as its peaks).
+    """
+    T = len(error)
+    if T <= limit:
+        return np.arange(T)
+    finite = np.isfinite(error)
+    hi = np.where(finite, error, -np.inf)
+    lo = np.where(finite, error, np.inf)
+    special = {0, T - 1, int(np.argmax(hi)), int(np.argmin(lo))}
+    if exit_index < T:
+        special |= {max(exit_index - 1, 0), exit_index}
+    if worst_index is not None and 0 <= worst_index < T:
+        special.add(int(worst_index))
+    if not finite.all():
+        special.add(int(np.argmin(finite)))
+    buckets = max((limit - len(special)) // 2, 1)
+    edges = np.linspace(0, T, buckets + 1).round().astype(np.int64)
+    picks = [int(np.argmax(hi[a:b])) + a for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    picks += [int(np.argmin(lo[a:b])) + a for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    return np.sort(np.fromiter(special | set(picks), dtype=np.int64))
+
+
+def _series(values: np.ndarray, digits: int = FIGURE_DIGITS) -> list:
+    """Kept samples as float lists at figure precision (`certify.figuredata.round_list`)."""
+    return round_list(values.tolist(), digits)
 
 
 def _best_bound(bounds: BoundsResult | None, P: np.ndarray, e0: np.ndarray,
@@ -203,7 +238,6 @@ def check_simulation(problem: Problem, bounds: BoundsResult | None,
 
     rate = bounds.iss.rate if bounds is not None and bounds.iss is not None else None
     tau = 1.0 / rate if rate else None  # one time constant 1/(2 lam_cert)
-    keep = _thin(T)
     runs: list[SimulationRun] = []
     breaches: list[str] = []
     late_ratio: float | None = None
@@ -214,7 +248,7 @@ def check_simulation(problem: Problem, bounds: BoundsResult | None,
         e_r = err[:, r]
         with np.errstate(invalid="ignore", over="ignore"):
             mse = float(np.mean(e_r ** 2))
-        max_ratio, breach, tol = None, False, 0.0
+        max_ratio, breach, tol, worst_k = None, False, 0.0, None
         if curve is not None and within and k_exit > 0:
             w = slice(0, k_exit)
             b_r = curve[r, w]
@@ -223,6 +257,8 @@ def check_simulation(problem: Problem, bounds: BoundsResult | None,
             tol = ATOL * (1.0 + float(np.max(b_r))) + est
             ratio = e_r[w] / (b_r + tol)
             max_ratio = float(np.max(ratio))
+            with np.errstate(invalid="ignore"):
+                worst_k = int(np.argmax(np.where(np.isnan(ratio), np.inf, ratio)))
             breach = bool(max_ratio > 1.0) or not math.isfinite(max_ratio)
             if k_exit > 1:
                 compared.append(r)
@@ -236,14 +272,16 @@ def check_simulation(problem: Problem, bounds: BoundsResult | None,
                 breaches.append(f"run '{labels[r]}' at t = {t[j]:.4g}: ||e|| = {e_r[j]:.6g} > "
                                 f"bound {b_r[j]:.6g} + tolerance {tol:.2g}")
         exit_time = None if k_exit >= T else float(t[k_exit])
+        keep = keep_samples(e_r, exit_index=k_exit, worst_index=worst_k)
         runs.append(SimulationRun(
             label=labels[r], x0=x0[r].tolist(), xhat0=xhat0[r].tolist(), noise=kinds[r],
             within_conditions=within, exit_time=exit_time,
             exit_reason=reasons[r] if exit_time is not None else "stayed within the conditions",
             max_ratio=max_ratio, breach=breach, mse=mse, final_error=float(e_r[-1]),
-            t=t[keep].tolist(), error=e_r[keep].tolist(),
-            bound=curve[r, keep].tolist() if curve is not None and within else [],
-            x=fine.x[keep, r].tolist(), xhat=fine.xhat[keep, r].tolist(), tolerance=tol,
+            t=_series(t[keep], TIME_DIGITS), error=_series(e_r[keep]),
+            bound=_series(curve[r, keep]) if curve is not None and within else [],
+            x=_series(fine.x[keep, r].numpy()), xhat=_series(fine.xhat[keep, r].numpy()),
+            tolerance=tol,
             start=notes[r], window=float(t[-1]) if exit_time is None else exit_time))
     status, msg = _verdict(runs, bounds, curve is not None, breaches, certified, tau,
                            late_ratio, [runs[r] for r in compared])
