@@ -19,6 +19,7 @@ from certify.results import (
     result_from_jsonable,
     to_jsonable,
 )
+from certify.settings import CERTIFICATE_CHECK
 
 SCHEMA_NAME = "certify-certificate"
 #: v2: a check may hold a `CheckFailure` record (`"failed": true`) instead of its own
@@ -162,12 +163,20 @@ def decide_verdict(checks: dict[str, Any], required: list[str],
                    allow_unknown: bool) -> tuple[str, str]:
     """Verdict and a one-line summary from the required checks' statuses.
 
+    The MPDI is the certificate: it is always required (added to `required` should a caller
+    have dropped it) and CERTIFIED needs it PROVED, whatever `allow_unknown` says: that waiver
+    is for the other required checks, never for the certificate itself.
+
     Any required VIOLATED -> NOT CERTIFIED (a counterexample stands on its own); else any
     required ERROR (the check failed internally: nothing was established either way) ->
     INCONCLUSIVE, whatever `allow_unknown` says; else any required UNKNOWN (or SKIPPED, not
-    run, NOT APPLICABLE) -> INCONCLUSIVE unless `allow_unknown`; else CERTIFIED. Checks
-    that are not required never change the verdict; one in ERROR is named in the summary.
+    run, NOT APPLICABLE) -> INCONCLUSIVE unless `allow_unknown` (never for the MPDI); else
+    CERTIFIED. Checks that are not required never change the verdict; one in ERROR is named
+    in the summary.
     """
+    if CERTIFICATE_CHECK not in required:
+        required = [CERTIFICATE_CHECK, *required]
+
     def status(n: str) -> Status | None:
         return checks[n].status if n in checks else None
 
@@ -186,6 +195,12 @@ def decide_verdict(checks: dict[str, Any], required: list[str],
                                 "(internal failure, see its message)"
                                 + (f"; not established: {', '.join(unknown)}" if unknown
                                    else "") + aside)
+    mpdi = status(CERTIFICATE_CHECK)
+    if mpdi != Status.PROVED:
+        return "INCONCLUSIVE", (f"not established: {CERTIFICATE_CHECK} "
+                                f"({mpdi.value if mpdi is not None else 'not run'}): the MPDI "
+                                "is the certificate and must be PROVED (allow_unknown never "
+                                "waives it)" + aside)
     if unknown and not allow_unknown:
         return "INCONCLUSIVE", "not established: " + ", ".join(unknown) + aside
     note = f" (allowed unknown: {', '.join(unknown)})" if unknown else ""

@@ -153,7 +153,8 @@ def _report_flags(p: argparse.ArgumentParser, json_help: str) -> None:
                    help="write JUnit XML (a required check that fails is a <failure>, ERROR "
                         "an <error>; checks not required never fail the build)")
     p.add_argument("--trajectories", action="store_true",
-                   help="HTML/PDF: also plot each simulated run's true and estimated states")
+                   help="also plot each simulated run's true and estimated states (HTML/PDF) and "
+                        "store them in the JSON certificate")
 
 
 def systems_text() -> str:

@@ -453,7 +453,8 @@ def write_outputs(cert: Any, args: argparse.Namespace, display: Any) -> None:
                               **{k: True for k in files})
         commit_files({path: data[k] for k, path in files.items()})
     if targets.get("json") == STDOUT:
-        _write_json(STDOUT, cert.to_json() + "\n")
+        _write_json(STDOUT, cert.to_json(trajectories=bool(getattr(args, "trajectories", False)))
+                    + "\n")
     display.finish_step("reports", "written", time.perf_counter() - t0)
 
 

@@ -189,3 +189,10 @@ def make_settings(values: dict[str, Any], source: str = "settings") -> VerifySet
     except SettingsError as exc:
         raise SettingsError(str(exc).replace("settings ", f"{source} ", 1)) from None
     return settings
+
+
+def required_checks(settings: VerifySettings) -> list[str]:
+    """The checks whose failure fails the gate: the settings' `required`, with the MPDI (the
+    certificate) first should they lack it (validated settings never do)."""
+    required = list(settings.required)
+    return required if CERTIFICATE_CHECK in required else [CERTIFICATE_CHECK, *required]

@@ -19,14 +19,14 @@ from certify.certificate import Certificate, decide_verdict
 from certify.checkpoint import Checkpoint, versions
 from certify.checks.base import Context
 from certify.checks.registry import run_checks
-from certify.figuredata import FigureData, GridMap
+from certify.figuredata import MAP_POINTS, FigureData, GridMap
 from certify.parallel import torch_threads
 from certify.problem import Problem
 from certify.progress import NullProgress, Progress, finish_step, start_step
-from certify.results import CheckFailure, Status
-from certify.settings import CERTIFICATE_CHECK, VerifySettings
+from certify.results import CheckFailure
+from certify.settings import VerifySettings, required_checks
 
-MAP_RESOLUTION = 61  # per axis, for the report's maps
+MAP_RESOLUTION = MAP_POINTS  # per axis, the report's maps
 MAP_Y_SAMPLES = 41  # total samples over Y (and the other states) per map pixel
 
 
@@ -62,7 +62,7 @@ def _verify(checkpoint: Checkpoint, settings: VerifySettings, progress: Progress
     torch.manual_seed(settings.seed)
     t_all = time.perf_counter()
     context = Context(problem=problem, settings=settings, progress=progress,
-                      figures=FigureData(), required=list(settings.required))
+                      figures=FigureData(), required=required_checks(settings))
     timings = run_checks(context, skip=settings.skip)
     checks = context.results
     if figures:
@@ -72,7 +72,7 @@ def _verify(checkpoint: Checkpoint, settings: VerifySettings, progress: Progress
         timings["figures"] = time.perf_counter() - t0
         finish_step(progress, "figures", "done", timings["figures"])
     timings["total"] = time.perf_counter() - t_all
-    verdict, summary = certificate_verdict(checks, context.required, settings.allow_unknown)
+    verdict, summary = decide_verdict(checks, context.required, settings.allow_unknown)
     network = problem.network.architecture()
     network["has_linear_gain"] = bool(torch.any(problem.network.K != 0))
     training = checkpoint.training or {}
@@ -87,25 +87,6 @@ def _verify(checkpoint: Checkpoint, settings: VerifySettings, progress: Progress
         versions=versions(), timings=timings, figures=context.figures,
         created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     )
-
-
-def certificate_verdict(checks: dict[str, Any], required: list[str],
-                        allow_unknown: bool) -> tuple[str, str]:
-    """`certify.certificate.decide_verdict`, with the MPDI as the certificate: it is always
-    required (added to `required` here should the settings ever have dropped it; they refuse
-    to), and CERTIFIED needs it PROVED, whatever `allow_unknown` says: that waiver is for the
-    other required checks, never for the certificate itself.
-    """
-    if CERTIFICATE_CHECK not in required:
-        required.insert(0, CERTIFICATE_CHECK)
-    verdict, summary = decide_verdict(checks, required, allow_unknown)
-    mpdi = checks.get(CERTIFICATE_CHECK)
-    status = mpdi.status if mpdi is not None else Status.SKIPPED
-    if verdict == "CERTIFIED" and status != Status.PROVED:
-        verdict = "INCONCLUSIVE"
-        summary = (f"not established: {CERTIFICATE_CHECK} ({status.value}): the MPDI is the "
-                   "certificate and must be PROVED (allow_unknown never waives it)")
-    return verdict, summary
 
 
 def _state_grid(problem: Problem) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:

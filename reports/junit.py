@@ -52,8 +52,9 @@ def case_outcome(row: C.CheckRow, unknown: str, allow_unknown: bool) -> tuple[st
         return "failure", finding
     if row.status == "ERROR":
         return "error", finding
-    # UNKNOWN, SKIPPED, NOT APPLICABLE, not run: nothing established
-    if allow_unknown:
+    # UNKNOWN, SKIPPED, NOT APPLICABLE, not run: nothing established; the MPDI is the
+    # certificate, which allow_unknown never waives
+    if allow_unknown and row.name != "mpdi":
         return "skipped", f"not established (allowed by allow_unknown): {finding}"
     return ("failure" if unknown == "failure" else "error"), finding
 

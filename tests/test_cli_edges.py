@@ -197,10 +197,10 @@ STATUSES = [Status.PROVED, Status.VIOLATED, Status.UNKNOWN, Status.ERROR, Status
        required=st.lists(st.sampled_from(CHECK_NAMES), unique=True),
        allow_unknown=st.booleans())
 def test_certified_always_means_the_mpdi_was_proved(statuses, required, allow_unknown):
-    from certify.verify import certificate_verdict
+    from certify.certificate import decide_verdict
 
     checks = {n: types.SimpleNamespace(status=s) for n, s in statuses.items()}
-    verdict, summary = certificate_verdict(checks, list(required), allow_unknown)
+    verdict, summary = decide_verdict(checks, list(required), allow_unknown)
     if verdict == "CERTIFIED":
         assert statuses.get("mpdi") == Status.PROVED, (statuses, required, summary)
     if statuses.get("mpdi") == Status.VIOLATED:
@@ -208,14 +208,14 @@ def test_certified_always_means_the_mpdi_was_proved(statuses, required, allow_un
 
 
 def test_allow_unknown_still_waives_the_other_checks():
-    from certify.verify import certificate_verdict
+    from certify.certificate import decide_verdict
 
     checks = {"mpdi": types.SimpleNamespace(status=Status.PROVED),
               "rate": types.SimpleNamespace(status=Status.UNKNOWN)}
-    assert certificate_verdict(checks, ["mpdi", "rate"], True)[0] == "CERTIFIED"
-    assert certificate_verdict(checks, ["mpdi", "rate"], False)[0] == "INCONCLUSIVE"
+    assert decide_verdict(checks, ["mpdi", "rate"], True)[0] == "CERTIFIED"
+    assert decide_verdict(checks, ["mpdi", "rate"], False)[0] == "INCONCLUSIVE"
     checks["mpdi"] = types.SimpleNamespace(status=Status.UNKNOWN)
-    verdict, summary = certificate_verdict(checks, ["mpdi", "rate"], True)
+    verdict, summary = decide_verdict(checks, ["mpdi", "rate"], True)
     assert verdict == "INCONCLUSIVE" and "must be PROVED" in summary
 
 

@@ -84,11 +84,17 @@ def test_required_unknown_is_failure_or_error_by_policy_and_skipped_when_allowed
     assert cert.checks["mpdi"].status == Status.UNKNOWN and "mpdi" in cert.required
     assert _cases(render_junit(cert))["mpdi"].find("failure") is not None
     assert _cases(render_junit(cert, unknown="error"))["mpdi"].find("error") is not None
-    allowed = dataclasses.replace(cert, settings={**cert.settings, "allow_unknown": True})
+    # allow_unknown waives the other required checks, never the MPDI (the certificate)
+    allowed = dataclasses.replace(cert, settings={**cert.settings, "allow_unknown": True},
+                                  required=[*cert.required, "lipschitz"])
+    allowed.checks["lipschitz"] = dataclasses.replace(cert.checks["lipschitz"],
+                                                      status=Status.UNKNOWN)
     allowed.verdict, allowed.summary = decide_verdict(allowed.checks, allowed.required, True)
+    assert allowed.verdict == "INCONCLUSIVE"
     xml_text = render_junit(allowed)
     _assert_valid(xml_text)
-    skipped = _cases(xml_text)["mpdi"].find("skipped")
+    assert _cases(xml_text)["mpdi"].find("failure") is not None
+    skipped = _cases(xml_text)["lipschitz"].find("skipped")
     assert skipped is not None and "allowed by allow_unknown" in skipped.get("message")
 
 

@@ -27,7 +27,7 @@ def test_vacuous_bound_on_the_verdict_line_in_json_and_table_of_runs(workdir, ca
     """X = [-1, 1]^2 (half-diagonal 1.41); with vbar = 4 the proved ISS bound is larger."""
     path = save_problem(workdir / "lin.ckpt", linear_problem(A, C, K, lam=0.3))
     code, out, err = run_cli(capsys, "run", path, "--noise", "4", "--sim-time", "3",
-                             "--json", "c.json", "--junit", "c.xml")
+                             "--json", "c.json", "--junit", "c.xml", "--trajectories")
     assert code == 0, (out, err)
     verdict = out.strip().splitlines()[-1]
     assert verdict.startswith("CERTIFIED: all required checks proved: mpdi; note: the proved "
