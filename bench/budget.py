@@ -43,8 +43,8 @@ NETS = {"gelu-3-16-8-64": ((3, 16, 8, 64), 2.0, 0.2), "deep": ((128,) * 6, 1.0, 
 
 
 def make_problem(name: str):
-    from certify.network import GainNetwork
-    from certify.problem import Problem
+    from certify.model.network import GainNetwork
+    from certify.model.problem import Problem
     from tests.planted import linear_system
 
     hidden, scale, lam = NETS[name]
@@ -65,7 +65,7 @@ def _load() -> float:
 
 
 def bench_prove(name: str, seconds: float) -> dict:
-    from certify.prover import prove_mpdi
+    from certify.prove.mpdi import prove_mpdi
 
     problem = make_problem(name)
     load = _load()
@@ -79,7 +79,7 @@ def bench_prove(name: str, seconds: float) -> dict:
 
 
 def bench_run(name: str, seconds: float, grid_points: int, code: Path, skip: str) -> dict:
-    from certify import checkpoint
+    from certify.model import checkpoint
 
     problem = make_problem(name)
     with tempfile.TemporaryDirectory() as tmp:

@@ -28,12 +28,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from certify import checkpoint  # noqa: E402
 from certify.checks.bounds import metric_constants, ultimate_bound_per_unit_noise  # noqa: E402
 from certify.errors import CertifyError  # noqa: E402
-from certify.integrate import gaussian_noise, simulate  # noqa: E402
+from certify.model import checkpoint  # noqa: E402
 from certify.settings import VerifySettings  # noqa: E402
-from certify.system import load_system  # noqa: E402
+from certify.simulate.integrate import gaussian_noise, simulate  # noqa: E402
+from certify.spec.system import load_system  # noqa: E402
 from certify.verify import verify  # noqa: E402
 
 VBAR = 0.15

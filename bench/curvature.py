@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from certify.system import load_system  # noqa: E402
+from certify.spec.system import load_system  # noqa: E402
 
 
 def cost(reps: int = 15, steps: int = 5) -> None:

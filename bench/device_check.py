@@ -1,7 +1,7 @@
 """The MPDI proof's box bounds on a GPU (`--device cuda`): sound, as on the CPU, and how fast.
 
 For each instance of `bench/instances.py` (tuned rates from --cache): random sub-boxes at a few
-relative radii, bounded by the prover's own evaluator (`certify.prover._mpdi_evaluator`, the
+relative radii, bounded by the prover's own evaluator (`certify.prove.mpdi._mpdi_evaluator`, the
 congruence chosen on each device) on the CPU and on --device, and lam_max(D) at sampled points
 of every box (float64, CPU). One JSON line per instance and radius:
   violations        device bounds below a sampled value (must be 0: soundness)
@@ -28,9 +28,9 @@ import torch  # noqa: E402
 
 from bench.instances import InstanceSpec  # noqa: E402
 from bench.prove_suite import FAMILIES, _cached_instance  # noqa: E402
-from certify.device import describe, resolve_device  # noqa: E402
-from certify.kernels import mpdi_lam_max  # noqa: E402
-from certify.prover import _mpdi_evaluator, _mpdi_preconditioner, _root  # noqa: E402
+from certify.arith.device import describe, resolve_device  # noqa: E402
+from certify.model.kernels import mpdi_lam_max  # noqa: E402
+from certify.prove.mpdi import _mpdi_evaluator, _mpdi_preconditioner, _root  # noqa: E402
 
 
 def _sync(device: torch.device) -> None:

@@ -1,4 +1,4 @@
-"""Speed of the compiled spec evaluators (`certify.expr`): one JSON line per measurement.
+"""Speed of the compiled spec evaluators (`certify.spec.expr`): one JSON line per measurement.
 
 Times `System.f_and_h` (the simulation's right-hand side, small batches called tens of
 thousands of times), `System.jac_f` and `System.jac_h` (grid sweeps, large batches) on the
@@ -31,7 +31,7 @@ CHILD = r"""
 import json, statistics, sys, time
 import torch
 torch.set_num_threads(1)
-from certify.system import load_system
+from certify.spec.system import load_system
 cases = json.loads(sys.argv[1])
 out = {}
 for name in cases["systems"]:

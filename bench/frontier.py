@@ -1,4 +1,4 @@
-"""The branch-and-bound driver's batch choice (`certify.frontier.Frontier.take`) against the
+"""The branch-and-bound driver's batch choice (`certify.search.frontier.Frontier.take`) against the
 frontier's size: candidate pools vs a full scan, side by side. Prints JSON lines.
 
 Each size N starts a frontier of N open boxes (d dimensions, uniform random upper bounds),
@@ -20,7 +20,7 @@ import time
 
 import torch
 
-from certify.frontier import Frontier
+from certify.search.frontier import Frontier
 
 
 def measure(n_open: int, d: int, k: int, rounds: int, pooled: bool, seed: int) -> dict:

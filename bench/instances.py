@@ -21,11 +21,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from certify.falsify import projected_ascent
-from certify.kernels import closed_loop_jacobian, generalized_lam_max, mpdi_lam_max, sym
-from certify.network import GainNetwork
-from certify.problem import Problem
-from certify.system import System
+from certify.model.kernels import closed_loop_jacobian, generalized_lam_max, mpdi_lam_max, sym
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.search.falsify import projected_ascent
+from certify.spec.system import System
 
 
 @dataclass(frozen=True)
@@ -82,7 +82,7 @@ def make_system(name: str, n: int) -> System:
 
 def _jf_vertices(system: System) -> list[np.ndarray]:
     """Vertices of an interval enclosure of Jf over X (grid of 3^n sub-boxes)."""
-    from certify.system_enclosures import jacobian_f_enclosure
+    from certify.spec.enclosures import jacobian_f_enclosure
 
     n = system.n
     X = torch.as_tensor(system.X, dtype=torch.float64)

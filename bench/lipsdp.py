@@ -23,7 +23,6 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from certify import checkpoint, sdp  # noqa: E402
 from certify.checks.lipschitz import (  # noqa: E402
     lipsdp_for,
     mlp_in_y,
@@ -31,9 +30,11 @@ from certify.checks.lipschitz import (  # noqa: E402
     sampled_lower,
 )
 from certify.checks.metric import observer_lmi, synthesize_metric  # noqa: E402
-from certify.network import GainNetwork  # noqa: E402
-from certify.problem import Problem  # noqa: E402
-from certify.system import load_system  # noqa: E402
+from certify.design import sdp  # noqa: E402
+from certify.model import checkpoint  # noqa: E402
+from certify.model.network import GainNetwork  # noqa: E402
+from certify.model.problem import Problem  # noqa: E402
+from certify.spec.system import load_system  # noqa: E402
 
 
 def main() -> None:

@@ -1,6 +1,6 @@
 """Hostile and undefined specs: how long a refusal takes. One JSON line per input.
 
-In-process timings (no interpreter start-up) of `certify.parse.parse_expression` on hostile
+In-process timings (no interpreter start-up) of `certify.spec.parse.parse_expression` on hostile
 expressions (issue 12.3) and of `System.from_text` (parse + domain check, issue 8.2) on the
 issue's undefined specs and on the built-in systems; medians over `--repeat` runs, seconds.
 
@@ -17,8 +17,8 @@ import time
 import sympy
 
 from certify.errors import SpecError
-from certify.parse import parse_expression
-from certify.system import System, builtin_names, builtin_text
+from certify.spec.parse import parse_expression
+from certify.spec.system import System, builtin_names, builtin_text
 
 HOSTILE = {
     "9**9**9": "9**9**9",

@@ -21,13 +21,13 @@ import numpy as np
 import torch
 
 from certify.checks.mpdi import joint_box
-from certify.falsify import maximize_over_box
-from certify.gridkernel import GridKernel
-from certify.kernels import mpdi_lam_max
-from certify.network import GainNetwork
-from certify.problem import Problem
-from certify.prover import prove_mpdi
-from certify.system import load_system
+from certify.model.kernels import mpdi_lam_max
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.prove.mpdi import prove_mpdi
+from certify.search.falsify import maximize_over_box
+from certify.search.grid import GridKernel
+from certify.spec.system import load_system
 
 # LMI design for vdp on X = [-2,2]x[-3,3] (vertices of the Jf enclosure, lam = 1, margin 0.5),
 # solved once with cvxpy + Clarabel: He{P (Jf - K C)} + 2 P <= -0.5 I.

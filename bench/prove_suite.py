@@ -1,7 +1,7 @@
 """Prover suite (issue 9): the instance families of `bench/instances.py`, one JSON line per run.
 
 Each run builds a seeded instance (tuned lam cached in --cache), proves it with the prover
-(`certify.prover.prove_mpdi`) and, in the same run on the same instance, with the plain
+(`certify.prove.mpdi.prove_mpdi`) and, in the same run on the same instance, with the plain
 interval baseline (`prove_mpdi(..., taylor=False)`), then prints
 {instance, prover, status, boxes, seconds, upper, proved_volume, volume_history, baseline: {...}}.
 A final summary line per family gives the medians. The machine is shared: record the load
@@ -31,7 +31,7 @@ if "--code" in sys.argv:  # import `certify` from another checkout (side-by-side
 import torch  # noqa: E402
 
 from bench.instances import InstanceSpec, make_instance  # noqa: E402
-from certify.prover import prove_mpdi  # noqa: E402
+from certify.prove.mpdi import prove_mpdi  # noqa: E402
 
 FAMILIES = {"2x10": (2, 10), "3x30": (3, 30), "5x30": (5, 30), "5x64": (5, 64)}
 
@@ -48,7 +48,7 @@ def _run(prob, seconds: float, max_boxes: int, taylor: object, crown: bool = Tru
          batch: int = 1024, executor: object | None = None) -> dict:
     """One proof; `cpu_seconds` is this process's CPU time (with a Dask executor the
     workers' CPU is not in it: compare wall `seconds` then, on a quiet machine)."""
-    from certify.bounds.mpdi import STAGE_COUNTS
+    from certify.enclose.mpdi import STAGE_COUNTS
 
     before = dict(STAGE_COUNTS)
     t, cpu = time.perf_counter(), time.process_time()
@@ -61,7 +61,7 @@ def _run(prob, seconds: float, max_boxes: int, taylor: object, crown: bool = Tru
             "cpu_seconds": round(time.process_time() - cpu, 3), "upper": out.upper,
             "lower": out.lower, "proved_volume": round(st.proved_volume_fraction, 6),
             "volume_history": _history(st.volume_history),
-            # an unfinished proof: the boxes a complete one needs (certify.tree_estimate;
+            # an unfinished proof: the boxes a complete one needs (certify.search.tree_estimate;
             # `seconds` then includes the estimate's few seconds, the proof's own is
             # `proof_seconds`; None from a `--code` checkout older than the estimate)
             "estimated_boxes": getattr(st, "estimated_boxes", None),
@@ -72,7 +72,7 @@ def _run(prob, seconds: float, max_boxes: int, taylor: object, crown: bool = Tru
 def _cached_instance(spec: InstanceSpec, cache: Path | None):
     import numpy as np
 
-    from certify.problem import Problem
+    from certify.model.problem import Problem
 
     store = {}
     if cache is not None and cache.exists():
@@ -133,7 +133,7 @@ def main() -> None:
                     help="taylor: the pre-issue-9 prover (interval + Taylor models)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--batch", type=int, default=None,
-                    help="boxes per B&B round (default: certify.device.proof_batch, 1024 on "
+                    help="boxes per B&B round (default: certify.arith.device.proof_batch, 1024 on "
                          "the CPU)")
     ap.add_argument("--device", default="cpu",
                     help="torch device of the proof's boxes and bounds (cpu, cuda)")
@@ -147,18 +147,18 @@ def main() -> None:
                          "before/after runs side by side")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    from certify.device import describe, resolve_device
+    from certify.arith.device import describe, resolve_device
 
     device = resolve_device(args.device)
     try:
-        from certify.device import proof_batch
+        from certify.arith.device import proof_batch
     except ImportError:  # --code: a checkout from before the proof ran on a GPU
         def proof_batch(_device):
             return 1024
     batch = args.batch or proof_batch(device)
     executor = None
     if args.workers > 1:
-        from certify.executor import DaskExecutor
+        from certify.search.distributed.executor import DaskExecutor
 
         executor = DaskExecutor(workers=args.workers)
         # each worker builds its evaluator once per instance; start the processes first

@@ -4,7 +4,7 @@ The MPDI prover bounds A(z) = M D(z) M^T on a sub-box by an affine matrix functi
 interval remainder E, and closes the box when max over the vertices of lam_max(affine) +
 rho(E) <= 0. This bench measures, on sub-boxes of the issue-9 instance families:
 
-- `sound_rho`: rho(E) of the prover's own Taylor model of A (`certify.bounds.mpdi.
+- `sound_rho`: rho(E) of the prover's own Taylor model of A (`certify.enclose.mpdi.
   crown_contraction_tm`, the linear-bound stage);
 - `best_affine_rho`: rho of the entrywise half-range of A(z) minus its least-squares affine
   fit, over `--points` random points of the sub-box. A sampled ESTIMATE (not a bound) of the
@@ -41,15 +41,15 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from bench.prove_suite import add_family_arguments, family_instances  # noqa: E402
-from certify.bounds.eigen import rho_upper  # noqa: E402
-from certify.bounds.mpdi import (  # noqa: E402
+from certify.arith.eigen import rho_upper  # noqa: E402
+from certify.arith.intervals import up  # noqa: E402
+from certify.enclose.mpdi import (  # noqa: E402
     choose_preconditioner,
     crown_contraction_tm,
     mpdi_box_bounds,
 )
-from certify.bounds.taylor import tm_lam_upper  # noqa: E402
-from certify.intervals import up  # noqa: E402
-from certify.kernels import closed_loop_jacobian, contraction_matrix  # noqa: E402
+from certify.enclose.taylor import tm_lam_upper
+from certify.model.kernels import closed_loop_jacobian, contraction_matrix  # noqa: E402
 
 
 def contraction_at(problem, pc, z: torch.Tensor, lam: float) -> torch.Tensor:
@@ -119,13 +119,13 @@ def measure(problem, rel_radius: float, boxes: int, points: int, seed: int) -> d
 
 
 #: the relaxation errors `error_budget` sets to zero one at a time (fields of
-#: `certify.bounds.top_rank.TopRank`; "remainder": what the Taylor model's remainder keeps)
+#: `certify.enclose.top_rank.TopRank`; "remainder": what the Taylor model's remainder keeps)
 ERROR_SOURCES = ("top_kl", "top_o", "top_fprime", "first_fprime", "remainder")
 
 
 def error_budget(problem, pc, lo, hi, r, lam: float) -> dict | None:
     """What-if (NOT sound): the fraction of the boxes the rank-structured Loewner bound
-    (`certify.bounds.top_rank.rank_loewner_upper`, every neuron in the rank form) decides at
+    (`certify.enclose.top_rank.rank_loewner_upper`, every neuron in the rank form) decides at
     level 0 with one error source set to zero, per `ERROR_SOURCES`, beside "none" (nothing
     zeroed) and "all": which relaxation is worth tightening next. Only where that bound
     applies (the mixed rows, a direct network with at most two hidden layers); else None.
@@ -133,10 +133,10 @@ def error_budget(problem, pc, lo, hi, r, lam: float) -> dict | None:
     none 0.29, top_kl 0.56, top_fprime 0.37, first_fprime 0.34, remainder 0.33, all 1.0."""
     from dataclasses import replace
 
-    from certify.bounds.mixed import contraction_tm_mixed
-    from certify.bounds.mpdi import direct_mixed
-    from certify.bounds.taylor import TM
-    from certify.bounds.top_rank import rank_loewner_upper
+    from certify.arith.taylor import TM
+    from certify.enclose.mixed import contraction_tm_mixed
+    from certify.enclose.mpdi import direct_mixed
+    from certify.enclose.top_rank import rank_loewner_upper
 
     if not direct_mixed(problem, pc):
         return None

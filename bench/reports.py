@@ -147,9 +147,9 @@ def worker(cert_path: str) -> None:
 def maps_worker(ckpt_path: str, cert_path: str, repeat: int) -> None:
     """Seconds of `report_maps` (the run's "figures" step) at 61 and 41 points per axis."""
     import certify.verify as V
-    from certify import checkpoint
     from certify.certificate import Certificate
     from certify.figuredata import FigureData
+    from certify.model import checkpoint
 
     problem = checkpoint.load(ckpt_path).problem
     checks = Certificate.load(cert_path).checks

@@ -48,7 +48,7 @@ def _children_cpu() -> float:
 
 
 def certify(tree: Path, args: list[str], cwd: Path) -> tuple[float, int, str, float]:
-    """(wall seconds, exit code, stderr tail, CPU seconds) of `python -m certify.cli ARGS`
+    """(wall seconds, exit code, stderr tail, CPU seconds) of `python -m certify.cli.main ARGS`
     from `tree` (CPU: user + system of the child; on a loaded machine it moves less than
     the wall time).
 
@@ -56,7 +56,7 @@ def certify(tree: Path, args: list[str], cwd: Path) -> tuple[float, int, str, fl
     env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1"}
     c0 = _children_cpu()
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "certify.cli", *args], cwd=cwd, env=env,
+    proc = subprocess.run([sys.executable, "-m", "certify.cli.main", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=1800)
     return (time.perf_counter() - t0, proc.returncode, proc.stderr[-300:],
             _children_cpu() - c0)

@@ -58,7 +58,7 @@ def record(out: Path) -> None:
     settings = certify.VerifySettings(proof_seconds=1e5, rate_seconds=1e5,
                                       residual_seconds=1e5, lipschitz_seconds=1e5)
     for name in EXAMPLES:
-        ck = certify.checkpoint.load(str(ROOT / "examples" / f"{name}.ckpt"))
+        ck = certify.model.checkpoint.load(str(ROOT / "examples" / f"{name}.ckpt"))
         cert = certify.verify(ck, settings)
         data = scrub(json.loads(cert.to_json()))
         (out / f"example-{name}.json").write_text(json.dumps(data, indent=1, sort_keys=True))
@@ -67,7 +67,7 @@ def record(out: Path) -> None:
     try:
         from certify.prove.mpdi import prove_mpdi
     except ImportError:  # a checkout from before the stage packages
-        from certify.prover import prove_mpdi
+        from certify.prove.mpdi import prove_mpdi
     from bench.instances import InstanceSpec, make_instance
 
     for depth, width, g, n, margin, seeds, max_boxes in SUITE:

@@ -43,8 +43,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from certify import checkpoint  # noqa: E402
-from certify.parallel import torch_threads  # noqa: E402
+from certify.model import checkpoint  # noqa: E402
+from certify.search.threads import torch_threads  # noqa: E402
 
 
 def emit(record: dict) -> None:
@@ -54,7 +54,7 @@ def emit(record: dict) -> None:
 def lmi_checkpoint(name: str, folder: Path, margin: float = 0.5) -> str:
     """The certified joint-LMI observer of a built-in as a checkpoint (||P K|| <= 1e4; for
     n = 6 the memory-bounded LMI, `training.baseline.bounded_observer_lmi`)."""
-    from certify.system import load_system
+    from certify.spec.system import load_system
     from training.baseline import save_lmi_baseline
 
     system = load_system(name)
@@ -74,7 +74,7 @@ WORKERS_PROOF = ("vdp3", 2.0)
 
 
 def part_n(args: argparse.Namespace, folder: Path) -> None:
-    from certify.prover import prove_mpdi
+    from certify.prove.mpdi import prove_mpdi
 
     cases = [("vdp", str(ROOT / "examples" / "vdp_certified.ckpt"), "certified preset")]
     cases += [(name, lmi_checkpoint(name, folder, DESIGN_MARGIN[name]),
@@ -162,8 +162,8 @@ def timed_proof(problem, max_boxes: int, batch: int = 1024, executor=None) -> di
     driver spends collecting rounds (`RoundPipeline.collect`: serially the evaluation
     itself, on Dask the wait for the workers' results) split from the rest (the driver:
     selection, splitting, merging, submitting)."""
-    from certify.pipeline import RoundPipeline
-    from certify.prover import prove_mpdi
+    from certify.prove.mpdi import prove_mpdi
+    from certify.search.rounds import RoundPipeline
 
     calls = {"n": 0, "t": 0.0}
     original = RoundPipeline.collect
@@ -200,7 +200,7 @@ def _same(a, b) -> bool:
 def part_workers(args: argparse.Namespace, folder: Path) -> None:
     """Serial, 1 and 2 Dask workers side by side (interleaved per repeat, both clusters up
     the whole time, so load changes hit all three alike), then the paper arithmetic."""
-    from certify.executor import BOXES_PER_WORKER, DaskExecutor, SerialExecutor
+    from certify.search.distributed.executor import BOXES_PER_WORKER, DaskExecutor, SerialExecutor
 
     path = args.checkpoint or lmi_checkpoint(WORKERS_PROOF[0], folder, WORKERS_PROOF[1])
     problem = checkpoint.load(path).problem
@@ -250,7 +250,8 @@ def part_paper(args: argparse.Namespace, problem, serial: dict, over: dict,
                per_worker: int) -> None:
     """Efficiency at W = 16, 32, 64 workers on paper, from measured costs.
 
-    A round on W > 2 workers splits b_W = W * per_worker / 2 boxes (`certify.executor.
+    A round on W > 2 workers splits b_W = W * per_worker / 2 boxes
+    (`certify.search.distributed.executor.
     round_batch`): each worker evaluates one chunk of `per_worker` children, in
         t_chunk = per_worker * c_eval
     with c_eval, c_driver the evaluation and driver seconds per box of the serial proof
@@ -259,7 +260,7 @@ def part_paper(args: argparse.Namespace, problem, serial: dict, over: dict,
     proof run at batch b_64 (--paper-boxes: the initial grid and a few rounds; per box for
     16 and 32), o_task its CPU seconds per task (client + scheduler, measured on the
     2-worker cluster); o_rt is the round trip of one task. With L = PIPELINE_LAG rounds in
-    flight (`certify.pipeline`) the driver merges round k while the workers compute round
+    flight (`certify.search.rounds`) the driver merges round k while the workers compute round
     k+1, so a round takes the largest of: a chunk, the driver's share, and the cycle of L
     rounds through both (round k+L is dispatched after round k is back and merged):
         T(W) = max(t_chunk, t_drv + W o_task, (t_chunk + t_drv + o_rt + W o_task) / L)
@@ -273,7 +274,7 @@ def part_paper(args: argparse.Namespace, problem, serial: dict, over: dict,
     (Per box, evaluation in one process is slower at batch b_64 than in 2048-box chunks:
     the chunk cost is taken from the default-batch run.)
     """
-    from certify.bnb import PIPELINE_LAG
+    from certify.search.bnb import PIPELINE_LAG
 
     big = 64 * per_worker // 2
     with torch_threads(1):
@@ -326,7 +327,7 @@ def part_six(args: argparse.Namespace, folder: Path) -> None:
 
 def train_and_run(args: argparse.Namespace, folder: Path, name: str) -> None:
     """`certify train NAME --preset certified` then `certify run`, timed, with exit codes."""
-    from certify.system import load_system
+    from certify.spec.system import load_system
 
     ckpt = folder / f"{name}_certified.ckpt"
     env = dict(os.environ, PYTHONPATH=str(ROOT))

@@ -22,8 +22,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from certify import checkpoint  # noqa: E402
-from certify.system import load_system  # noqa: E402
+from certify.model import checkpoint  # noqa: E402
+from certify.spec.system import load_system  # noqa: E402
 from training.objective import WORKERS  # noqa: E402
 from training.presets import make_config  # noqa: E402
 from training.train import train  # noqa: E402

@@ -1,9 +1,9 @@
 """How many boxes would a complete MPDI proof take? A random-descent estimate (issue 9;
-the estimator is `certify.tree_estimate`, which `certify run` also uses on an UNKNOWN proof).
+the estimator is `certify.search.tree_estimate`, which `certify run` also uses on an UNKNOWN proof).
 
 The tree of a decision proof is fixed by its bound and split rule, so random descents
-through it (the prover's own evaluation and rule: `certify.prover.mpdi_decision`) estimate
-its size before any run finishes it; see `certify.tree_estimate` for the method and its
+through it (the prover's own evaluation and rule: `certify.prove.mpdi.mpdi_decision`) estimate
+its size before any run finishes it; see `certify.search.tree_estimate` for the method and its
 error. 1024 points on the 2x10 six-state chain take ~13 k box evaluations (seconds).
 
 `--validate SECONDS` also runs the proof (`prove_mpdi`) with that budget and prints its box
@@ -11,7 +11,7 @@ count beside the estimate when it finishes.
 
 `--what-if-majorant F` / `--what-if-remainder F` (what-ifs, NOT bounds: the descents then
 follow a tree no sound proof has) scale the two remainders of the mixed-row stage by F: the
-Loewner majorant W of the top layers' product errors (`certify.bounds.structured.
+Loewner majorant W of the top layers' product errors (`certify.enclose.structured.
 loewner_upper`: c + W becomes c + F W) and the entrywise remainder e. Only proofs that use
 that stage (metric congruence M = I and a direct network, as on the issue-9 families) change,
 and for n <= 3 the entrywise form the stage also tries stays as built. Descents with the same
@@ -41,16 +41,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 from bench.prove_suite import add_family_arguments, family_instances  # noqa: E402
-from certify.prover import mpdi_decision, prove_mpdi  # noqa: E402
-from certify.tree_estimate import estimate_tree  # noqa: E402
+from certify.prove.mpdi import mpdi_decision, prove_mpdi  # noqa: E402
+from certify.search.tree_estimate import estimate_tree  # noqa: E402
 
 
 def scale_remainders(majorant: float, remainder: float) -> None:
     """The what-if of `--what-if-majorant` / `--what-if-remainder` (module docstring): the
     mixed-row stage's Loewner majorant W and entrywise remainder e scaled, in this process
     only (the stage imports `loewner_upper` from its module at each call). Not sound."""
-    import certify.bounds.structured as structured
-    from certify.bounds.taylor import TM
+    import certify.enclose.structured as structured
+    from certify.arith.taylor import TM
 
     exact = structured.loewner_upper
 

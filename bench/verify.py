@@ -26,10 +26,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from certify import checkpoint  # noqa: E402
 from certify.checks.mpdi import check_mpdi, joint_box, mpdi_score  # noqa: E402
-from certify.falsify import grid_chunk, grid_shape, maximize_over_box  # noqa: E402
-from certify.gridkernel import GridKernel  # noqa: E402
+from certify.model import checkpoint  # noqa: E402
+from certify.search.falsify import grid_chunk, grid_shape, maximize_over_box  # noqa: E402
+from certify.search.grid import GridKernel  # noqa: E402
 from certify.settings import VerifySettings  # noqa: E402
 
 

@@ -25,9 +25,9 @@ _PUBLIC = {
     "Certificate": "certify.certificate", "exit_code": "certify.certificate",
     "CertifyError": "certify.errors", "CheckpointError": "certify.errors",
     "SettingsError": "certify.errors", "SpecError": "certify.errors",
-    "GainNetwork": "certify.network", "Problem": "certify.problem",
+    "GainNetwork": "certify.model.network", "Problem": "certify.model.problem",
     "Status": "certify.results", "VerifySettings": "certify.settings",
-    "System": "certify.system", "load_system": "certify.system",
+    "System": "certify.spec.system", "load_system": "certify.spec.system",
     "verify": "certify.verify", "checkpoint": None,
 }
 
@@ -53,12 +53,12 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
-    from certify import checkpoint
     from certify.certificate import Certificate, exit_code
     from certify.errors import CertifyError, CheckpointError, SettingsError, SpecError
-    from certify.network import GainNetwork
-    from certify.problem import Problem
+    from certify.model import checkpoint
+    from certify.model.network import GainNetwork
+    from certify.model.problem import Problem
     from certify.results import Status
     from certify.settings import VerifySettings
-    from certify.system import System, load_system
+    from certify.spec.system import System, load_system
     from certify.verify import verify

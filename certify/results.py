@@ -34,7 +34,7 @@ class Status(str, enum.Enum):
 class Counterexample:
     """A point (xhat, y) and the value of the checked quantity there (float64).
 
-    `sound_bound`: a sound lower bound of the quantity at the point (`certify.witness`); a
+    `sound_bound`: a sound lower bound of the quantity at the point (`certify.search.witness`); a
     point is a counterexample only when it is > 0. None when not computed."""
 
     xhat: list[float]
@@ -57,7 +57,7 @@ class ProofStats:
     # (seconds since start, proved volume fraction) samples, for the report.
     volume_history: list[list[float]] = field(default_factory=list)
     # an unfinished decision proof: the boxes a complete one would evaluate, estimated by
-    # random descents (`certify.tree_estimate`; not a bound), and its relative standard error
+    # random descents (`certify.search.tree_estimate`; not a bound), and its relative standard error
     estimated_boxes: float | None = None
     estimate_rel_stderr: float | None = None
 
@@ -217,7 +217,7 @@ class SimulationRun:
     xhat: list[list[float]] = field(default_factory=list)
     # allowance for the integrator's error in the comparison (estimated by step doubling)
     tolerance: float = 0.0
-    #: how the start was chosen (certify.sim_starts), in words
+    #: how the start was chosen (certify.simulate.starts), in words
     start: str = ""
     #: length of the valid window [0, first exit) in seconds (the horizon if never left)
     window: float | None = None

@@ -1,6 +1,6 @@
 """Verification settings: one frozen dataclass, its constraints declared beside it.
 
-Values enter from flags, `[tool.certify]` (see `certify.config`) or the Python API and are
+Values enter from flags, `[tool.certify]` (see `certify.cli.config`) or the Python API and are
 validated once, here, with one error shape:
 ``[tool.certify] max_boxes must be an int >= 1; got -3``.
 Checks never mutate settings; the certificate echoes them.
@@ -67,7 +67,7 @@ _NONNEG_FLOAT = {"noise"}
 
 
 #: `max_boxes` where the device is a GPU and neither the options nor [tool.certify] name it:
-#: 16x the CPU's, as its proof rounds (`certify.device.PROOF_BATCH`); an H100 bounds about
+#: 16x the CPU's, as its proof rounds (`certify.arith.device.PROOF_BATCH`); an H100 bounds about
 #: 400k boxes/s on the issue-9 instances, so 2M would end a proof within seconds of the
 #: `proof_seconds` a user gave
 GPU_MAX_BOXES = 32_000_000

@@ -16,14 +16,14 @@ import numpy as np
 import torch
 
 from certify.certificate import Certificate, decide_verdict
-from certify.checkpoint import Checkpoint, versions
 from certify.checks.base import Context
 from certify.checks.registry import run_checks
 from certify.figuredata import MAP_POINTS, FigureData, GridMap
-from certify.parallel import torch_threads
-from certify.problem import Problem
+from certify.model.checkpoint import Checkpoint, versions
+from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress, finish_step, start_step
 from certify.results import CheckFailure
+from certify.search.threads import torch_threads
 from certify.settings import VerifySettings, required_checks
 
 MAP_RESOLUTION = MAP_POINTS  # per axis, the report's maps
@@ -37,18 +37,19 @@ def verify(checkpoint: Checkpoint, settings: VerifySettings | None = None, *,
 
     `figures`: also compute the maps the reports draw (a step of its own, about as long as
     a fast check); leave it False when no report will be written. `executor`: where chunked
-    work runs (`certify.executor`); None opens the one `settings.workers/scheduler` ask for
+    work runs (`certify.search.distributed.executor`); None opens the one
+    `settings.workers/scheduler` ask for
     and closes it at the end.
     """
-    from certify.device import resolve_device
-    from certify.executor import executor_from_settings, using
+    from certify.arith.device import resolve_device
+    from certify.search.distributed.executor import executor_from_settings, using
 
     settings = settings or VerifySettings()
     resolve_device(settings.device)  # an unusable device is bad input, before any work
     owned = executor is None
     executor = executor_from_settings(settings) if owned else executor
     try:
-        # see certify.parallel: chunk workers beat intra-op threads here
+        # see certify.search.threads: chunk workers beat intra-op threads here
         with torch_threads(1), using(executor):
             return _verify(checkpoint, settings, progress or NullProgress(), figures)
     finally:

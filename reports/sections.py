@@ -70,8 +70,8 @@ def proof_facts(cert: Certificate) -> list[tuple[str, str]]:
 
 
 def _estimate_rows(p) -> list[tuple[str, str]]:
-    """An unfinished proof's estimate of a complete one (`certify.tree_estimate`)."""
-    from certify.tree_estimate import seconds_to_finish
+    """An unfinished proof's estimate of a complete one (`certify.search.tree_estimate`)."""
+    from certify.search.tree_estimate import seconds_to_finish
 
     boxes = to_float(getattr(p, "estimated_boxes", None))
     if boxes is None:
@@ -154,7 +154,7 @@ SIM_WIDTHS = [1.25, 0.95, 0.95, 0.8, 0.7, 2.3, 0.55, 0.7, 0.55]
 
 
 def simulation_starts(cert: Certificate) -> list[str]:
-    """How each run was started (certify.sim_starts), one line per run."""
+    """How each run was started (certify.simulate.starts), one line per run."""
     r = result(cert, "simulation")
     return [] if r is None else [f"{run.label}: {run.start}" for run in r.runs if run.start]
 

@@ -1,5 +1,5 @@
 """Shared pieces of the command-line tests: a fast policy, a linear ground-truth checkpoint,
-running `certify.cli.main` in-process with its exit code and both streams, and running it in
+running `certify.cli.main.main` in-process with its exit code and both streams, and running it in
 a fresh interpreter (`probe`: which heavy libraries it imported)."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from certify import checkpoint
-from certify.cli import main
+from certify.cli.main import main
+from certify.model import checkpoint
 
 from .planted import linear_problem
 
@@ -55,7 +55,7 @@ def run_cli(capsys, *argv) -> tuple[int, str, str]:
 ROOT = Path(__file__).resolve().parents[1]
 HEAVY = ("torch", "sympy", "cvxpy", "matplotlib", "scipy")
 # runs the CLI in a fresh interpreter, then lists the heavy libraries it imported
-PROBE = ("import sys; from certify.cli import main; rc = main(sys.argv[1:]); "
+PROBE = ("import sys; from certify.cli.main import main; rc = main(sys.argv[1:]); "
          f"print('IMPORTED', sorted(m for m in {HEAVY!r} if m in sys.modules)); sys.exit(rc)")
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from certify.network import GainNetwork
-from certify.system import System
+from certify.model.network import GainNetwork
+from certify.spec.system import System
 
 torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
 

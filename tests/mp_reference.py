@@ -17,7 +17,7 @@ import mpmath
 import numpy as np
 import torch
 
-from certify.network import GainNetwork
+from certify.model.network import GainNetwork
 
 mp = mpmath.mp
 DIGITS = 40

@@ -16,9 +16,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from certify.network import GainNetwork
-from certify.problem import Problem
-from certify.system import System
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.spec.system import System
 
 
 def _fmt(v: float) -> str:

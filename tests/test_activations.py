@@ -15,9 +15,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.activations import get, names
-from certify.activations.base import Activation
-from certify.intervals import Interval
+from certify.arith.intervals import Interval
+from certify.model.activations import get, names
+from certify.model.activations.base import Activation
 
 from .soak import examples
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from certify.executor import SerialExecutor
-from certify.network import GainNetwork
-from certify.problem import Problem
-from certify.prover import prove_mpdi
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.prove.mpdi import prove_mpdi
 from certify.results import Status
-from certify.system import load_system
+from certify.search.distributed.executor import SerialExecutor
+from certify.spec.system import load_system
 from tests.planted import planted_problem
 
 
@@ -58,7 +58,8 @@ def test_chunked_rounds_still_find_a_planted_violation() -> None:
 def test_budgeted_decision_rounds_close_the_easy_region() -> None:
     """A region that never closes (bound 1 > 0) must not starve the rest: half of every
     round goes to the boxes nearest to closing, so a budgeted run proves the easy half."""
-    from certify.bnb import BoxEval, branch_and_bound
+    from certify.search.bnb import branch_and_bound
+    from certify.search.evaluation import BoxEval
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
         width = (hi - lo)[:, 0]
@@ -77,7 +78,8 @@ def test_first_round_sets_the_coarsest_boxes() -> None:
     """A bound that closes boxes of width <= 1/4 on [0, 1]^2: a first round of 16 boxes closes
     at once (16 boxes), the default first round of `batch` boxes spends them all, and a first
     round of 4 refines each box once (4 + 8 + 16)."""
-    from certify.bnb import BoxEval, branch_and_bound
+    from certify.search.bnb import branch_and_bound
+    from certify.search.evaluation import BoxEval
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
         width = (hi - lo).amax(-1)

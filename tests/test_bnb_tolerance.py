@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from certify.bnb import BoxEval, branch_and_bound
+from certify.search.bnb import branch_and_bound
+from certify.search.evaluation import BoxEval
 
 F64 = torch.float64
 

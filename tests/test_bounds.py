@@ -17,10 +17,10 @@ from certify.checks.bounds import (
     ultimate_bound_per_unit_noise,
 )
 from certify.errors import SettingsError
-from certify.network import GainNetwork
-from certify.problem import Problem
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
 from certify.results import BoundsResult, Status, from_jsonable, to_jsonable
-from certify.system import load_system
+from certify.spec.system import load_system
 
 from .soak import examples
 

@@ -1,5 +1,5 @@
 """Time budgets hold however slow a box is: the rounds are evaluated against the clock
-(`certify.bnb.RoundClock`), a round cut short leaves its unevaluated boxes open with their
+(`certify.search.bnb.RoundClock`), a round cut short leaves its unevaluated boxes open with their
 parent's bound (never closed, not counted), an executor's round not back by the deadline is
 cancelled, the set-up of a proof counts in its budget, and the tree estimate keeps to its own
 time limit. A run its budget does not bind evaluates the same calls as with no clock.
@@ -17,12 +17,13 @@ from concurrent.futures import wait as futures_wait
 import numpy as np
 import torch
 
-from certify.bnb import BoxEval, RoundClock, branch_and_bound
-from certify.executor import SerialExecutor
-from certify.network import GainNetwork
-from certify.problem import Problem
-from certify.prover import prove_mpdi
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.prove.mpdi import prove_mpdi
 from certify.results import Status
+from certify.search.bnb import RoundClock, branch_and_bound
+from certify.search.distributed.executor import SerialExecutor
+from certify.search.evaluation import BoxEval
 from tests.planted import linear_system
 
 MARGIN = 10.0  # seconds allowed past a budget (the rounds themselves overrun by < 1 s)
@@ -175,7 +176,7 @@ def test_a_run_the_budget_does_not_bind_is_the_run_without_a_clock() -> None:
 def test_a_tiny_budget_on_a_cheap_problem_still_bounds_its_first_round() -> None:
     """The set-up and a first round of at most a few seconds run whatever the budget: a
     budget of a millisecond gives the first round's bound, not none."""
-    from certify.side_proofs import bound_dk_dy
+    from certify.prove.side import bound_dk_dy
     from tests.test_bnb_rounds import _small_vdp
 
     prob = _small_vdp()
@@ -209,8 +210,8 @@ def test_a_three_second_proof_budget_holds_on_a_slow_network() -> None:
 
 
 def test_the_tree_estimate_keeps_its_time_limit() -> None:
-    from certify.prover import mpdi_decision
-    from certify.tree_estimate import estimate_tree
+    from certify.prove.mpdi import mpdi_decision
+    from certify.search.tree_estimate import estimate_tree
     from tests.test_bnb_rounds import _small_vdp
 
     problem = _small_vdp()

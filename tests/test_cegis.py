@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from certify import checkpoint
-from certify.kernels import gain_terms, mpdi_lam_max
-from certify.problem import Problem
-from certify.prover import prove_mpdi
+from certify.model import checkpoint
+from certify.model.kernels import gain_terms, mpdi_lam_max
+from certify.model.problem import Problem
+from certify.prove.mpdi import prove_mpdi
 from certify.results import Status
-from certify.system import load_system
+from certify.spec.system import load_system
 from tests.planted import linear_system
 from training.cegis import CegisSettings, cegis, warm_start_network
 from training.cegis_objective import CertObjective

@@ -9,12 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from certify.kernels import mpdi_lam_max
-from certify.problem import Problem
+from certify.model.kernels import mpdi_lam_max
+from certify.model.problem import Problem
 from certify.results import Status
 from tests.planted import linear_system
-from training.cegis import CegisSettings, cegis, warm_start_network
-from training.cegis_search import unproved_points
+from training.cegis import CegisSettings, cegis, unproved_points, warm_start_network
 
 from .conftest import random_network
 

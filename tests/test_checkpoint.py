@@ -10,9 +10,9 @@ import zipfile
 import pytest
 import torch
 
-from certify import checkpoint
 from certify.errors import CheckpointError
-from certify.system import System, load_system
+from certify.model import checkpoint
+from certify.spec.system import System, load_system
 
 from .conftest import SPEC_3X2, random_network
 

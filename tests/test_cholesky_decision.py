@@ -1,4 +1,4 @@
-"""The certified Cholesky test lam_max(S) <= t (`certify.bounds.eigen.lam_max_at_most`) and its
+"""The certified Cholesky test lam_max(S) <= t (`certify.arith.eigen.lam_max_at_most`) and its
 use in the vertex bound (`tm_lam_upper(level=...)`): never True when the exact lam_max (mpmath,
 50 digits) is above t, True wherever there is a little slack, False on NaN/Inf; a box the test
 decides reports a level that is above every sampled lam_max of its Taylor model."""
@@ -12,8 +12,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.bounds.eigen import _vertices, lam_max_at_most
-from certify.bounds.taylor import TM, tm_lam_upper
+from certify.arith.eigen import _vertices, lam_max_at_most
+from certify.arith.taylor import TM
+from certify.enclose.taylor import tm_lam_upper
 from tests.mp_reference import exact_lam_max
 
 from .soak import examples
@@ -95,7 +96,7 @@ def test_vertex_bound_with_level_contains_sampled_lam_max(seed: int, n: int, d: 
     und, pl = decided[~at_level], plain[~at_level]
     assert bool((und >= pl - 1e-12 * (1.0 + pl.abs())).all())
     # (a decided box's plain bound may exceed the level: the box's own congruence,
-    # `certify.bounds.decide`, weighs the remainder against the room in each direction;
+    # `certify.enclose.decide`, weighs the remainder against the room in each direction;
     # what must hold is that no member is above the level, sampled below)
     # samples: vertices and random points, remainders at random signs
     V = torch.cat([_vertices(d), torch.rand(32, d, generator=gen, dtype=F64) * 2 - 1])
@@ -112,7 +113,7 @@ def test_vertex_bound_with_level_contains_sampled_lam_max(seed: int, n: int, d: 
 def test_boxes_weyl_decides_skip_the_vertex_tests(monkeypatch) -> None:
     """tm_lam_upper(level=...): boxes whose Weyl bound of the affine part already passes get
     no vertex tests, and are reported decided like the vertex-tested ones."""
-    import certify.bounds.decide as decide
+    import certify.enclose.decide as decide
 
     gen = torch.Generator().manual_seed(7)
     B, n, d = 32, 4, 3

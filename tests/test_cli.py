@@ -8,8 +8,8 @@ import sys
 
 import pytest
 
-from certify import checkpoint
-from certify.system import load_system
+from certify.model import checkpoint
+from certify.spec.system import load_system
 
 from .cli_helpers import FAST_POLICY, A, C, K, run_cli, save_problem
 from .planted import lam_cert_linear, linear_problem, planted_problem
@@ -127,8 +127,8 @@ def test_train_tiny_then_run(workdir, capsys):
 
 
 def test_console_script_runs():
-    proc = subprocess.run([sys.executable, "-m", "certify.cli", "systems"], capture_output=True,
-                          text=True, timeout=120)
+    proc = subprocess.run([sys.executable, "-m", "certify.cli.main", "systems"],
+                          capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0 and "vdp" in proc.stdout
 
 

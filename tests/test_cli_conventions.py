@@ -14,7 +14,7 @@ from importlib import metadata
 
 import pytest
 
-from certify.cli import main
+from certify.cli.main import main
 from certify.settings import CHECK_NAMES
 
 from .cli_helpers import FAST_POLICY, ROOT, probe, run_cli, save_linear

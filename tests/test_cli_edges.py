@@ -17,7 +17,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.cli import EXIT_CLOSED_PIPE, EXIT_INTERRUPTED, main
+from certify.cli.interrupts import EXIT_INTERRUPTED
+from certify.cli.main import EXIT_CLOSED_PIPE, main
 from certify.errors import SettingsError
 from certify.results import Status
 from certify.settings import (
@@ -176,7 +177,7 @@ def test_library_settings_refuse_dropping_the_mpdi(values):
 def test_verify_never_certifies_a_violated_mpdi_even_with_an_mpdi_less_policy():
     """The library path: settings that bypassed validation (no required check at all, UNKNOWN
     allowed) still give NOT CERTIFIED on the violated example, with the MPDI required."""
-    from certify import checkpoint
+    from certify.model import checkpoint
     from certify.verify import verify
 
     s = VerifySettings(grid_points=20_000, adversarial_starts=4, adversarial_steps=10,
@@ -250,10 +251,10 @@ def _help(*argv: str, capsys) -> str:
 
 
 def test_help_lists_every_builtin_system_and_preset(capsys):
-    from certify.commands import builtin_system_names
+    from certify.spec import builtin
     from training.presets import PRESETS, preset_summary
 
-    names = builtin_system_names()
+    names = builtin.names()
     assert {"vdp", "duffing", "lorenz", "vdp2", "vdp3"} <= set(names)
     listed = ", ".join(names)
     for argv in (["train"], ["check"], ["systems"], ["run"], ["import"]):
@@ -300,10 +301,11 @@ def test_systems_and_cheap_errors_do_not_import_torch(tmp_path, argv, heavy_ok, 
 
 
 def test_systems_name_prints_the_spec_and_the_same_jacobian_as_the_full_system(capsys):
-    from certify.commands import builtin_spec_text, builtin_system_names
-    from certify.system import load_system
+    from certify.cli.commands import builtin_spec_text
+    from certify.spec import builtin
+    from certify.spec.system import load_system
 
-    for name in builtin_system_names():
+    for name in builtin.names():
         code, out, _ = run_cli(capsys, "systems", name)
         assert code == 0
         assert out.startswith(builtin_spec_text(name).rstrip())
@@ -334,7 +336,7 @@ if where.startswith("render"):
         return out
     rr.render_reports = render
 elif where == "stage":  # the first report staged, the others not yet
-    import certify.commands as cc
+    import certify.cli.commands as cc
     real_stage = cc.stage_file
     def stage(path, data):
         tmp = real_stage(path, data)
@@ -359,7 +361,7 @@ elif where.startswith("check"):
         return real_one(check, context, skip)
     registry.run_one = run_one
 
-from certify.cli import main
+from certify.cli.main import main
 sys.exit(main(argv))
 """
 

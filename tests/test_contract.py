@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 import torch
 
-from certify import checkpoint
 from certify.certificate import Certificate
 from certify.checks.base import Presentation, Quantity
 from certify.checks.bounds import check_bounds
@@ -23,7 +22,8 @@ from certify.checks.rate import check_rate
 from certify.checks.registry import get_check, presentation, run_order
 from certify.checks.residual import check_residual
 from certify.checks.simulation import check_simulation
-from certify.problem import Problem
+from certify.model import checkpoint
+from certify.model.problem import Problem
 from certify.results import (
     RESULT_TYPES,
     CheckFailure,
@@ -70,7 +70,7 @@ def _run_all(problem):
 
 @pytest.fixture(scope="module")
 def results(request):
-    from certify.system import System
+    from certify.spec.system import System
 
     from .conftest import SPEC_3X2
 

@@ -8,20 +8,20 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify import activations
-from certify.bounds.crown import (
+from certify.enclose.crown import (
     forward_bounds,
     jacobian_crown,
     network_crown_tms,
     to_tm,
     value_crown,
 )
-from certify.bounds.mpdi import mpdi_box_bounds
-from certify.bounds.preconditioner import make_preconditioner, to_lam_max_D
-from certify.kernels import mpdi_lam_max
-from certify.network import GainNetwork
-from certify.problem import Problem
-from certify.system import load_system
+from certify.enclose.mpdi import mpdi_box_bounds
+from certify.enclose.preconditioner import make_preconditioner, to_lam_max_D
+from certify.model import activations
+from certify.model.kernels import mpdi_lam_max
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.spec.system import load_system
 
 from .soak import examples
 
@@ -146,7 +146,7 @@ def test_mpdi_bound_with_crown_is_sound(act: str, seed: int, structure: str, sca
 @given(seed=st.integers(0, 10_000), n=st.integers(1, 6), rad=st.sampled_from([0.0, 1e-3, 0.3, 2.0]))
 def test_hertz_bound_is_sound_and_never_above_centre_plus_radius(seed: int, n: int,
                                                                   rad: float) -> None:
-    from certify.bounds.eigen import hertz_upper, lam_max_upper_point, rho_upper
+    from certify.arith.eigen import hertz_upper, lam_max_upper_point, rho_upper
 
     g = torch.Generator().manual_seed(seed)
     C = torch.randn(16, n, n, generator=g, dtype=F64)
@@ -169,8 +169,8 @@ def test_hertz_bound_is_sound_and_never_above_centre_plus_radius(seed: int, n: i
        g=st.sampled_from([1.0, 3.0]))
 def test_side_bounds_with_crown_contain_points(act: str, seed: int, scale: float,
                                                g: float) -> None:
-    from certify.bounds.side import dk_dy_box_upper_crown, residual_box_upper_crown
-    from certify.kernels import gain_terms
+    from certify.enclose.side import dk_dy_box_upper_crown, residual_box_upper_crown
+    from certify.model.kernels import gain_terms
 
     torch.manual_seed(seed)
     s = load_system("vdp")
@@ -204,10 +204,10 @@ def test_residual_norm_bound_holds_at_every_vertex_and_beats_the_entrywise_bound
     (`_tm_frobenius_upper` on k as an [n, 1] matrix): it contains ||k(x, h(x))|| at all
     four corners and at random points of each box, and is never above the entrywise bound
     (each component at its own worst vertex), which it replaced."""
-    from certify.bounds.crown import AffineInputNetwork, forward_bounds, to_tm, value_crown
-    from certify.bounds.side import _tm_mag, residual_box_upper_crown
-    from certify.intervals import gamma, up
-    from certify.kernels import gain_terms
+    from certify.arith.intervals import gamma, up
+    from certify.enclose.crown import AffineInputNetwork, forward_bounds, to_tm, value_crown
+    from certify.enclose.side import _tm_mag, residual_box_upper_crown
+    from certify.model.kernels import gain_terms
 
     torch.manual_seed(seed)
     s = load_system("vdp")

@@ -10,13 +10,14 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import certify.bounds.crown as crown_module
-from certify import activations
-from certify.bounds.crown import AffineInputNetwork, ForwardBounds, forward_bounds
-from certify.bounds.crown_backward import _backward, _concretize, _Layer, _queries
-from certify.bounds.taylor import TM, tm_activation, tm_linear, tm_mul, tm_rho
-from certify.intervals import Interval, down, imul, matmul_point_right, midrad_to_interval, up
-from certify.network import GainNetwork
+import certify.enclose.crown as crown_module
+from certify.arith.intervals import Interval, down, imul, matmul_point_right, midrad_to_interval, up
+from certify.arith.taylor import TM, tm_linear, tm_mul, tm_rho
+from certify.enclose.crown import AffineInputNetwork, ForwardBounds, forward_bounds
+from certify.enclose.crown_backward import _backward, _concretize, _Layer, _queries
+from certify.model import activations
+from certify.model.gain.taylor import tm_activation
+from certify.model.network import GainNetwork
 
 from .soak import examples
 from .test_crown import _boxes, _net, _points
@@ -255,7 +256,7 @@ def test_ranges_without_taylor_models_are_as_tight_as_with_them(act: str) -> Non
 def test_second_layer_closed_form_matches_the_backward_pass(seed: int, act: str, scale: float,
                                                             depth: int,
                                                             cols: list[int] | None) -> None:
-    """The second layer's ranges from `certify.bounds.one_layer` (the default) and from the
+    """The second layer's ranges from `certify.enclose.one_layer` (the default) and from the
     general backward pass: the same linear functions, so equal up to their rounding slack
     (within 1e-9 of the width, plus 1e-12), for every activation and depth; that they contain
     sampled values is `test_forward_ranges_contain_sampled_values`'s."""

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from certify.errors import SettingsError
-from certify.network import GainNetwork
-from certify.system import load_system
+from certify.model.network import GainNetwork
+from certify.spec.system import load_system
 from training.cegis import warm_start_network
 from training.cegis_objective import CertObjective
 from training.certified import cegis_settings
@@ -61,7 +61,7 @@ def test_zero_for_a_linear_gain_positive_for_a_curved_one():
     c = float(pen.value(curved.spec()).detach())
     assert c > 1.0
     # ... and it is the finite difference it claims: ||J(z1) - J(z2)||_F^2 / r^2, averaged
-    from certify.kernels import gain_terms
+    from certify.model.kernels import gain_terms
     z1, z2 = sample_pairs(system, 128, 0.02, 0)
     with torch.no_grad():
         j1 = gain_terms(system, curved, z1[:, :2], z1[:, 2:]).dk_dx

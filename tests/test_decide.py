@@ -1,4 +1,4 @@
-"""The certified decision lam_max(A) <= level over a box (`certify.bounds.decide`): the box's
+"""The certified decision lam_max(A) <= level over a box (`certify.enclose.decide`): the box's
 own congruence decides families the identity cannot (a spread spectrum, a remainder in the
 roomy directions), never decides a family with a member above the level (members sampled at
 vertices and inside, remainders at random and at adversarial signs), and the vertex tried first
@@ -10,9 +10,10 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.bounds.decide import decide_affine_family, vertex_test
-from certify.bounds.eigen import _vertices, lam_max_at_most, rho_upper
-from certify.bounds.taylor import TM, tm_lam_upper
+from certify.arith.eigen import _vertices, lam_max_at_most, rho_upper
+from certify.arith.taylor import TM
+from certify.enclose.decide import decide_affine_family, vertex_test
+from certify.enclose.taylor import tm_lam_upper
 
 from .soak import examples
 

@@ -14,8 +14,8 @@ from collections.abc import Iterator
 import pytest
 import torch
 
-from certify.device import PROOF_BATCH, proof_batch
-from certify.prover import _mpdi_remote, prove_mpdi, prove_rate
+from certify.arith.device import PROOF_BATCH, proof_batch
+from certify.prove.mpdi import _mpdi_remote, prove_mpdi, prove_rate
 
 from .test_preconditioner_choice import _problem
 
@@ -93,7 +93,7 @@ def test_mpdi_check_grid_ascent_and_proof_follow_the_device(above: bool) -> None
     """The whole check (grid sweep, ascent, sound re-check of candidates, proof) on a linear
     ground truth: PROVED just below lam_cert, VIOLATED just above, alike under `meta`."""
     from certify.checks.mpdi import check_mpdi
-    from certify.problem import Problem
+    from certify.model.problem import Problem
     from certify.settings import VerifySettings
 
     from .planted import lam_cert_linear, linear_problem
@@ -114,10 +114,10 @@ def test_mpdi_check_grid_ascent_and_proof_follow_the_device(above: bool) -> None
 
 @pytest.mark.parametrize("structure", ["direct", "structural"])
 def test_side_proofs_make_every_tensor_on_their_problems_device(structure: str) -> None:
-    """The residual and dk/dy bounds (`certify.side_proofs`, on settings.device in `certify
+    """The residual and dk/dy bounds (`certify.prove.side`, on settings.device in `certify
     run`): the same bounds under `meta`, with seeds for the residual as the check gives."""
-    from certify.problem import Problem
-    from certify.side_proofs import bound_dk_dy, bound_residual
+    from certify.model.problem import Problem
+    from certify.prove.side import bound_dk_dy, bound_residual
 
     from .conftest import random_network
 
@@ -136,7 +136,7 @@ def test_side_proofs_make_every_tensor_on_their_problems_device(structure: str) 
 def test_a_gpu_gets_a_larger_box_budget_unless_one_is_named(tmp_path, monkeypatch) -> None:
     """With device cuda the default box budget scales with the GPU's rounds; a budget named
     in the options or in [tool.certify] is kept (settings only: no GPU needed)."""
-    from certify.config import load_settings
+    from certify.cli.config import load_settings
     from certify.settings import GPU_MAX_BOXES, VerifySettings
 
     monkeypatch.chdir(tmp_path)

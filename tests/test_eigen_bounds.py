@@ -7,14 +7,14 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.bounds.eigen import (
+from certify.arith.eigen import (
     _lam3_certified,
     _pairs_lower,
     hertz_upper,
     lam_max_upper_interval,
     lam_max_upper_point,
 )
-from certify.intervals import Interval
+from certify.arith.intervals import Interval
 from tests.mp_reference import exact_lam_max
 
 from .soak import examples

@@ -1,4 +1,5 @@
-"""certify.executor: serial and Dask executors give the same results in the same order; a
+"""certify.search.distributed.executor: serial and Dask executors give the same results in the same
+order; a
 killed worker loses nothing; a bad scheduler address is exit 2 with one line; the policy
 keys workers/scheduler/device are read from [tool.certify]."""
 
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from certify.executor import (
+from certify.search.distributed.executor import (
     DaskExecutor,
     SerialExecutor,
     chunk_ranges,
@@ -34,7 +35,7 @@ def slow_square(x: int) -> int:
 
 
 def _cached_keys() -> list[str]:
-    from certify import executor
+    from certify.search.distributed import executor
 
     return list(executor._cache)
 
@@ -94,9 +95,9 @@ def test_killed_worker_changes_nothing(dask2):
 
 
 def test_problem_payload_rebuilds_the_same_problem(system3):
-    from certify.gridkernel import GridKernel
-    from certify.problem import Problem
-    from certify.remote import problem_from_payload, problem_payload
+    from certify.model.problem import Problem
+    from certify.search.distributed.payload import problem_from_payload, problem_payload
+    from certify.search.grid import GridKernel
 
     problem = Problem(system=system3, network=random_network(3, 2, seed=3), lam=0.5,
                       P=system3.P)
@@ -116,7 +117,7 @@ def test_mpdi_grid_on_dask_equals_serial(system3, dask2):
     """The MPDI falsifier's grid sweep on 2 Dask workers finds the same points and values
     and counts the same violations as in this process."""
     from certify.checks.mpdi import falsify_mpdi
-    from certify.problem import Problem
+    from certify.model.problem import Problem
 
     problem = Problem(system=system3, network=random_network(3, 2, seed=5), lam=0.5,
                       P=system3.P)
@@ -143,7 +144,7 @@ def test_bad_scheduler_is_exit_2_one_line(tmp_path, capsys):
 
 
 def test_policy_keys_from_pyproject(tmp_path, monkeypatch, capsys):
-    from certify.config import load_settings
+    from certify.cli.config import load_settings
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "pyproject.toml").write_text(
@@ -176,9 +177,9 @@ def test_cuda_without_cuda_is_exit_2(tmp_path, monkeypatch, capsys):
 def test_device_cpu_explicitly_is_the_same_path(system3):
     """`device = "cpu"` runs the device-aware grid/ascent path (points made on the device,
     random numbers drawn on the CPU and moved): same outcome as the default."""
+    from certify.arith.device import resolve_device
     from certify.checks.mpdi import falsify_mpdi
-    from certify.device import resolve_device
-    from certify.problem import Problem
+    from certify.model.problem import Problem
 
     problem = Problem(system=system3, network=random_network(3, 2, seed=7), lam=0.5,
                       P=system3.P)
@@ -193,7 +194,7 @@ def test_device_cpu_explicitly_is_the_same_path(system3):
 def _vdp_certified():
     from pathlib import Path
 
-    from certify import checkpoint
+    from certify.model import checkpoint
 
     return checkpoint.load(str(Path(__file__).parents[1] / "examples" / "vdp_certified.ckpt"))
 
@@ -204,7 +205,7 @@ BUDGET = 1200
 
 @pytest.fixture(scope="module")
 def serial_proof():
-    from certify.prover import prove_mpdi
+    from certify.prove.mpdi import prove_mpdi
 
     problem = _vdp_certified().problem
     return problem, prove_mpdi(problem, seconds=1e9, max_boxes=BUDGET)
@@ -221,7 +222,7 @@ def test_mpdi_proof_on_dask_equals_serial(dask2, serial_proof):
     """Same box budget, serial vs 2 Dask workers: the same verdict, the same proved upper
     bound and best point value, the same boxes (a budget-ended proof, so the bound is an
     intermediate one and every round must have matched)."""
-    from certify.prover import prove_mpdi
+    from certify.prove.mpdi import prove_mpdi
 
     problem, serial = serial_proof
     with using(dask2):
@@ -255,7 +256,7 @@ class _KillDuringRound:
 
 def test_killed_worker_mid_proof_changes_nothing(dask2, serial_proof):
     """SIGKILL a worker while a round of the MPDI proof runs on 2 workers: the same outcome."""
-    from certify.prover import prove_mpdi
+    from certify.prove.mpdi import prove_mpdi
 
     problem, serial = serial_proof
     victim = list(dask2.worker_pids().values())[1]
@@ -273,8 +274,8 @@ def test_wire_format_round_trips_and_sends_only_the_slice():
     round's boxes pickles its own rows, not the whole round."""
     import pickle
 
-    from certify.bnb import BoxEval
-    from certify.executor import WireArray, from_wire, to_wire
+    from certify.search.distributed.executor import WireArray, from_wire, to_wire
+    from certify.search.evaluation import BoxEval
 
     big = torch.arange(60_000, dtype=torch.float64).reshape(-1, 6)
     chunk = (big[10:20], big[20:30], 3)
@@ -292,7 +293,7 @@ def test_wire_format_round_trips_and_sends_only_the_slice():
 
 
 def test_round_batch_fills_the_workers_and_keeps_small_runs_serial():
-    from certify.executor import BOXES_PER_WORKER, round_batch
+    from certify.search.distributed.executor import BOXES_PER_WORKER, round_batch
 
     class Remote:
         remote = True

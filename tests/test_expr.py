@@ -9,7 +9,7 @@ import sympy
 import torch
 
 from certify.errors import SpecError
-from certify.expr import FUNCTIONS, TORCH, evaluate, parse_expression
+from certify.spec.expr import FUNCTIONS, TORCH, evaluate, parse_expression
 
 X, Y = sympy.symbols("x y", real=True)
 NAMES = {"x": X, "y": Y}
@@ -83,7 +83,7 @@ def test_function_table_covers_whitelist():
                                   "abs(x - y) + tanh(x) ** 3 + x**-2", "y**0.5 + pi + 2",
                                   "3.5"])
 def test_compiled_closure_matches_tree_evaluation(text):
-    from certify.expr import compile_torch
+    from certify.spec.expr import compile_torch
 
     expr = parse_expression(text, NAMES)
     xs = torch.tensor([0.7, 1.3, -0.4], dtype=torch.float64)
@@ -96,7 +96,7 @@ def test_compiled_closure_matches_tree_evaluation(text):
 def test_compiled_rows_equal_each_compiled_expression_bit_for_bit():
     """`compile_torch_rows` (one generated function, shared sub-expressions computed once)
     gives exactly the floats of `compile_torch` per expression; constants fill a column."""
-    from certify.expr import compile_torch, compile_torch_rows
+    from certify.spec.expr import compile_torch, compile_torch_rows
 
     texts = ["x*(1 - x**2) + y", "sin(x*y) + sin(x*y)**2", "3.5", "y", "exp(y**0.5) / x",
              "-x + y*(1 - x**2)"]

@@ -1,4 +1,4 @@
-"""The compiled spec evaluators (`certify.expr.compile_torch*`): a tape built from the parsed
+"""The compiled spec evaluators (`certify.spec.expr.compile_torch*`): a tape built from the parsed
 tree, no code generation; the same floats as the exec-based evaluator it replaced.
 
 `tests/data/expr_reference.json` holds f, h, df/dx and dh/dx of every built-in system at 24
@@ -18,8 +18,8 @@ import sympy
 import torch
 
 from certify.errors import SpecError
-from certify.expr import TORCH, compile_torch, compile_torch_rows, evaluate, parse_expression
-from certify.system import load_system
+from certify.spec.expr import TORCH, compile_torch, compile_torch_rows, evaluate, parse_expression
+from certify.spec.system import load_system
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = json.loads((ROOT / "tests" / "data" / "expr_reference.json").read_text())
@@ -115,7 +115,7 @@ def test_numpy_rows_agree_with_torch_rows_on_random_specs() -> None:
     (poles and 0**negative at the zero rows)."""
     import numpy as np
 
-    from certify.expr import compile_numpy_rows
+    from certify.spec.expr import compile_numpy_rows
 
     specs = _random_specs(11, 60, 200)
     pts = next(specs)

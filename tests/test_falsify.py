@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from certify.falsify import grid_chunk, grid_shape, maximize_over_box
-from certify.parallel import torch_threads
+from certify.search.falsify import grid_chunk, grid_shape, maximize_over_box
+from certify.search.threads import torch_threads
 
 LO, HI = np.array([-1.0, -2.0, 0.0]), np.array([1.0, 2.0, 1.0])
 PEAK = torch.tensor([0.31, -1.17, 0.62], dtype=torch.float64)

@@ -16,15 +16,15 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify import checkpoint
-from certify.bounds.eigen import _lam2_upper
+from certify.arith.eigen import _lam2_upper
 from certify.checks.mpdi import falsify_mpdi
-from certify.gridkernel import GridKernel, float32_misfit, float32_screen
-from certify.kernels import lam_max
-from certify.network import GainNetwork
-from certify.problem import Problem
+from certify.model import checkpoint
+from certify.model.kernels import lam_max
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.search.grid import GridKernel, float32_misfit, float32_screen
 from certify.settings import VerifySettings
-from certify.system import System
+from certify.spec.system import System
 
 from .cli_helpers import FAST_POLICY, run_cli
 
@@ -178,14 +178,14 @@ def test_the_point_two_by_two_eigenvalue_is_accurate_at_every_scale(a, b, c):
 
 def test_two_by_two_forms_unchanged_where_no_entry_dwarfs_the_rest():
     """Where no negative diagonal entry dwarfs the others (near-ties included: there
-    certify.witness decides), the textbook forms are returned bit for bit."""
+    certify.search.witness decides), the textbook forms are returned bit for bit."""
     gen = torch.Generator().manual_seed(0)
     a, b, c = (torch.randn(10_000, generator=gen, dtype=torch.float64) * 3 for _ in range(3))
     S = torch.stack([torch.stack([a, b], -1), torch.stack([b, c], -1)], -2)
     sa, sb, sc = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]  # the same strided views as lam_max's
     textbook = 0.5 * (sa + sc) + torch.hypot(0.5 * (sa - sc), sb)
     assert torch.equal(lam_max(S), textbook)
-    from certify.intervals import up, widen_up
+    from certify.arith.intervals import up, widen_up
 
     sound = up(up(0.5 * up(a + c)) + widen_up(torch.hypot(up((a - c).abs()) * 0.5, b.abs())))
     assert torch.equal(_lam2_upper(a, b.abs(), c), sound)

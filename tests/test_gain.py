@@ -11,15 +11,15 @@ import pytest
 import torch
 from torch import nn
 
-from certify import activations, checkpoint
 from certify.errors import CheckpointError, SettingsError
-from certify.gain import COLUMNS, ROWS, propagate
-from certify.gridkernel import GridKernel
-from certify.integrate import GainFunction
-from certify.kernels import gain_terms, mpdi_lam_max, pointwise_rate
-from certify.network import GainNetwork
-from certify.problem import Problem
-from certify.system import load_system
+from certify.model import activations, checkpoint
+from certify.model.gain import COLUMNS, ROWS, propagate
+from certify.model.kernels import gain_terms, mpdi_lam_max, pointwise_rate
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.search.grid import GridKernel
+from certify.simulate.integrate import GainFunction
+from certify.spec.system import load_system
 from training import losses
 from training.collocation import collocation_points
 from training.objective import Objective
@@ -118,7 +118,7 @@ def test_training_objective_gradient_matches_autograd_for_other_activations(syst
                     chunk_points=10, workers=2)
     values = obj.evaluate(grad=True)
     obj.close()
-    from certify.kernels import contraction_matrix
+    from certify.model.kernels import contraction_matrix
 
     terms = gain_terms(system3, net, x, y, with_dy=False)
     D = contraction_matrix(system3.jac_f(x), terms.dk_dx, P, 2.0)
@@ -167,8 +167,9 @@ def test_relu_checkpoint_and_config_are_refused_with_the_reason(tmp_path):
 def test_prover_entry_points_bound_every_sampled_value_for_any_activation(act):
     """The prover reads the activation: every entry point runs on a non-tanh network and its
     sound upper bounds lie above the sampled values (mpdi, ||dk/dy||, ||k(x, h(x))||)."""
-    from certify import prover, side_proofs
     from certify.checks.lipschitz import dk_dy_norms
+    from certify.prove import mpdi as prover
+    from certify.prove import side as side_proofs
 
     system = load_system("vdp")
     net = _net(system, act)

@@ -1,7 +1,7 @@
 """The prover's gain enclosures through `compose` equal the old hand-written ones.
 
 `gain_enclosure` (intervals) and `network_taylor` / `jcl_taylor` (Taylor models) now run
-`certify.gain.propagate` and `certify.gain.compose` with `IntervalArithmetic` /
+`certify.model.gain.propagate` and `certify.model.gain.compose` with `IntervalArithmetic` /
 `TaylorArithmetic`; the code they replaced is frozen below (kept only here). Every output
 must match it bit for bit, except dk/dy of the interval gain, which `compose` forms as
 dN/dy r + G (+ K) instead of summing G_il * 1 and K_il * 1 with their product and sum
@@ -17,17 +17,11 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify import activations
-from certify.bounds.interval_ops import iadd, isum
-from certify.bounds.network_interval import gain_enclosure, network_enclosure
-from certify.bounds.system_taylor import jacobian_tm
-from certify.bounds.taylor import (
+from certify.arith.interval_ops import iadd, isum
+from certify.arith.intervals import Interval, gamma, imul, up
+from certify.arith.taylor import (
     TM,
-    gain_taylor,
-    jcl_taylor,
-    network_taylor,
     tm_absorb,
-    tm_activation,
     tm_add,
     tm_from_intervals,
     tm_index,
@@ -35,18 +29,22 @@ from certify.bounds.taylor import (
     tm_mul,
     tm_sum,
 )
-from certify.gain import ROWS, compose_second, propagate
-from certify.intervals import Interval, gamma, imul, up
-from certify.kernels import gain_terms
-from certify.network import GainNetwork
-from certify.system import System
-from certify.system_enclosures import (
+from certify.enclose.network_interval import gain_enclosure, network_enclosure
+from certify.enclose.system_taylor import jacobian_tm
+from certify.enclose.taylor import gain_taylor, jcl_taylor, network_taylor
+from certify.model import activations
+from certify.model.gain import ROWS, compose_second, propagate
+from certify.model.gain.taylor import tm_activation
+from certify.model.kernels import gain_terms
+from certify.model.network import GainNetwork
+from certify.spec.enclosures import (
     h_enclosure,
     hessian_f_enclosure,
     hessian_h_enclosure,
     jacobian_f_enclosure,
     jacobian_h_enclosure,
 )
+from certify.spec.system import System
 
 from .soak import examples
 
@@ -172,7 +170,7 @@ def _frozen_jcl_taylor(system, net, lo, hi, net_tms=None):
         z = torch.zeros(*iv.lo.shape[:-1], p, dtype=torch.float64)
         return Interval(torch.cat([iv.lo, z], -1), torch.cat([iv.hi, z], -1))
 
-    # the system's Jacobian models: `certify.bounds.system_taylor` (second-order form since
+    # the system's Jacobian models: `certify.enclose.system_taylor` (second-order form since
     # issue 9; tested in tests/test_system_taylor.py), not part of what is frozen here
     jf = jacobian_tm(system, "f", lo, hi, r)
     K = net.K.to(torch.float64)
@@ -222,7 +220,7 @@ def _cases(act: str, structure: str):
         torch.manual_seed(seed)
         K = torch.randn(3, 2) if seed % 2 else None
         net = GainNetwork(3, 2, (5, 4), structure=structure, K=K, activation=act)
-        net.requires_grad_(False)  # as `certify.problem.Problem` freezes it for the prover
+        net.requires_grad_(False)  # as `certify.model.problem.Problem` freezes it for the prover
         c = 2.0 * torch.rand(6, 5, dtype=F64) - 1.0
         w = torch.rand(6, 5, dtype=F64) * 0.3 * 10.0 ** (-2 * seed)
         yield system, net, c - w, c + w

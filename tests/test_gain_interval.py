@@ -1,6 +1,7 @@
 """The interval forward pass through `propagate` equals the old hand-written one, bit for bit.
 
-`network_enclosure` now runs `certify.gain.propagate` with `IntervalArithmetic`; the layer walk
+`network_enclosure` now runs `certify.model.gain.propagate` with `IntervalArithmetic`; the layer
+walk
 it replaced is frozen below (kept only here) and every enclosure must match it exactly: same
 outward-rounded operations in the same order, for every activation, both structures, order 1
 and 2, with and without the mean-value tightening.
@@ -11,11 +12,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from certify import activations
-from certify.bounds.interval_ops import iadd, intersect, isum, point
-from certify.bounds.network_interval import NetEnclosure, network_enclosure
-from certify.intervals import Interval, imul, matmul_point_right, midrad_to_interval, up
-from certify.network import GainNetwork
+from certify.arith.interval_ops import iadd, intersect, isum, point
+from certify.arith.intervals import Interval, imul, matmul_point_right, midrad_to_interval, up
+from certify.enclose.network_interval import NetEnclosure, network_enclosure
+from certify.model import activations
+from certify.model.network import GainNetwork
 
 
 def _frozen_network_enclosure(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, order: int = 1,

@@ -12,11 +12,11 @@ import pytest
 import torch
 from torch import nn
 
-from certify import checkpoint
-from certify.importers import read_model
-from certify.importers.result import supported_activations
-from certify.network import GainNetwork
-from certify.system import System
+from certify.model import checkpoint
+from certify.model.importers import read_model
+from certify.model.importers.result import supported_activations
+from certify.model.network import GainNetwork
+from certify.spec.system import System
 
 from .cli_helpers import FAST_POLICY, run_cli
 from .conftest import SPEC_3X2
@@ -112,7 +112,7 @@ def test_two_inputs_concatenated_and_output_reshaped(tmp_path, how):
 
 def test_every_registered_activation_is_importable():
     """Each activation certify can verify has its torch module here (and so its ONNX and
-    TorchScript forms are tested); a new one in certify.activations needs a line above."""
+    TorchScript forms are tested); a new one in certify.model.activations needs a line above."""
     assert set(supported_activations()) == set(TORCH_ACTIVATIONS)
 
 

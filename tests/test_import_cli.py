@@ -12,7 +12,7 @@ import pytest
 import torch
 from torch import nn
 
-from certify import checkpoint
+from certify.model import checkpoint
 
 from .cli_helpers import run_cli, save_linear
 from .conftest import LINEAR_SPEC

@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch import nn
 
-from certify.importers import ModelImportError, read_model
+from certify.model.importers import ModelImportError, read_model
 
 from .test_import import export
 

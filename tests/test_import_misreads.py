@@ -15,14 +15,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from certify import checkpoint
-from certify.importers import ModelImportError, chain, read_model
-from certify.importers.crosscheck import check_import
-from certify.importers.onnx_model import read_onnx
-from certify.importers.result import finish
-from certify.importers.torch_model import read_state_dict, read_torchscript
-from certify.network import GainNetwork
-from certify.system import System
+from certify.model import checkpoint
+from certify.model.importers import ModelImportError, chain, read_model
+from certify.model.importers.crosscheck import check_import
+from certify.model.importers.onnx_model import read_onnx
+from certify.model.importers.result import finish
+from certify.model.importers.torch_model import read_state_dict, read_torchscript
+from certify.model.network import GainNetwork
+from certify.spec.system import System
 
 from .cli_helpers import FAST_POLICY, run_cli
 from .test_import import LINEAR_SPEC, export, near_linear_gain

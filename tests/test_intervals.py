@@ -10,24 +10,28 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify import activations
-from certify import enclosures as E
-from certify.activations.tanh import d2tanh_enclosure, dtanh_enclosure
+from certify.arith.eigen import lam_max_upper_interval, lam_max_upper_point, rho_upper
+from certify.arith.intervals import ROUNDING, Interval, ipow_int, ipow_real
+from certify.enclose.mpdi import mpdi_box_bounds
+from certify.enclose.network_interval import gain_enclosure
+from certify.enclose.preconditioner import make_preconditioner, to_lam_max_D
+from certify.enclose.taylor import jcl_taylor
 from certify.errors import SpecError
-from certify.expr import DERIVED_FUNCTIONS, FUNCTIONS
-from certify.interval_rules import INTERVAL, RULES, enclose_function
-from certify.intervals import ROUNDING, Interval, ipow_int, ipow_real
-from certify.kernels import gain_terms, mpdi_lam_max
-from certify.network import GainNetwork
-from certify.problem import Problem
-from certify.system import System, load_system
-from certify.system_enclosures import (
+from certify.model import activations
+from certify.model.activations.tanh import d2tanh_enclosure, dtanh_enclosure
+from certify.model.kernels import gain_terms, mpdi_lam_max
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.spec.enclosures import (
     h_enclosure,
     hessian_f_enclosure,
     hessian_f_point,
     jacobian_f_enclosure,
     jacobian_h_enclosure,
 )
+from certify.spec.expr import DERIVED_FUNCTIONS, FUNCTIONS
+from certify.spec.interval_rules import INTERVAL, RULES, enclose_function
+from certify.spec.system import System, load_system
 
 from .soak import examples
 
@@ -222,7 +226,7 @@ def test_gain_enclosure_contains_points(act: str, seed: int, structure: str, wit
     s, net = prob.system, prob.network
     n = s.n
     lo, hi, z = _boxes(seed, 32, *_root(prob), scale)
-    ge, _ = E.gain_enclosure(s, net, lo, hi, order=2)
+    ge, _ = gain_enclosure(s, net, lo, hi, order=2)
     zr = z.clone().requires_grad_(True)
     terms = gain_terms(s, net, zr[:, :n], zr[:, n:])
     assert _inside(ge.k.lo, ge.k.hi, terms.k.detach())
@@ -249,7 +253,7 @@ def test_taylor_model_contains_closed_loop_jacobian(act: str, seed: int, structu
     s, net = prob.system, prob.network
     n = s.n
     lo, hi, z = _boxes(seed, 32, *_root(prob), scale)
-    tm = E.jcl_taylor(s, net, lo, hi)
+    tm = jcl_taylor(s, net, lo, hi)
     zc = 0.5 * (lo + hi)
     J = s.jac_f(z[:, :n]) + gain_terms(s, net, z[:, :n], z[:, n:]).dk_dx
     lin = tm.c + torch.einsum("bijd,bd->bij", tm.g, z - zc)
@@ -265,7 +269,8 @@ def test_activation_taylor_models_contain_f_and_df(act: str, seed: int, centre: 
                                                    rad: float, with_e: bool) -> None:
     """f(q) and f'(q) of a Taylor model q lie in the models `tm_activation` builds (second-
     order remainders with d3_bound; for ELU the first-order remainder of f')."""
-    from certify.bounds.taylor import TM, tm_activation
+    from certify.arith.taylor import TM
+    from certify.model.gain.taylor import tm_activation
 
     a = activations.get(act)
     g = torch.Generator().manual_seed(seed)
@@ -304,9 +309,9 @@ def test_mpdi_box_bound_is_sound(act: str, seed: int, structure: str, scale: flo
     s, net = prob.system, prob.network
     n = s.n
     lo, hi, _ = _boxes(seed, 16, *_root(prob), scale)
-    bb = E.mpdi_box_bounds(prob, lo, hi, prob.lam, taylor=taylor)
-    pc = E.make_preconditioner(prob.P_t)
-    ub = E.to_lam_max_D(bb.upper, prob.P_t, pc)
+    bb = mpdi_box_bounds(prob, lo, hi, prob.lam, taylor=taylor)
+    pc = make_preconditioner(prob.P_t)
+    ub = to_lam_max_D(bb.upper, prob.P_t, pc)
     g = torch.Generator().manual_seed(seed)
     t = torch.rand(16, 300, lo.shape[1], generator=g, dtype=F64)
     pts = (lo[:, None] + (hi - lo)[:, None] * t).reshape(-1, lo.shape[1])
@@ -326,11 +331,11 @@ def test_lam_max_bounds(seed: int, n: int, rad: float) -> None:
     R = rad * torch.rand(8, n, n, generator=g, dtype=F64)
     R = 0.5 * (R + R.transpose(1, 2))
     A = Interval(C - R, C + R)
-    ub = E.lam_max_upper_interval(A)
+    ub = lam_max_upper_interval(A)
     for _ in range(20):
         T = (2 * torch.rand(8, n, n, generator=g, dtype=F64) - 1) * R
         S = C + 0.5 * (T + T.transpose(1, 2))
         assert bool((torch.linalg.eigvalsh(S)[:, -1] <= ub).all())
-    assert bool((torch.linalg.eigvalsh(C)[:, -1] <= E.lam_max_upper_point(C)).all())
+    assert bool((torch.linalg.eigvalsh(C)[:, -1] <= lam_max_upper_point(C)).all())
     rho = torch.linalg.eigvals(R).abs().amax(-1)
-    assert bool((rho <= E.rho_upper(R) * (1 + 1e-12)).all())
+    assert bool((rho <= rho_upper(R) * (1 + 1e-12)).all())

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from certify.kernels import (
+from certify.model.kernels import (
     contraction_matrix,
     gain_terms,
     generalized_lam_max,
@@ -13,7 +13,7 @@ from certify.kernels import (
     mpdi_lam_max,
     pointwise_rate,
 )
-from certify.network import GainNetwork
+from certify.model.network import GainNetwork
 
 from .conftest import random_network
 

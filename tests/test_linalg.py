@@ -1,11 +1,11 @@
-"""Batched eigensolvers (`certify.linalg`): chunked and with a fallback, as on a GPU, they
+"""Batched eigensolvers (`certify.arith.linalg`): chunked and with a fallback, as on a GPU, they
 give what one call gives."""
 
 from __future__ import annotations
 
 import torch
 
-from certify.linalg import chunked, eigh, eigvalsh
+from certify.arith.linalg import chunked, eigh, eigvalsh
 
 F64 = torch.float64
 

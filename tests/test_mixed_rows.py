@@ -1,4 +1,4 @@
-"""Linear bounds of mixed Jacobian rows R dN/dz (`certify.bounds.mixed`): the enclosures
+"""Linear bounds of mixed Jacobian rows R dN/dz (`certify.enclose.mixed`): the enclosures
 contain every sampled float64 value, and they are tighter than |R| times the unmixed ones."""
 
 from __future__ import annotations
@@ -9,18 +9,18 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify import activations
-from certify.bounds.crown import forward_bounds, network_crown_tms
-from certify.bounds.eigen import rho_upper
-from certify.bounds.mixed import (
+from certify.arith.eigen import rho_upper
+from certify.enclose.crown import forward_bounds, network_crown_tms
+from certify.enclose.mixed import (
     contraction_rest,
     contraction_tm_mixed,
     mixed_jacobian_crown,
     network_crown_mixed_jacobian,
 )
-from certify.bounds.preconditioner import diagonal_preconditioner
-from certify.kernels import closed_loop_jacobian
-from certify.system import load_system
+from certify.enclose.preconditioner import diagonal_preconditioner
+from certify.model import activations
+from certify.model.kernels import closed_loop_jacobian
+from certify.spec.system import load_system
 
 from .soak import examples
 from .test_crown import _boxes, _net, _points

@@ -10,7 +10,7 @@ from certify.checks.necessary import check_necessary
 from certify.checks.necessary_bound import vertex_upper_bound
 from certify.errors import SpecError
 from certify.results import NecessaryResult, Status, from_jsonable, to_jsonable
-from certify.system import System, load_system
+from certify.spec.system import System, load_system
 
 from .conftest import SPEC_3X2
 

@@ -14,8 +14,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from certify.errors import SpecError
-from certify.parse import LIMITS, parse_expression
-from certify.system import System
+from certify.spec.parse import LIMITS, parse_expression
+from certify.spec.system import System
 
 from .cli_helpers import run_cli
 from .soak import examples

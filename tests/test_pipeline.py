@@ -1,4 +1,5 @@
-"""Pipelined branch and bound (certify.pipeline, certify.frontier): rounds in flight are merged
+"""Pipelined branch and bound (certify.search.rounds, certify.search.frontier): rounds in flight
+are merged
 in dispatch order, so the outcome depends on the lag and the budget only, never on which
 executor ran the rounds or when their chunks finished; the lag does not change which boxes a
 closing decision proof evaluates; a stopped run merges what it dispatched."""
@@ -14,10 +15,11 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 import torch
 
-from certify import frontier as frontier_module
-from certify.bnb import BoxEval, branch_and_bound
-from certify.executor import SerialExecutor
-from certify.frontier import Frontier
+from certify.search import frontier as frontier_module
+from certify.search.bnb import branch_and_bound
+from certify.search.distributed.executor import SerialExecutor
+from certify.search.evaluation import BoxEval
+from certify.search.frontier import Frontier
 
 LIP = 3.0  # Lipschitz constant of sin(3 x) in each coordinate
 

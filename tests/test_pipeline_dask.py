@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from certify.executor import DaskExecutor, SerialExecutor
-from certify.prover import prove_mpdi
+from certify.prove.mpdi import prove_mpdi
 from certify.results import Status
+from certify.search.distributed.executor import DaskExecutor, SerialExecutor
 
 #: a box budget that ends the vdp_certified proof before it closes (it needs about 2100), in
 #: about 20 rounds of batch 64 (a batch the frontier fills, so rounds go in flight)
@@ -87,7 +87,7 @@ def _same(a, b) -> None:
 
 
 def _vdp_problem():
-    from certify import checkpoint
+    from certify.model import checkpoint
 
     path = Path(__file__).parents[1] / "examples" / "vdp_certified.ckpt"
     return checkpoint.load(str(path)).problem

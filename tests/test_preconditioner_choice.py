@@ -10,16 +10,16 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.bounds.mpdi import choose_preconditioner, mpdi_box_bounds, plain_screen_pays
-from certify.bounds.preconditioner import (
+from certify.enclose.mpdi import choose_preconditioner, mpdi_box_bounds, plain_screen_pays
+from certify.enclose.preconditioner import (
     candidate_preconditioners,
     diagonal_preconditioner,
     to_lam_max_D,
 )
-from certify.kernels import mpdi_lam_max
-from certify.network import GainNetwork
-from certify.problem import Problem
-from certify.prover import prove_mpdi
+from certify.model.kernels import mpdi_lam_max
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.prove.mpdi import prove_mpdi
 from certify.results import Status
 
 from .planted import lam_cert_linear, linear_problem, linear_system
@@ -119,7 +119,7 @@ def test_linear_metric_problem_decides_as_its_closed_form() -> None:
 
 
 def test_each_split_rule_scores_every_dimension() -> None:
-    from certify.bounds.split import split_score
+    from certify.search.split import split_score
 
     prob = _problem(2, 3, 8.0)
     root = torch.tensor([[-1.0, 1.0]] * 4, dtype=F64)
@@ -169,7 +169,7 @@ def test_ties_in_closed_probes_go_to_the_smaller_bound() -> None:
     median bound on lam_max(D) must pick the tighter one, and the proof stays small."""
     from pathlib import Path
 
-    from certify import checkpoint
+    from certify.model import checkpoint
 
     path = Path(__file__).parents[1] / "examples" / "vdp2_lmi.ckpt"
     prob = checkpoint.load(str(path)).problem

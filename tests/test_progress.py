@@ -11,7 +11,7 @@ import xml.etree.ElementTree as ET
 
 import pytest
 
-from certify.display import ProgressDisplay
+from certify.cli.display import ProgressDisplay
 from certify.settings import CHECK_NAMES
 
 from .cli_helpers import FAST_POLICY, run_cli, save_linear

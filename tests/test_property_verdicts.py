@@ -18,9 +18,9 @@ import torch
 from hypothesis import HealthCheck, event, example, given, settings
 from hypothesis import strategies as st
 
-from certify import checkpoint
-from certify.cli import main
-from certify.system import System
+from certify.cli.main import main
+from certify.model import checkpoint
+from certify.spec.system import System
 
 from .mp_reference import (
     dk_dy_norm,
@@ -127,7 +127,7 @@ def test_verdicts_agree_with_a_40_digit_reference(case, tmp_path_factory, capsys
 
 def test_reference_agrees_with_the_kernels_on_a_plain_case():
     """The reference and certify's float64 kernel agree to rounding on an ordinary point."""
-    from certify.kernels import mpdi_lam_max
+    from certify.model.kernels import mpdi_lam_max
 
     rng = np.random.default_rng(5)
     spec = random_spec(rng, 3, 1, 2.0)

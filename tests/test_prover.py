@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from certify.kernels import gain_terms, mpdi_lam_max, pointwise_rate
-from certify.network import GainNetwork
-from certify.problem import Problem
-from certify.prover import ProofOutcome, RateOutcome, prove_mpdi, prove_rate
+from certify.model.kernels import gain_terms, mpdi_lam_max, pointwise_rate
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.prove.mpdi import ProofOutcome, RateOutcome, prove_mpdi, prove_rate
+from certify.prove.side import bound_dk_dy, bound_manifold_quantity, bound_residual
 from certify.results import Counterexample, ProofStats, Status
-from certify.side_proofs import bound_dk_dy, bound_manifold_quantity, bound_residual
-from certify.system import System, load_system
+from certify.spec.system import System, load_system
 from tests.planted import lam_cert_linear, linear_problem, planted_problem
 
 # Ground truth: f = A x, h = C x, k = K (y - C x) (zero network weights). The closed-loop

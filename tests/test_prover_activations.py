@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import torch
 
-from certify import activations
-from certify.network import GainNetwork
-from certify.problem import Problem
+from certify.model import activations
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
 
 from .cli_helpers import FAST_POLICY, run_cli, save_problem
 from .planted import lam_cert_linear, linear_system
@@ -100,7 +100,7 @@ def test_violation_from_silus_negative_slope_is_found_with_a_sound_witness(workd
 @pytest.mark.parametrize("act", activations.names())
 def test_nan_weight_is_unknown_for_every_activation(act):
     """NaN never decides: a NaN weight leaves every box unproved, and no point VIOLATED."""
-    from certify.prover import prove_mpdi
+    from certify.prove.mpdi import prove_mpdi
     from certify.results import Status
 
     problem = _random_mlp(act, LAM_CERT - 0.1)

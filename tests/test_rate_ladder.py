@@ -1,4 +1,4 @@
-"""Raising the proved rate by MPDI decisions (`certify.rate_ladder.raise_rate`, used by the rate
+"""Raising the proved rate by MPDI decisions (`certify.prove.rate.raise_rate`, used by the rate
 check when its maximisation runs out): it climbs to the closed-form lam_cert of a linear
 observer and never past it, a violated target lowers the upper end, and on
 examples/vdp2_lmi.ckpt the rate check proves more than the design rate within its budget."""
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import scipy.linalg
 
-from certify.rate_ladder import raise_rate
+from certify.prove.rate import raise_rate
 
 from .planted import lam_cert_linear, linear_problem
 
@@ -44,8 +44,8 @@ def test_rate_check_on_vdp2_lmi_proves_above_the_design_rate() -> None:
     """The maximisation alone ended at the design rate 1.0 after its whole 20 s budget; with
     the ladder the check proves more than 1.05 on a 6 s budget (sampled upper 1.119), with the
     MPDI's design rate as the floor and without it."""
-    from certify import checkpoint
     from certify.checks.rate import check_rate
+    from certify.model import checkpoint
     from certify.results import MpdiResult, Status
     from certify.settings import VerifySettings
 
@@ -63,8 +63,8 @@ def test_rate_proof_gives_up_below_a_rate_already_proved() -> None:
     less than the design rate 1.0 in its first thousands of boxes): asked to beat 1.0 it
     stops after N boxes as budget-spent, with a proved rate below 1.0; asked to beat a
     rate every bound beats, it runs to its box budget as without the argument."""
-    from certify import checkpoint
-    from certify.prover import prove_rate
+    from certify.model import checkpoint
+    from certify.prove.mpdi import prove_rate
 
     path = Path(__file__).parents[1] / "examples" / "vdp2_lmi.ckpt"
     prob = checkpoint.load(str(path)).problem
@@ -86,8 +86,8 @@ def test_ladder_climbs_as_far_when_the_machine_slows_down(monkeypatch) -> None:
     on the clock."""
     import time
 
-    import certify.rate_ladder as rate_ladder
-    from certify import checkpoint
+    import certify.prove.rate as rate_ladder
+    from certify.model import checkpoint
 
     path = Path(__file__).parents[1] / "examples" / "vdp2_lmi.ckpt"
     prob = checkpoint.load(str(path)).problem

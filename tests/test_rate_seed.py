@@ -10,12 +10,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from certify.falsify import maximize_over_box
-from certify.kernels import pointwise_rate
-from certify.network import GainNetwork
-from certify.problem import Problem
-from certify.prover import prove_rate
-from certify.system import load_system
+from certify.model.kernels import pointwise_rate
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.prove.mpdi import prove_rate
+from certify.search.falsify import maximize_over_box
+from certify.spec.system import load_system
 
 F64 = torch.float64
 
@@ -56,7 +56,7 @@ def test_seeded_rate_proof_is_sound_and_needs_fewer_boxes() -> None:
 
 def test_seeded_residual_proof_is_sound_and_needs_no_more_boxes() -> None:
     from certify.checks.residual import residual_norm
-    from certify.side_proofs import bound_residual
+    from certify.prove.side import bound_residual
 
     problem = _problem()
     X = torch.as_tensor(problem.system.X)

@@ -10,8 +10,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify import activations
-from certify.bounds.relax import (
+from certify.arith.intervals import Interval
+from certify.enclose.relax import (
     _combine,
     _Ends,
     _piece_extrema,
@@ -22,7 +22,7 @@ from certify.bounds.relax import (
     relax_tanh,
     relax_value,
 )
-from certify.intervals import Interval
+from certify.model import activations
 
 from .soak import examples
 
@@ -133,7 +133,7 @@ def test_dtanh_critical_points_solve_the_cubic_on_their_pieces() -> None:
     so a wrong root costs tightness; this pins that it is the right root."""
     import math
 
-    from certify.bounds.relax import _C_D1, _dtanh_crit
+    from certify.enclose.relax import _C_D1, _dtanh_crit
 
     gmax = 4.0 / (3.0 * math.sqrt(3.0))
     a = torch.linspace(-0.999 * gmax, 0.999 * gmax, 2001, dtype=F64)
@@ -156,7 +156,7 @@ def test_dtanh_critical_points_solve_the_cubic_on_their_pieces() -> None:
 def test_point_enclosures_match_the_general_path() -> None:
     """A point interval (lo is hi) takes one libm call; the enclosure is bit-identical to
     the general path's (lo and hi equal but distinct tensors)."""
-    from certify.activations.tanh import d2tanh_enclosure, dtanh_enclosure, tanh_enclosure
+    from certify.model.activations.tanh import d2tanh_enclosure, dtanh_enclosure, tanh_enclosure
 
     g = torch.Generator().manual_seed(3)
     x = torch.cat([torch.randn(500, generator=g, dtype=F64) * s for s in (0.01, 1.0, 30.0)]

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-from certify import checkpoint, sdp
 from certify.checks.lipschitz import (
     LOCAL_ROOM,
     check_lipschitz,
@@ -26,11 +25,13 @@ from certify.checks.metric import (
     sub_boxes,
     synthesize_metric,
 )
-from certify.kernels import mpdi_lam_max
-from certify.network import GainNetwork
-from certify.problem import Problem
+from certify.design import sdp
+from certify.model import checkpoint
+from certify.model.kernels import mpdi_lam_max
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
 from certify.results import LipschitzResult, MetricResult, Status, from_jsonable, to_jsonable
-from certify.system import load_system
+from certify.spec.system import load_system
 from tests.conftest import random_network
 
 

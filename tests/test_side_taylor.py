@@ -3,7 +3,7 @@
 Property: over random networks (both structures, every activation, with and without K), boxes
 and points inside, the bound is >= the float64 norm of dk/dy at every sampled point; and on
 small boxes it is tighter than the interval bound, which is what makes the branch and bound
-of `certify.side_proofs.bound_dk_dy` close near its maximum.
+of `certify.prove.side.bound_dk_dy` close near its maximum.
 """
 
 from __future__ import annotations
@@ -14,13 +14,13 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify import activations
-from certify.bounds.side import dk_dy_box_upper, dk_dy_box_upper_taylor
-from certify.kernels import gain_terms
-from certify.network import GainNetwork
-from certify.problem import Problem
-from certify.side_proofs import bound_dk_dy
-from certify.system import load_system
+from certify.enclose.side import dk_dy_box_upper, dk_dy_box_upper_taylor
+from certify.model import activations
+from certify.model.kernels import gain_terms
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.prove.side import bound_dk_dy
+from certify.spec.system import load_system
 
 from .soak import examples
 
@@ -99,7 +99,7 @@ def test_structural_dk_dy_proof_is_sound_and_closes() -> None:
 
 
 def test_entrywise_fallback_is_sound_and_looser(monkeypatch: pytest.MonkeyPatch) -> None:
-    import certify.bounds.side as side
+    import certify.enclose.side as side
 
     s = load_system("vdp")
     net = _net("structural", "tanh", 7, 2.0, True)

@@ -11,19 +11,19 @@ import torch
 
 from certify.checks.bounds import check_bounds
 from certify.checks.simulation import MAX_SAMPLES, check_simulation, initial_conditions
-from certify.integrate import (
+from certify.model.kernels import gain_terms
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
+from certify.results import SimulationResult, Status, from_jsonable, to_jsonable
+from certify.settings import VerifySettings
+from certify.simulate.integrate import (
     GainFunction,
     bounded_noise,
     gaussian_noise,
     hold_steps,
     simulate,
 )
-from certify.kernels import gain_terms
-from certify.network import GainNetwork
-from certify.problem import Problem
-from certify.results import SimulationResult, Status, from_jsonable, to_jsonable
-from certify.settings import VerifySettings
-from certify.system import System, load_system
+from certify.spec.system import System, load_system
 from tests.conftest import random_network
 
 # x' = A x with A = [[0, 1], [-1, -1]], y = x1; gain K = (1, 0): A - K C = [[-1, 1], [-1, -1]],
@@ -300,7 +300,7 @@ def test_doubled_runs_share_the_batch_and_equal_separate_integrations():
     numbers as integrating them on their own, up to the rounding of the network's matrix
     products (BLAS may take another kernel for another batch size: bit-equal on some CPUs,
     not on all)."""
-    from certify.integrate import simulate_doubled
+    from certify.simulate.integrate import simulate_doubled
 
     vdp = load_system("vdp")
     net = random_network(2, 1, seed=1)
@@ -334,7 +334,7 @@ def test_doubled_runs_share_the_batch_and_equal_separate_integrations():
 def test_starts_keep_the_plant_in_X_with_small_errors_in_the_P_norm():
     """Chosen starts: the plant alone stays in X the longest; W(0) = half the room, so xhat(0)
     is in X; with room for the bound's radius the checkable form is said to hold."""
-    from certify.sim_starts import ellipsoid_room, plant_windows
+    from certify.simulate.starts import ellipsoid_room, plant_windows
 
     vdp = load_system("vdp")
     P = np.array([[2.0, 0.5], [0.5, 1.0]])
@@ -372,7 +372,7 @@ def test_all_windows_shorter_than_a_time_constant_is_inconclusive():
 def test_vdp_certified_runs_stay_valid_beyond_a_time_constant():
     """Issue 8.5: on the certified VdP observer the old random starts left the conditions
     within 0.03-0.07 s; chosen starts stay valid for more than one time constant."""
-    from certify.checkpoint import load
+    from certify.model.checkpoint import load
 
     ck = load("examples/vdp_certified.ckpt")
     bounds = check_bounds(ck.problem, lam_cert=2.53, eps_bar=0.0, L=78.7, vbar=0.15,
@@ -390,11 +390,11 @@ def test_vdp_certified_runs_stay_valid_beyond_a_time_constant():
 @pytest.mark.parametrize("structure,p", [("structural", 1), ("structural", 2), ("direct", 1),
                                          ("direct", 2)])
 def test_simulation_gain_equals_the_general_point_evaluation(structure, p):
-    """The simulation's NumPy value arithmetic gives the floats of `certify.gain.gain_value`
+    """The simulation's NumPy value arithmetic gives the floats of `certify.model.gain.gain_value`
     with the general torch row arithmetic (the one every kernel uses) up to the libraries'
     rounding of the products and tanh: a few ulps."""
-    from certify.gain import gain_value
-    from certify.integrate import GainFunction
+    from certify.model.gain import gain_value
+    from certify.simulate.integrate import GainFunction
 
     text = ("name='t'\nstates=['a','b','c']\noutputs=" + str(["o1", "o2"][:p]) +
             "\nf=['b','c','-a']\nh=" + str(["a", "a*b"][:p]) +

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from certify import sdp
-from certify.problem import Problem
+from certify.design import sdp
+from certify.model.problem import Problem
 from certify.results import Status
 
 from .cli_helpers import FAST_POLICY, A, C, K, run_cli, save_problem

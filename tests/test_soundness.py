@@ -16,9 +16,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.intervals import Interval
-from certify.kernels import mpdi_lam_max
-from certify.witness import mpdi_lower, rayleigh_lower
+from certify.arith.intervals import Interval
+from certify.model.kernels import mpdi_lam_max
+from certify.search.witness import mpdi_lower, rayleigh_lower
 
 from .cli_helpers import FAST_POLICY, run_cli, save_problem
 from .planted import linear_problem
@@ -133,7 +133,7 @@ def test_overflowing_network_is_never_proved(workdir, capsys):
         for layer in net.layers:
             layer.weight.copy_(torch.randn(layer.weight.shape, generator=gen))
         net.layers[-1].weight.mul_(1e307)
-    from certify.problem import Problem
+    from certify.model.problem import Problem
 
     path = save_problem(workdir / "inf.ckpt", Problem(pr.system, net, pr.lam, pr.P))
     code, out, err = run_cli(capsys, "run", path, "--json", "c.json", "--skip", "simulation",
@@ -155,9 +155,9 @@ def test_overflowing_network_is_never_proved(workdir, capsys):
 def test_witness_bounds_are_below_the_40_digit_values(seed, n, cond):
     from certify.checks.lipschitz import dk_dy_norms
     from certify.checks.residual import residual_norm
-    from certify.problem import Problem
-    from certify.system import System
-    from certify.witness import dk_dy_norm_lower, manifold_lower, residual_lower
+    from certify.model.problem import Problem
+    from certify.search.witness import dk_dy_norm_lower, manifold_lower, residual_lower
+    from certify.spec.system import System
 
     from .mp_reference import lam_max_D, manifold_q, network_layers, random_network, random_spec
 
@@ -191,8 +191,8 @@ def test_manifold_lower_with_a_nonlinear_output_is_below_the_exact_q():
     """h = x1 + x2^2/4: ker dh(x) = span(-x2/2, 1); q = v^T S v / v^T v exactly (mpmath)."""
     import mpmath
 
-    from certify.system import System
-    from certify.witness import manifold_lower
+    from certify.search.witness import manifold_lower
+    from certify.spec.system import System
 
     text = ('name = "t"\nstates = ["x1", "x2"]\noutputs = ["y"]\n'
             'f = ["-x1 + 0.5*x2", "0.25*x1*x2 - 0.125*x2"]\nh = ["x1 + 0.25*x2**2"]\n'
@@ -217,7 +217,7 @@ class _LyingScreen:
     """A float32 'screen' that hides everything (-1000 at every point)."""
 
     def __init__(self, problem, lam=None, dtype=None, **kw):
-        from certify.gridkernel import GridKernel
+        from certify.search.grid import GridKernel
 
         self.real = GridKernel(problem, lam, **kw) if dtype is None else None
         self.lam = self.real.lam if self.real is not None else lam

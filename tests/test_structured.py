@@ -1,4 +1,4 @@
-"""The last hidden layer's relaxation errors as a matrix (`certify.bounds.structured`): the
+"""The last hidden layer's relaxation errors as a matrix (`certify.enclose.structured`): the
 enclosure with those errors apart plus He{C eps} holds at sampled points, the Loewner upper
 model bounds v^T D v for every sampled v (the eigenvectors of D included), and it decides
 boxes the entrywise remainder cannot."""
@@ -9,12 +9,12 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify import activations
-from certify.bounds.crown import forward_bounds
-from certify.bounds.mixed import contraction_tm_mixed, mixed_jacobian_crown
-from certify.bounds.preconditioner import diagonal_preconditioner
-from certify.bounds.structured import entrywise, loewner_upper
-from certify.bounds.taylor import tm_lam_upper
+from certify.enclose.crown import forward_bounds
+from certify.enclose.mixed import contraction_tm_mixed, mixed_jacobian_crown
+from certify.enclose.preconditioner import diagonal_preconditioner
+from certify.enclose.structured import entrywise, loewner_upper
+from certify.enclose.taylor import tm_lam_upper
+from certify.model import activations
 
 from .soak import examples
 from .test_crown import _boxes, _net, _points
@@ -89,7 +89,7 @@ def test_matrix_errors_decide_boxes_the_entrywise_remainder_cannot() -> None:
     of radius 0.1, a level between the boxes' sampled maxima: the upper model decides
     strictly more boxes than the entrywise remainder, and none whose
     sampled lam_max exceeds the level."""
-    import certify.bounds.mpdi as mpdi
+    import certify.enclose.mpdi as mpdi
 
     prob = _problem(3, 4, 30.0)
     pc, lo, hi, r, sampled, level = boxes_and_level(prob, 0.8, 0.1, 0.8)

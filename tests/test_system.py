@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from certify.errors import SpecError
-from certify.system import System, builtin_names, load_system
+from certify.spec.system import System, builtin_names, load_system
 
 from .conftest import SPEC_3X2
 

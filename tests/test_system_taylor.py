@@ -1,4 +1,4 @@
-"""Taylor models of Jf and dh/dx (`certify.bounds.system_taylor`): they contain the sampled
+"""Taylor models of Jf and dh/dx (`certify.enclose.system_taylor`): they contain the sampled
 Jacobians, the second-order form reaches the exact remainder on quadratic entries, and an
 expression undefined on a box leaves NaN."""
 
@@ -10,11 +10,11 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.bounds.system_taylor import jacobian_tm, quadratic_enclosure
-from certify.bounds.taylor import tm_from_intervals
-from certify.intervals import Interval, up
-from certify.system import System, load_system
-from certify.system_enclosures import hessian_f_enclosure, jacobian_f_enclosure, pad_y
+from certify.arith.intervals import Interval, up
+from certify.arith.taylor import tm_from_intervals
+from certify.enclose.system_taylor import jacobian_tm, quadratic_enclosure
+from certify.spec.enclosures import hessian_f_enclosure, jacobian_f_enclosure, pad_y
+from certify.spec.system import System, load_system
 
 from .soak import examples
 

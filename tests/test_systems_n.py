@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from certify.kernels import mpdi_lam_max
-from certify.system import builtin_names, load_system
+from certify.model.kernels import mpdi_lam_max
+from certify.spec.system import builtin_names, load_system
 
 from .cli_helpers import run_cli
 
@@ -69,7 +69,7 @@ def test_train_tiny_then_run(name, tmp_path, capsys, monkeypatch):
         assert xhat.shape[1] == system.n and y.shape[1] == system.p
         assert np.all(system.X[:, 0] <= xhat[0].numpy()) and np.all(xhat[0].numpy()
                                                                       <= system.X[:, 1])
-        from certify import checkpoint
+        from certify.model import checkpoint
 
         problem = checkpoint.load(str(ckpt)).problem
         value = float(mpdi_lam_max(problem.system, problem.network, problem.P_t,

@@ -1,4 +1,4 @@
-"""The top layer's product errors by their rank structure (`certify.bounds.top_rank`): the
+"""The top layer's product errors by their rank structure (`certify.enclose.top_rank`): the
 Loewner upper model bounds v^T D v at sampled points for one and two hidden layers and every
 activation (deeper networks keep the independent form), and on the 2x10 four-state chain it
 decides boxes the independent form cannot."""
@@ -12,15 +12,15 @@ import torch
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from certify import activations
-from certify.bounds.crown import forward_bounds
-from certify.bounds.mixed import TopLayerRemainder, contraction_tm_mixed, mixed_jacobian_crown
-from certify.bounds.structured import loewner_upper
-from certify.bounds.taylor import TM
-from certify.bounds.top_rank import rank_loewner_upper
-from certify.intervals import up
-from certify.network import GainNetwork
-from certify.problem import Problem
+from certify.arith.intervals import up
+from certify.arith.taylor import TM
+from certify.enclose.crown import forward_bounds
+from certify.enclose.mixed import TopLayerRemainder, contraction_tm_mixed, mixed_jacobian_crown
+from certify.enclose.structured import loewner_upper
+from certify.enclose.top_rank import rank_loewner_upper
+from certify.model import activations
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
 
 from .planted import linear_system
 from .soak import examples
@@ -225,8 +225,8 @@ def test_scaled_majorant_dominates_delta_h_delta(seed: int, h: int, h1: int,
     """diag(F') >= Delta H Delta for every |delta| <= rho (corners and inside), F' the scaled
     diagonal majorant of the coupled beta terms, H = W1^T diag(y) W1 as `_coupled_beta`
     forms it; and F' <= F, the diagonal dominance bound it scales."""
-    from certify.bounds.top_rank import _scaled_majorant, gram
-    from certify.intervals import gamma
+    from certify.arith.intervals import gamma
+    from certify.enclose.top_rank import _scaled_majorant, gram
 
     gen = torch.Generator().manual_seed(seed)
     B = 16

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from certify import checkpoint
 from certify.errors import CertifyError, SettingsError
-from certify.kernels import contraction_matrix, gain_terms
-from certify.network import GainNetwork
-from certify.system import load_system, parse_metric
+from certify.model import checkpoint
+from certify.model.kernels import contraction_matrix, gain_terms
+from certify.model.network import GainNetwork
+from certify.spec.system import load_system, parse_metric
 from training import losses
 from training.collocation import collocation_points
 from training.command import add_train_arguments, parse_hidden, run_train

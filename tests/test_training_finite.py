@@ -14,8 +14,8 @@ import torch
 
 import training.cegis_objective as cegis_objective
 import training.certified as certified
-from certify import checkpoint
-from certify.system import load_system
+from certify.model import checkpoint
+from certify.spec.system import load_system
 from tests.cli_helpers import run_cli
 from tests.planted import linear_system
 from training.cegis import CegisSettings, cegis, warm_start_network
@@ -98,7 +98,7 @@ def test_check_finite_names_where_and_what():
 def _stiff_system(scale: float = 1e25):
     """A spec whose Jacobian entry `scale` squares past the training dtype's range in the
     MPDI loss (1e25: float32, 1e200: float64); rates large enough to do that are refused as
-    input (`certify.system.MAX_LAM`)."""
+    input (`certify.spec.system.MAX_LAM`)."""
     return linear_system(A=[[0.0, 1.0], [-scale, 0.0]], C=[[1.0, 0.0]], lam=0.5, name="stiff")
 
 

@@ -1,4 +1,4 @@
-"""The training loss heads through `certify.gain.compose` against frozen copies of the old
+"""The training loss heads through `certify.model.gain.compose` against frozen copies of the old
 hand-composed heads (issue 11 item 3): same loss values and gradients, bit for bit, and a
 seeded training run that ends on the same weights.
 
@@ -14,9 +14,9 @@ import importlib
 import pytest
 import torch
 
-from certify.kernels import sym
-from certify.network import GainNetwork
-from certify.system import load_system
+from certify.model.kernels import sym
+from certify.model.network import GainNetwork
+from certify.spec.system import load_system
 from training import losses
 from training.cegis_objective import CertObjective
 from training.collocation import collocation_points

@@ -1,4 +1,4 @@
-"""`certify.tree_estimate`'s random descents follow the proof's own tree: each point ends in
+"""`certify.search.tree_estimate`'s random descents follow the proof's own tree: each point ends in
 a leaf the decision proof itself closes, at the same depth, and the leaf estimate is near
 the proof's leaf count; an UNKNOWN proof reports the estimate."""
 
@@ -10,10 +10,10 @@ from types import SimpleNamespace
 import torch
 
 from bench.instances import InstanceSpec, make_instance
-from certify.bnb import branch_and_bound
-from certify.prover import mpdi_decision, prove_mpdi
+from certify.prove.mpdi import mpdi_decision, prove_mpdi
 from certify.results import Status
-from certify.tree_estimate import leaf_depths, summarize
+from certify.search.bnb import branch_and_bound
+from certify.search.tree_estimate import leaf_depths, summarize
 
 
 def test_random_descents_end_in_the_proofs_own_leaves() -> None:
@@ -84,7 +84,7 @@ def test_the_mpdi_check_says_how_far_an_unfinished_proof_is() -> None:
 def test_more_descents_follow_until_the_target_or_a_budget_in_boxes() -> None:
     """Batches of descents follow while the standard error is above the target; the caps are
     in descents and box evaluations (never seconds), so the estimate is reproducible."""
-    from certify.tree_estimate import estimate_tree
+    from certify.search.tree_estimate import estimate_tree
 
     problem, _ = make_instance(InstanceSpec(2, 10, 2.0, 2, 0.02, 0))
     s = mpdi_decision(problem, float(problem.lam))

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from certify.kernels import gain_terms, mpdi_lam_max
+from certify.model.kernels import gain_terms, mpdi_lam_max
 from certify.results import Status
-from certify.system import load_system
+from certify.spec.system import load_system
 from training import baseline, certified
 from training.cegis import warm_start_network
 from training.presets import make_config
@@ -52,14 +52,14 @@ def test_round0_tries_the_next_margin_until_the_warm_start_proves(monkeypatch):
     """When the warm start's round-0 proof ends without PROVED (here the first one is made to
     end UNKNOWN, as a budget-ended proof does), the LMI is solved at the next margin and that
     observer is proved for real; the network CEGIS starts from has the same gain."""
-    import certify.prover
+    import certify.prove.mpdi
 
     vdp3 = load_system("vdp3")
     config = make_config(vdp3, "certified")
     cs = certified.cegis_settings(config, proof_boxes=200_000)
     monkeypatch.setattr(certified, "WARM_MARGINS", (0.25, 0.5))
     monkeypatch.setattr(certified, "WARM_PROOF_SECONDS", 1e9)  # deterministic: boxes only
-    real = certify.prover.prove_mpdi
+    real = certify.prove.mpdi.prove_mpdi
     calls: list[float] = []
 
     def first_ends_unknown(problem, **kw):
@@ -69,7 +69,7 @@ def test_round0_tries_the_next_margin_until_the_warm_start_proves(monkeypatch):
             return dataclasses.replace(out, status=Status.UNKNOWN)
         return out
 
-    monkeypatch.setattr(certify.prover, "prove_mpdi", first_ends_unknown)
+    monkeypatch.setattr(certify.prove.mpdi, "prove_mpdi", first_ends_unknown)
     lines: list[str] = []
     net, P, info, proved = certified.proved_lmi_start(vdp3, vdp3.lam, config, cs,
                                                       lines.append)

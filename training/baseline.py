@@ -17,12 +17,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from certify import checkpoint
 from certify.checks.metric import DEFAULT_KAPPA_MAX, observer_lmi
 from certify.errors import CertifyError
-from certify.network import GainNetwork
+from certify.model import checkpoint
+from certify.model.network import GainNetwork
 from certify.results import Status, to_jsonable
-from certify.system import System
+from certify.spec.system import System
 
 BASELINE_MARGIN = 0.05
 
@@ -80,7 +80,7 @@ def _varying_entries(system: System) -> tuple[np.ndarray, np.ndarray]:
     its outward rounding, and entries whose enclosure has lo != hi at all (the coupling
     constants of vdp2/vdp3 differ by one rounding, which doubles the vertices per entry)."""
     from certify.checks.metric import sub_boxes
-    from certify.system_enclosures import jacobian_f_enclosure
+    from certify.spec.enclosures import jacobian_f_enclosure
 
     lo, hi = sub_boxes(system, 1, manifold=False)
     Jlo, Jhi = (t[0].numpy() for t in jacobian_f_enclosure(system, lo, hi))
@@ -106,8 +106,8 @@ def bounded_observer_lmi(system: System, lam: float, *, margin: float, kappa_max
     as `observer_lmi` does; the prover proves the observer anyway."""
     import time
 
-    from certify import sdp
     from certify.checks.metric import enclosure_vertices, observer_values, output_matrix, sub_boxes
+    from certify.design import sdp
     from certify.results import MetricResult
 
     t0 = time.perf_counter()

@@ -10,9 +10,9 @@ with D = He{P (Jf + dk/dxhat)} + 2 (lam + rate_slack) P. The second term is a mi
 the error bound sqrt(kappa(P)) (eps_bar + L vbar) / (2 lam). C (`training.curvature`) is the
 verification-aware term: the variation of dk/dxhat over pairs of points at a small distance,
 which keeps the network cheap to prove. It reuses the fast float32 forward-mode trunk of
-`training.objective.Objective` (the one propagation `certify.gain.propagate` over chunk
+`training.objective.Objective` (the one propagation `certify.model.gain.propagate` over chunk
 buffers) with the y-columns added to the forward tangents; the head forms dk/dxhat and dk/dy
-by `certify.gain.compose` (as the parent does) and autograd differentiates the small head
+by `certify.model.gain.compose` (as the parent does) and autograd differentiates the small head
 only. The penalty's gradient at the zero field dk/dy = 0 is 0 (`power_mean_norm`). Kept apart
 from the loop (`training.cegis`) because it is the part that is differentiated: tests
 compare its gradient with autograd.
@@ -22,10 +22,10 @@ from __future__ import annotations
 
 import torch
 
-from certify.gain.buffered import ChunkBuffers
-from certify.kernels import sym
-from certify.network import GainNetwork
-from certify.system import System
+from certify.model.gain.buffered import ChunkBuffers
+from certify.model.kernels import sym
+from certify.model.network import GainNetwork
+from certify.spec.system import System
 from training import losses
 from training.curvature import CurvaturePenalty
 from training.objective import LossValues, Objective

@@ -36,12 +36,12 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from certify import checkpoint
 from certify.errors import CertifyError
-from certify.network import GainNetwork
-from certify.prover import ProofOutcome
+from certify.model import checkpoint
+from certify.model.network import GainNetwork
+from certify.prove.mpdi import ProofOutcome
 from certify.results import Status
-from certify.system import System
+from certify.spec.system import System
 from training.cegis import CegisResult, CegisSettings, cegis, warm_start_network
 from training.presets import TrainConfig
 
@@ -126,8 +126,8 @@ def proved_lmi_start(system: System, lam: float, config: TrainConfig, cs: CegisS
     prover pays for its (16, 16) MLP on every box (vdp3: ~150 boxes/s instead of ~9000).
     Returns (structural warm start, P, start info, (proved network, its outcome) or None);
     when no margin proves, the first margin's start and None (training goes on from it)."""
-    from certify.problem import Problem
-    from certify.prover import prove_mpdi
+    from certify.model.problem import Problem
+    from certify.prove.mpdi import prove_mpdi
 
     first: tuple[GainNetwork, np.ndarray, dict[str, Any]] | None = None
     tried: list[dict[str, Any]] = []

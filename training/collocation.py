@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from certify.system import System
+from certify.spec.system import System
 
 
 def uniform_in_box(box: np.ndarray, count: int, generator: torch.Generator) -> torch.Tensor:

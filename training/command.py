@@ -14,9 +14,9 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from certify import checkpoint
 from certify.errors import CertifyError, SettingsError
-from certify.system import load_system, parse_metric
+from certify.model import checkpoint
+from certify.spec.system import load_system, parse_metric
 from training.presets import PRESETS, make_config, preset_summary
 from training.train import train
 
@@ -36,10 +36,10 @@ def parse_hidden(text: str) -> tuple[int, ...]:
 
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     """The arguments of `certify train`."""
-    from certify.cli import systems_text
+    from certify.spec import builtin
 
-    parser.add_argument("system", help=f"built-in system name ({systems_text()}) or a spec "
-                                       ".toml path")
+    names = ", ".join(builtin.names())
+    parser.add_argument("system", help=f"built-in system name ({names}) or a spec .toml path")
     parser.add_argument("-o", "--output", required=True, help="checkpoint file to write (.ckpt)")
     recipes = "; ".join(f"{name}: {preset_summary(name)}" for name in PRESETS)
     parser.add_argument("--preset", default="paper", choices=list(PRESETS), metavar="PRESET",

@@ -15,7 +15,7 @@ divided by its side of the box), both inside the box, and
 added to the loss as `weight * C`. C is zero when dk/dxhat is constant (a linear gain: the
 zero network with K and a linear h), positive for a curved one, and differentiable in the
 weights almost everywhere. The pairs are drawn once per objective (seeded, so training stays
-deterministic); J comes from the one propagation of the gain (`certify.gain.propagate`, row
+deterministic); J comes from the one propagation of the gain (`certify.model.gain.propagate`, row
 layout, autograd through it for the weight gradient). Cost: 2 x `pairs` forward-mode
 evaluations and one reverse pass per step, small beside the collocation trunk.
 
@@ -30,8 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from certify.gain import ROWS, GainSpec, compose, propagate
-from certify.system import System
+from certify.model.gain import ROWS, GainSpec, compose, propagate
+from certify.spec.system import System
 
 
 @dataclass(frozen=True)

@@ -6,11 +6,12 @@ autograd implementation (double backward) costs about 45 ms per evaluation here;
 instead evaluates the MLP trunk by hand:
 
 - forward mode for the n Jacobian columns by the one propagation of the gain
-  (`certify.gain.propagate` with `certify.gain.buffered.ChunkArithmetic`): value and tangent
+  (`certify.model.gain.propagate` with `certify.model.gain.buffered.ChunkArithmetic`): value and
+  tangent
   rows stacked in one buffer so each layer is one matrix product (no Python loop over points);
 - the loss head forms dk/dxhat (CEGIS: and dk/dy) from the trunk's outputs by the one
-  composition `certify.gain.compose`, over the chunk layout [m, N, out]
-  (`certify.gain.buffered.ChunkCompose`), leaving out the weight-free -K dh/dxhat
+  composition `certify.model.gain.compose`, over the chunk layout [m, N, out]
+  (`certify.model.gain.buffered.ChunkCompose`), leaving out the weight-free -K dh/dxhat
   (`with_K_dx=False`): that term is folded, in float64, into the constant part D0 of D;
 - the head's gradient: d(loss)/dD in closed form (minors, n <= 2) or by autograd on the
   small [N, n, n] matrices, then autograd back through `compose` to d(loss)/d(N, dN/dz);
@@ -23,13 +24,13 @@ instead evaluates the MLP trunk by hand:
   opposite order (the tangent recurrence T <- f'(pre) T included). Autograd would derive
   it, at the cost above; a generic `reverse` in the arithmetic protocol would be needed by
   this one arithmetic only. So the adjoint is written once, beside the forward whose
-  buffers it reads (`certify.gain.buffered`), and checked against autograd here;
+  buffers it reads (`certify.model.gain.buffered`), and checked against autograd here;
 - preallocated buffers, float32 (the checkpoint and the verifier stay float64).
 
 Everything that does not depend on the weights (Jf at the points, the constant part of D,
 h and dh/dx for the structural gain) is computed once, in float64, before training.
 `tests/test_training.py` checks the gradient against autograd through
-`GainNetwork.forward_with_jacobian` and `certify.kernels.gain_terms`, and
+`GainNetwork.forward_with_jacobian` and `certify.model.kernels.gain_terms`, and
 `tests/test_training_heads.py` the heads against frozen copies of the hand-composed ones
 they replaced (the same bits). `check_finite` stops a training loop whose loss, weights or
 gradient went non-finite. The training run that optimises it (Adam, then L-BFGS) is
@@ -47,11 +48,11 @@ from typing import Any
 import torch
 
 from certify.errors import SettingsError
-from certify.gain import GainValues, NetOutput, compose, propagate
-from certify.gain.buffered import CHUNK_COMPOSE, ChunkArithmetic, ChunkBuffers
-from certify.kernels import sym
-from certify.network import GainNetwork
-from certify.system import System
+from certify.model.gain import GainValues, NetOutput, compose, propagate
+from certify.model.gain.buffered import CHUNK_COMPOSE, ChunkArithmetic, ChunkBuffers
+from certify.model.kernels import sym
+from certify.model.network import GainNetwork
+from certify.spec.system import System
 from training import losses
 from training.curvature import CurvaturePenalty
 
@@ -210,7 +211,7 @@ class Objective:
     @torch.no_grad()
     def _forward(self, ch: ChunkBuffers) -> tuple[torch.Tensor, torch.Tensor]:
         """N and its first m input derivatives at the chunk's points, by the one propagation
-        (`certify.gain.propagate`) over the chunk's buffers: value rows [R, out] and
+        (`certify.model.gain.propagate`) over the chunk's buffers: value rows [R, out] and
         tangents [m, C, out]."""
         out = propagate(self.spec, ChunkArithmetic(ch), ch.Z, self.m)
         return out.value, out.jac
@@ -224,7 +225,7 @@ class Objective:
     # ----- loss head: D from the trunk's outputs, the loss, and its gradient ----------
     def _compose(self, val: torch.Tensor, tan: torch.Tensor, with_dy: bool) -> GainValues:
         """dk/dxhat (and, `with_dy`, dk/dy) at the collocation points from the trunk's value
-        val [N, out] and tangents tan [m, N, out] (chunk layout), by `certify.gain.compose`.
+        val [N, out] and tangents tan [m, N, out] (chunk layout), by `certify.model.gain.compose`.
         dk/dxhat leaves out -K dh/dxhat: that term is weight-free and sits in the float64
         constant D0 (`with_K_dx=False`)."""
         return compose(self.spec, CHUNK_COMPOSE, NetOutput(val, tan), self.r, self.Hx,

@@ -21,10 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from certify import activations
 from certify.errors import CertifyError, SettingsError
-from certify.network import STRUCTURES
-from certify.system import MAX_LAM, System, validate_metric
+from certify.model import activations
+from certify.model.network import STRUCTURES
+from certify.spec.system import MAX_LAM, System, validate_metric
 
 LOSS_KINDS = ("minors", "eigen", "eigen_squared")
 DTYPES = ("float32", "float64")
@@ -64,7 +64,7 @@ class TrainConfig:
     margin: float = 0.0  # eigenvalue losses only: penalise lam_max(D) > -margin
     structure: str = "direct"
     dtype: str = "float32"
-    activation: str = "tanh"  # a C^1 activation of certify.activations
+    activation: str = "tanh"  # a C^1 activation of certify.model.activations
     # verification-aware term (`training.curvature`): weight * mean relu(||J(z1) - J(z2)||_F^2
     # / r^2 - 0) over pairs of X x Y at normalised distance r = curvature_radius, J = dk/dxhat.
     # It keeps dk/dxhat nearly constant at the prover's sub-box scale, so the proof needs

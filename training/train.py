@@ -2,7 +2,7 @@
 
 Builds the network (seeded, or a given warm start) and the collocation points, then runs
 Adam and L-BFGS (`training.optim`) on the objective of `training.objective` (forward mode
-through `certify.gain.propagate`, a hand-written reverse pass, float32), records the loss
+through `certify.model.gain.propagate`, a hand-written reverse pass, float32), records the loss
 history and timings, and returns the trained network in float64 with its loss there.
 Every evaluation is checked (`training.objective.check_finite`): a non-finite loss term,
 weight or gradient stops the run with one line naming the phase, the iteration and the term
@@ -19,11 +19,11 @@ from typing import Any
 
 import torch
 
-from certify.checkpoint import versions
-from certify.network import GainNetwork
-from certify.parallel import torch_threads
+from certify.model.checkpoint import versions
+from certify.model.network import GainNetwork
 from certify.progress import NullProgress, Progress
-from certify.system import System
+from certify.search.threads import torch_threads
+from certify.spec.system import System
 from training import losses
 from training.collocation import collocation_points
 from training.curvature import CurvaturePenalty, CurvatureSettings

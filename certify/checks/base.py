@@ -27,7 +27,7 @@ from certify.results import CheckFailure, Status
 if TYPE_CHECKING:  # pragma: no cover
     from certify.certificate import Certificate
     from certify.figuredata import FigureData
-    from certify.problem import Problem
+    from certify.model.problem import Problem
     from certify.progress import Progress
     from certify.settings import VerifySettings
 

@@ -31,7 +31,7 @@ import numpy as np
 
 from certify.checks.base import Check, Context, Presentation, Quantity
 from certify.errors import SettingsError
-from certify.problem import Problem
+from certify.model.problem import Problem
 from certify.results import BoundResult, BoundsResult, Status
 
 #: Names accepted by `bound_curve`.

@@ -20,16 +20,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from certify import sdp
 from certify.checks.base import Check, Context, Presentation, Quantity
-from certify.falsify import maximize_over_box
-from certify.kernels import gain_terms
-from certify.network import GainNetwork
-from certify.problem import Problem
+from certify.design import sdp
+from certify.model.kernels import gain_terms
+from certify.model.network import GainNetwork
+from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import LipschitzResult, Status
+from certify.search.falsify import maximize_over_box
+from certify.search.witness import dk_dy_norm_lower
 from certify.settings import VerifySettings
-from certify.witness import dk_dy_norm_lower
 
 _F64 = torch.float64
 _NULL_PROGRESS = NullProgress()
@@ -74,7 +74,7 @@ def structural_local_naive(problem: Problem) -> float | None:
     |b_out| ||_2 (c = sup |f|: 1 for tanh; None for an unbounded activation) and ||r|| from
     the interval enclosure of h over X.
     """
-    from certify.system_enclosures import h_enclosure
+    from certify.spec.enclosures import h_enclosure
 
     net, system = problem.network, problem.system
     Ws, Wo = mlp_in_y(net, system.n)
@@ -120,7 +120,7 @@ def sampled_lower(problem: Problem, points: int = 20_000, starts: int = 16, step
     """max ||dk/dy||_2 over a grid of X x Y, then projected ascent from the best points.
 
     The search runs on float64 values; the number returned is a SOUND lower bound of
-    ||dk/dy||_2 at the best point found (`certify.witness.dk_dy_norm_lower`), so it is a
+    ||dk/dy||_2 at the best point found (`certify.search.witness.dk_dy_norm_lower`), so it is a
     lower bound on the supremum whatever the rounding.
     """
     box = np.vstack([problem.system.X, problem.system.Y])
@@ -265,8 +265,8 @@ class LipschitzCheck(Check):
     reads = ("lipschitz_seconds", "max_boxes", "grid_points", "seed")
 
     def run(self, context: Context) -> LipschitzResult:
-        from certify.device import on_settings_device
-        from certify.side_proofs import bound_dk_dy
+        from certify.arith.device import on_settings_device
+        from certify.prove.side import bound_dk_dy
 
         s = context.settings
 

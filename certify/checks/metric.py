@@ -19,13 +19,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from certify import sdp
 from certify.checks.base import Check, Presentation, Quantity
+from certify.design import sdp
+from certify.prove.side import kernel_basis_with_error
 from certify.results import MetricResult, Status
-from certify.side_proofs import kernel_basis_with_error
-from certify.system import System
-from certify.system_enclosures import h_enclosure, jacobian_f_enclosure
-from certify.witness import invisible_mode_certified
+from certify.search.witness import invisible_mode_certified
+from certify.spec.enclosures import h_enclosure, jacobian_f_enclosure
+from certify.spec.system import System
 
 DEFAULT_MARGIN = 1e-2
 DEFAULT_KAPPA_MAX = 1e4

@@ -2,8 +2,8 @@
 
 Lower side: dense grid + adversarial search for the largest lam_max(D) in float64. A point
 is a counterexample only when a SOUND lower bound of lam_max(D) there is > 0
-(`certify.witness`); a float64 value > 0 without one is a near-tie (within rounding of 0).
-Upper side: the branch-and-bound prover of `certify.prover`, run when no counterexample was
+(`certify.search.witness`); a float64 value > 0 without one is a near-tie (within rounding of 0).
+Upper side: the branch-and-bound prover of `certify.prove.mpdi`, run when no counterexample was
 found. PROVED comes only from the prover; a near-tie it cannot settle is UNKNOWN, saying so.
 """
 
@@ -16,15 +16,15 @@ import numpy as np
 import torch
 
 from certify.checks.base import Check, Context, Presentation, Quantity
-from certify.falsify import SearchOutcome, maximize_over_box
 from certify.figuredata import ProofBoxes
-from certify.gridkernel import GridKernel, float32_screen
-from certify.kernels import mpdi_lam_max
-from certify.problem import Problem
+from certify.model.kernels import mpdi_lam_max
+from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import Counterexample, MpdiResult, Status
+from certify.search.falsify import SearchOutcome, maximize_over_box
+from certify.search.grid import GridKernel, float32_screen
+from certify.search.witness import is_witness, mpdi_lower
 from certify.settings import VerifySettings
-from certify.witness import is_witness, mpdi_lower
 
 
 def joint_box(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
@@ -59,7 +59,7 @@ def counterexamples_from(search: SearchOutcome, n: int, above: float | None = No
 
 def sound_counterexamples(problem: Problem, candidates: list[Counterexample],
                           lam: float | None = None) -> list[Counterexample]:
-    """The candidates whose SOUND lower bound of lam_max(D) is > 0 (`certify.witness`), with
+    """The candidates whose SOUND lower bound of lam_max(D) is > 0 (`certify.search.witness`), with
     that bound recorded; the others are near-ties (float error could make them look > 0)."""
     if not candidates:
         return []
@@ -77,11 +77,11 @@ def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | Non
 
     The grid is swept with a float32 copy of the kernel as a screen; every point that could be
     above 0 and every top candidate is re-evaluated in float64 (see `maximize_over_box`).
-    Where a number of the problem does not fit float32 (`certify.gridkernel.float32_misfit`),
+    Where a number of the problem does not fit float32 (`certify.search.grid.float32_misfit`),
     there is no screen: the sweep runs in float64 alone.
     """
-    from certify.device import resolve_device
-    from certify.executor import current_executor
+    from certify.arith.device import resolve_device
+    from certify.search.distributed.executor import current_executor
 
     device = resolve_device(settings.device)
     problem = problem.on(device)  # the grid and the ascent run there (no copy if already)
@@ -90,7 +90,7 @@ def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | Non
     screen = float32_screen(problem, lam) if settings.float32_screen else None
     executor, remote = current_executor(), None
     if executor.remote or executor.workers > 1:  # the sweep on the run's Dask workers
-        from certify.remote import mpdi_grid_chunk, mpdi_payload
+        from certify.search.distributed.payload import mpdi_grid_chunk, mpdi_payload
 
         remote = (executor, mpdi_grid_chunk, mpdi_payload(
             problem, exact.lam, screen is not None, settings.device))
@@ -106,9 +106,9 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
                figures: dict[str, Any] | None = None) -> MpdiResult:
     """Decide D <= 0 over X x Y at the problem's lam and P (on settings.device: the grid, the
     ascent, the sound re-check of candidates and the proof)."""
-    from certify.device import on_settings_device, proof_batch
-    from certify.prover import prove_mpdi
-    from certify.tree_estimate import completion_text
+    from certify.arith.device import on_settings_device, proof_batch
+    from certify.prove.mpdi import prove_mpdi
+    from certify.search.tree_estimate import completion_text
 
     progress = progress or NullProgress()
     t0 = time.perf_counter()
@@ -238,7 +238,7 @@ class MpdiCheck(Check):
                         Quantity("proved volume fraction", r.proof.proved_volume_fraction),
                         Quantity("budget exhausted", r.proof.budget_exhausted)]
             if r.proof.estimated_boxes is not None:  # an unfinished proof (tree_estimate)
-                from certify.tree_estimate import seconds_to_finish
+                from certify.search.tree_estimate import seconds_to_finish
 
                 numbers += [Quantity("boxes a complete proof needs (estimate)",
                                      r.proof.estimated_boxes, sig=2),

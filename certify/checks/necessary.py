@@ -32,9 +32,9 @@ from certify.checks.necessary_quantity import gain_free_D, q_values, rate_values
 from certify.checks.necessary_search import manifold_grid, on_manifold, search_manifold
 from certify.progress import NullProgress, Progress
 from certify.results import NecessaryResult, Status
+from certify.search.witness import is_witness, manifold_witness_lower
 from certify.settings import VerifySettings
-from certify.system import System, validate_metric
-from certify.witness import is_witness, manifold_witness_lower
+from certify.spec.system import System, validate_metric
 
 _F64 = torch.float64
 _NULL_PROGRESS = NullProgress()
@@ -125,7 +125,7 @@ def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
         upper = vertex_upper_bound(system, Pn, lam)
         if upper is None or upper > 0:
             try:
-                from certify.side_proofs import bound_manifold_quantity
+                from certify.prove.side import bound_manifold_quantity
             except ImportError:  # pragma: no cover - the prover is part of the package
                 bound_manifold_quantity = None
             if bound_manifold_quantity is not None:

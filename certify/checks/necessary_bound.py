@@ -17,8 +17,8 @@ import math
 import numpy as np
 
 from certify.checks.metric import enclosure_vertices, kernel_values, output_matrix, sub_boxes
-from certify.side_proofs import kernel_basis_with_error
-from certify.system import System
+from certify.prove.side import kernel_basis_with_error
+from certify.spec.system import System
 
 
 def vertex_upper_bound(system: System, P: np.ndarray, lam: float, subdivisions: int | None = None

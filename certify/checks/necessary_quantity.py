@@ -19,8 +19,8 @@ import math
 import torch
 
 from certify.checks.metric import kernel_basis, output_matrix
-from certify.kernels import lam_max
-from certify.system import System
+from certify.model.kernels import lam_max
+from certify.spec.system import System
 
 _F64 = torch.float64
 

@@ -1,10 +1,10 @@
 """The search for the largest value of a quantity on the output manifold {x in X : h(x) in Y}.
 
 A tensor grid over X (odd, centre lines on it) filtered to the manifold, then a multi-start
-projected ascent (`certify.falsify.projected_ascent`) that refuses steps leaving h(x) in Y,
+projected ascent (`certify.search.falsify.projected_ascent`) that refuses steps leaving h(x) in Y,
 from the best grid points and seeded random ones. Ties are broken towards the centre of X
 (a witness that reads best). Used by `certify.checks.necessary` for q and the rate cap: a
-sampled, float64 search (the witness is re-checked soundly by `certify.witness`).
+sampled, float64 search (the witness is re-checked soundly by `certify.search.witness`).
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from certify.falsify import projected_ascent
-from certify.system import System
+from certify.search.falsify import projected_ascent
+from certify.spec.system import System
 
 _F64 = torch.float64
 Quantity = Callable[[torch.Tensor], torch.Tensor]  # points [B, n] -> values [B]

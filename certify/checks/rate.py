@@ -3,7 +3,7 @@
 lam_cert = -max over X x Y of lam_max(He{P J_cl}, P) / 2. Sampling gives an upper bound on
 lam_cert (a point where the rate is low); the prover gives a proved lower bound. "No
 contraction" (VIOLATED) needs a point where a sound lower bound of lam_max(He{P J_cl}) is
->= 0 (`certify.witness`); a float64 rate <= 0 without one is a near-tie (UNKNOWN).
+>= 0 (`certify.search.witness`); a float64 rate <= 0 without one is a near-tie (UNKNOWN).
 """
 
 from __future__ import annotations
@@ -15,13 +15,13 @@ import torch
 
 from certify.checks.base import Check, Context, Presentation, Quantity
 from certify.checks.mpdi import counterexamples_from, joint_box
-from certify.falsify import maximize_over_box
-from certify.kernels import pointwise_rate
-from certify.problem import Problem
+from certify.model.kernels import pointwise_rate
+from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import MpdiResult, RateResult, Status
+from certify.search.falsify import maximize_over_box
+from certify.search.witness import is_witness, rate_sign_lower
 from certify.settings import VerifySettings
-from certify.witness import is_witness, rate_sign_lower
 
 #: relative gap at which the rate proof stops: lam_cert is reported to 4 significant digits
 RATE_REL_TOL = 1e-4
@@ -29,7 +29,7 @@ RATE_REL_TOL = 1e-4
 RATE_FINE_BOXES = 16_384
 #: share of `rate_seconds` for the maximisation branch and bound; when it runs out before
 #: closing, the rest of the budget goes to MPDI decisions above the proved rate
-#: (`certify.rate_ladder.raise_rate`). When the MPDI proof already proved the design rate
+#: (`certify.prove.rate.raise_rate`). When the MPDI proof already proved the design rate
 #: and the branch and bound has not proved more after RATE_FINE_BOXES boxes, it hands over
 #: to the decisions then (examples/vdp2_lmi.ckpt: its quarter share ended at 0.93, below
 #: the design rate 1.0, and the decisions reached 1.118)
@@ -48,7 +48,7 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
     A PROVED MPDI at the design lam already proves lam_cert >= lam; the rate's own branch and
     bound (a quarter of `rate_seconds`) can only raise that, and when it runs out before
     closing, MPDI decisions at rates above the proved one use the rest of the budget
-    (`certify.rate_ladder.raise_rate`). No proof is attempted when sampling already shows a rate
+    (`certify.prove.rate.raise_rate`). No proof is attempted when sampling already shows a rate
     <= 0 (then no bound exists whatever the proof says).
     """
     progress = progress or NullProgress()
@@ -77,8 +77,8 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
         witnessed = is_witness(sign_lower, strict=False)
     proved_lower = problem.lam if mpdi is not None and mpdi.status == Status.PROVED else None
     if prove and search.nonfinite == 0 and sampled_upper > 0:
-        from certify.device import on_settings_device
-        from certify.prover import prove_rate
+        from certify.arith.device import on_settings_device
+        from certify.prove.mpdi import prove_rate
 
         # the grid's worst point seeds the closing level: with it the proof stops at the
         # precision the report prints (RATE_REL_TOL) in about half the boxes an unseeded
@@ -103,7 +103,7 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
         # ladder starts: a rate counts as proved only when a decision proved it)
         start = proved_lower if proved_lower is not None and proved_lower > 0 else 0.0
         if outcome.stats.budget_exhausted and sampled_upper > start and left > 0:
-            from certify.rate_ladder import raise_rate
+            from certify.prove.rate import raise_rate
 
             ladder = raise_rate(on_device, start, sampled_upper, seconds=left,
                                 max_boxes=settings.max_boxes,

@@ -8,13 +8,13 @@ from typing import Any
 import torch
 
 from certify.checks.base import Check, Context, Presentation, Quantity
-from certify.falsify import maximize_over_box
-from certify.kernels import gain_terms
-from certify.problem import Problem
+from certify.model.kernels import gain_terms
+from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import ResidualResult, Status
+from certify.search.falsify import maximize_over_box
+from certify.search.witness import residual_lower
 from certify.settings import VerifySettings
-from certify.witness import residual_lower
 
 
 def residual_norm(problem: Problem, x: torch.Tensor) -> torch.Tensor:
@@ -43,10 +43,10 @@ def check_residual(problem: Problem, settings: VerifySettings, *,
     if search.nonfinite:
         return ResidualResult(Status.UNKNOWN, "k(x, h(x)) is NaN/Inf at some grid points",
                               float("nan"), None, seconds=time.perf_counter() - t0)
-    from certify.side_proofs import bound_residual
+    from certify.prove.side import bound_residual
 
     worst = search.best_point.tolist()
-    from certify.device import on_settings_device
+    from certify.arith.device import on_settings_device
 
     upper, _, _ = bound_residual(on_settings_device(problem, settings),
                                  seconds=settings.residual_seconds,

@@ -1,8 +1,8 @@
 """Simulation check (METHOD §3.8): the observed error against the proved bound.
 
-Plant + observer are simulated (one batched RK4 over every run, `certify.integrate`) with
+Plant + observer are simulated (one batched RK4 over every run, `certify.simulate.integrate`) with
 bounded noise ||v(t)||_2 <= vbar, from starts chosen where the bound's validity conditions can
-hold for a useful time (`certify.sim_starts`: the plant stays in X for long, small initial
+hold for a useful time (`certify.simulate.starts`: the plant stays in X for long, small initial
 errors). For each run the first time a validity condition fails is found (x or xhat leaves X,
 h(x) leaves Y, y + v leaves Y when L is local, a non-finite state): its valid window ends
 there. Inside the window the error must stay under the tightest applicable proved bound, up
@@ -31,12 +31,12 @@ import torch
 from certify.checks.base import Check, Context, Presentation, Quantity
 from certify.checks.bounds import BOUND_NAMES, bound_curve, initial_value, metric_constants
 from certify.figuredata import FIGURE_DIGITS, round_list
-from certify.integrate import bounded_noise, gaussian_noise, simulate_doubled
-from certify.problem import Problem
+from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import BoundsResult, SimulationResult, SimulationRun, Status
 from certify.settings import VerifySettings
-from certify.sim_starts import InitialConditions, choose_starts, source_initial_condition
+from certify.simulate.integrate import bounded_noise, gaussian_noise, simulate_doubled
+from certify.simulate.starts import InitialConditions, choose_starts, source_initial_condition
 
 #: The source's simulation protocol: white Gaussian measurement noise of this std.
 SOURCE_NOISE_STD = 0.15
@@ -67,7 +67,7 @@ def bound_radius(bounds: BoundsResult | None, P: np.ndarray) -> float | None:
 def initial_conditions(system: Any, count: int, seed: int, *, P: np.ndarray | None = None,
                        horizon: float = 10.0, vbar: float = 0.0, L_is_local: bool = False,
                        radius: float | None = None) -> InitialConditions:
-    """The bounded-noise runs' starts (see `certify.sim_starts.choose_starts`)."""
+    """The bounded-noise runs' starts (see `certify.simulate.starts.choose_starts`)."""
     P = np.eye(system.n) if P is None else np.asarray(P, dtype=np.float64)
     return choose_starts(system, P, count, seed, horizon=horizon, vbar=vbar,
                          L_is_local=L_is_local, radius=radius)

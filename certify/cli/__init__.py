@@ -1,0 +1,2 @@
+"""The `certify` command line: parser, commands, the `[tool.certify]` policy, the
+display and shell completion."""

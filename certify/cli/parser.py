@@ -1,0 +1,190 @@
+"""The argument parser of `certify`: commands, flags, help texts (built from the registries).
+
+Building it imports only the standard library and the light parts of certify (settings, the
+built-in spec names), so `certify --help` and the one-line usage errors answer at once; the
+`train` command's own options come from `training.command` only when the command is `train`.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from certify.certificate import EXIT_BAD_INPUT
+from certify.settings import CERTIFICATE_CHECK, CHECK_NAMES, WORKERS_PER_CPU
+from certify.spec import builtin
+
+EXIT_CODES_TEXT = ("exit codes of run: 0 certified, 1 not certified, 2 bad input or usage, "
+                   "3 inconclusive (a required check unknown or in ERROR), 4 internal error; "
+                   "any command: 130 interrupted, 141 output pipe closed")
+
+EXAMPLES = """\
+examples:
+  certify systems                                   list the built-in systems
+  certify check vdp                                 pre-flight the spec as given
+  certify train vdp --preset certified -o vdp.ckpt  train a gain network
+  certify run vdp.ckpt --html r.html --junit r.xml  verify, write reports
+  certify run vdp.ckpt --json - --quiet | jq .verdict
+  certify run vdp.ckpt --require mpdi,rate --skip simulation
+  certify run model.onnx --system spec.toml         verify a model trained elsewhere
+  certify import model.onnx --system spec.toml -o model.ckpt
+  certify report r.json --pdf r.pdf                 re-render without verifying
+  eval "$(certify completion bash)"                 tab completion (bash, zsh, fish)
+
+""" + EXIT_CODES_TEXT + "."
+
+
+def version() -> str:
+    """The installed distribution's version (the package's own when not installed)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("certify")
+    except metadata.PackageNotFoundError:  # pragma: no cover - running from a bare tree
+        from certify import __version__
+
+        return __version__
+
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2
+        self.exit(EXIT_BAD_INPUT, f"certify: error: {message} (see 'certify --help')\n")
+
+
+def _report_flags(p: argparse.ArgumentParser, json_help: str) -> None:
+    p.add_argument("--html", metavar="PATH", help="write the HTML report")
+    p.add_argument("--pdf", metavar="PATH", help="write the PDF report")
+    p.add_argument("--json", metavar="PATH", help=json_help)
+    p.add_argument("--junit", metavar="PATH",
+                   help="write JUnit XML (a required check that fails is a <failure>, ERROR "
+                        "an <error>; checks not required never fail the build)")
+    p.add_argument("--trajectories", action="store_true",
+                   help="also plot each simulated run's true and estimated states (HTML/PDF) and "
+                        "store them in the JSON certificate")
+
+
+def systems_text() -> str:
+    """The built-in systems, as help text names them (read from the package's spec files)."""
+    return ", ".join(builtin.names())
+
+
+def _model_flags(p: argparse.ArgumentParser, system_help: str) -> None:
+    """The flags that turn a model from elsewhere (ONNX, TorchScript, state_dict) into a
+    verification problem (`certify import`, `certify run MODEL --system SPEC`)."""
+    p.add_argument("--system", metavar="SPEC", help=system_help)
+    p.add_argument("--lam", type=float, help="contraction rate (default: the spec's)")
+    p.add_argument("--metric", help="metric P as [[a,b],[b,c]] (default: the spec's)")
+    p.add_argument("--activation", metavar="NAME",
+                   help="the activation of a state_dict (it carries none), e.g. tanh")
+    p.add_argument("--structure", choices=("direct", "structural"),
+                   help="gain structure when the output width does not decide it (p = 1)")
+
+
+def build_parser(with_train: bool = True) -> argparse.ArgumentParser:
+    """The full parser. `with_train=False` leaves out `train`'s own options (they import
+    the training code); `main` builds them only when the command is `train`."""
+    formatter = argparse.RawDescriptionHelpFormatter
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true",
+                        help="on an internal error, print the traceback")
+    parser = _Parser(prog="certify", formatter_class=formatter, epilog=EXAMPLES,
+                     description="Train and certify learned contraction observers.")
+    parser.add_argument("--version", action="version", version=f"certify {version()}")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser,
+                                metavar="COMMAND")
+
+    systems = systems_text()
+    p = sub.add_parser("systems", parents=[common],
+                       help=f"list the built-in systems ({systems}), or print one")
+    p.add_argument("name", nargs="?", help=f"a built-in name ({systems}) or a spec path")
+    p.set_defaults(command="systems")
+
+    p = sub.add_parser("check", parents=[common], formatter_class=formatter,
+                       help="pre-flight a spec: necessary condition and metric synthesis",
+                       epilog="exit codes: 0 the spec as given passes, 1 it fails (a metric "
+                              "that fixes it is printed when one is found), 2 bad input, "
+                              "3 undecided, 4 internal error.")
+    p.add_argument("system", help=f"built-in name ({systems}) or spec path")
+    p.add_argument("--lam", type=float, help="contraction rate (default: the spec's)")
+    p.add_argument("--metric", help="metric P as [[a,b],[b,c]] (default: the spec's)")
+    p.add_argument("--margin", type=float, default=0.05, help="SDP margin (default 0.05)")
+    p.add_argument("--no-synthesis", action="store_true", help="do not search a metric")
+    p.add_argument("--json", metavar="PATH", help="write the results as JSON ('-': stdout)")
+    p.set_defaults(command="check")
+
+    p = sub.add_parser("train", parents=[common],
+                       help="train a gain network and write a checkpoint")
+    if with_train:
+        from training.command import add_train_arguments
+
+        add_train_arguments(p)
+    p.set_defaults(command="train")
+
+    names = ", ".join(CHECK_NAMES)
+    skippable = ", ".join(c for c in CHECK_NAMES if c != CERTIFICATE_CHECK)
+    p = sub.add_parser("run", parents=[common], formatter_class=formatter,
+                       help="verify a checkpoint and write the certificate",
+                       epilog=f"checks: {names}.\n{EXIT_CODES_TEXT}.")
+    p.add_argument("checkpoint", help="a checkpoint written by 'certify train' (.ckpt), or "
+                   "a model from elsewhere (.onnx, TorchScript, state_dict) with --system")
+    _model_flags(p, f"the system a model from elsewhere observes (built-in name: {systems}; "
+                    "or a spec path)")
+    _report_flags(p, "write the JSON certificate ('-': stdout, the rest goes to stderr)")
+    p.add_argument("--grid-points", type=int, help="dense grid size over X x Y (default 1e6)")
+    p.add_argument("--proof-seconds", type=float, help="prover time budget (default 60)")
+    p.add_argument("--max-boxes", type=int, help="prover sub-box budget")
+    p.add_argument("--adversarial-starts", type=int, help="gradient-ascent starts")
+    p.add_argument("--noise", type=float, help="noise bound vbar (default 0.15)")
+    p.add_argument("--sim-time", type=float, help="simulated seconds (default 10)")
+    p.add_argument("--seed", type=int, help="random seed (default 0)")
+    p.add_argument("--require", metavar="CHECKS",
+                   help=f"comma-separated checks that must pass; {CERTIFICATE_CHECK} (the "
+                        "certificate) is always one of them, and alone by default; from: "
+                        f"{names}")
+    p.add_argument("--skip", metavar="CHECKS",
+                   help=f"comma-separated checks not to run (never {CERTIFICATE_CHECK}, the "
+                        f"certificate); from: {skippable}")
+    p.add_argument("--allow-unknown", action="store_true",
+                   help="an UNKNOWN required check other than the MPDI does not fail the gate "
+                        "(the MPDI must be PROVED to certify; ERROR always fails)")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="run the grid and the proofs on a local Dask cluster of N processes "
+                        f"(default 1: in this process; at most {WORKERS_PER_CPU} per CPU)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run them on a running Dask cluster, e.g. tcp://host:8786 "
+                        "(dask-jobqueue on SLURM/PBS, Kubernetes)")
+    p.add_argument("--device", metavar="DEVICE",
+                   help="torch device: cpu (default), cuda or cuda:N. The MPDI grid, the "
+                        "falsifier and the branch-and-bound proofs (MPDI, rate, residual, "
+                        "dk/dy) run there; the simulation, LipSDP and the pre-flight stay on "
+                        "the CPU")
+    p.add_argument("--config", metavar="PATH", help="read [tool.certify] from this file")
+    p.add_argument("--no-config", action="store_true", help="ignore pyproject.toml")
+    p.add_argument("--quiet", "-q", action="store_true", help="only the verdict line")
+    p.set_defaults(command="run")
+
+    p = sub.add_parser("import", parents=[common],
+                       help="turn an ONNX, TorchScript or state_dict model into a checkpoint")
+    p.add_argument("model", help="model.onnx, a TorchScript file, or a state_dict (.pt)")
+    _model_flags(p, f"the system the model observes (built-in name: {systems}; or a spec "
+                    "path; required)")
+    p.add_argument("-o", "--output", required=True, metavar="PATH", help="checkpoint to write")
+    p.set_defaults(command="import")
+
+    p = sub.add_parser("report", parents=[common],
+                       help="re-render reports from a saved JSON certificate")
+    p.add_argument("certificate", help="a JSON certificate written by 'certify run --json'")
+    _report_flags(p, "write the JSON certificate again ('-': stdout)")
+    p.add_argument("--quiet", "-q", action="store_true", help="only the verdict line")
+    p.set_defaults(command="report")
+
+    p = sub.add_parser("completion", parents=[common], formatter_class=formatter,
+                       help="print a shell completion script",
+                       epilog='bash: eval "$(certify completion bash)"\n'
+                              "zsh:  eval \"$(certify completion zsh)\"\n"
+                              "fish: certify completion fish | source")
+    p.add_argument("shell", choices=("bash", "zsh", "fish"))
+    p.set_defaults(command="completion")
+    return parser
+
+

@@ -1,0 +1,418 @@
+"""The sound prover: the MPDI decision and the proved rate (side proofs: `certify.prove.side`).
+
+Every function here runs `certify.search.bnb.branch_and_bound` with bounds from
+`certify.enclosures` (interval + second-order Taylor forms, outward rounding as in
+`certify.arith.intervals.ROUNDING`). Only a bound that covers every box of the domain is called
+proved; NaN/Inf anywhere leaves the box UNKNOWN; a violation is a concrete float64 point.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from certify.arith.intervals import ROUNDING, up
+from certify.enclose.mpdi import (
+    CROWN_GAIN,
+    choose_preconditioner,
+    direct_mixed,
+    estimate_crown_gain,
+    mpdi_box_bounds,
+    plain_screen_pays,
+)
+from certify.enclose.preconditioner import Preconditioner, make_preconditioner, to_lam_max_D
+from certify.model.kernels import mpdi_lam_max, pointwise_rate
+from certify.model.problem import Problem
+from certify.progress import NullProgress, Progress
+from certify.results import Counterexample, ProofStats, Status
+from certify.search.bnb import SETUP_SECONDS_ANYWAY, Box, OutOfTime, branch_and_bound, initial_grid
+from certify.search.evaluation import BoxEval
+from certify.search.tree_estimate import completion_text, estimate_tree
+from certify.search.witness import is_witness, mpdi_lower
+
+__all__ = ["ProofOutcome", "RateOutcome", "prove_mpdi", "prove_rate", "ROUNDING"]
+
+#: the MPDI proof's first round is batch / COARSE_START boxes where the plain interval bound
+#: closes boxes on the problem (`prove_mpdi`)
+COARSE_START = 4
+#: the time limit of an unfinished proof's tree estimate: this share of the proof's
+#: `seconds`, at least ESTIMATE_MIN_SECONDS (`prove_mpdi`)
+ESTIMATE_SHARE = 0.25
+ESTIMATE_MIN_SECONDS = 2.0
+
+
+def estimate_seconds(seconds: float) -> float:
+    """The time limit of the tree estimate after a proof with budget `seconds` ran out."""
+    return max(ESTIMATE_MIN_SECONDS, ESTIMATE_SHARE * seconds)
+
+
+@dataclass
+class ProofOutcome:
+    """Decision on max lam_max(D) <= 0 over X x Y."""
+
+    status: Status
+    upper: float  # proved upper bound on max lam_max(D) (<= 0 when PROVED; inf if none)
+    lower: float  # best value found at evaluated points
+    counterexample: Counterexample | None
+    stats: ProofStats
+    boxes: dict[str, list] = field(default_factory=dict)
+    message: str = ""
+
+
+@dataclass
+class RateOutcome:
+    """lam_cert in [lower, upper_sampled]: lower proved, upper from evaluated points."""
+
+    lower: float | None
+    upper_sampled: float
+    stats: ProofStats
+    worst: Counterexample | None
+
+
+def _root(problem: Problem) -> tuple[torch.Tensor, torch.Tensor]:
+    """The root box X x Y as (lo, hi) [d] float64 on the problem's device."""
+    s = problem.system
+    box = np.concatenate([s.X, s.Y], 0)
+    t = torch.as_tensor(box, dtype=torch.float64, device=problem.device)
+    return t[:, 0].clone(), t[:, 1].clone()
+
+
+def _seed_box(seeds: object | None, d: int, device: str = "cpu") -> Box | None:
+    if seeds is None:
+        return None
+    if isinstance(seeds, torch.Tensor):
+        seeds = seeds.detach().cpu()
+    pts = torch.as_tensor(np.asarray(seeds, dtype=np.float64), dtype=torch.float64,
+                          device=device)
+    if pts.ndim != 2 or pts.shape[1] != d or pts.shape[0] == 0:
+        return None
+    return Box(pts, pts.clone(), torch.zeros(pts.shape[0], dtype=torch.long, device=device))
+
+
+def _plain_screen(problem: Problem, lam: float, pc: Preconditioner, taylor: bool | str,
+                  crown: bool, pays: bool | None = None) -> bool:
+    """Whether the boxes meet the plain interval bound before the linear bounds: always,
+    except for the mixed-row linear bounds (M = I, a direct network), where it is probed
+    (`plain_screen_pays`, or `pays` when the caller has it; deterministic in the problem)."""
+    if crown and taylor is True and direct_mixed(problem, pc):
+        return plain_screen_pays(problem, lam, pc) if pays is None else pays
+    return True
+
+
+def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bool | str = True,
+                    crown: bool = True, plain_screen: bool | None = None,
+                    deadline: float | None = None):
+    """The MPDI box evaluation (`plain_screen`: `_plain_screen`'s answer when the caller
+    already has it; `deadline`: a proof's budget, `certify.search.bnb.OutOfTime` past it while
+    the evaluation is being set up)."""
+    n = problem.n
+    P = problem.P_t
+    gain = CROWN_GAIN
+    rlo, rhi = _root(problem)
+    if plain_screen is None:
+        plain_screen = _plain_screen(problem, lam, pc, taylor, crown)
+    if crown and taylor is True and not direct_mixed(problem, pc):
+        gain = estimate_crown_gain(problem.network, rlo, rhi, deadline=deadline)
+
+    def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+        # boxes the plain interval bound already proves skip the Taylor / relaxation work
+        # (where that screen closes boxes on this problem at all: `plain_screen_pays`)
+        bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, taylor=taylor, crown=crown,
+                             screen=0.0, crown_gain=gain, root_width=rhi - rlo, decide=True,
+                             plain_screen=plain_screen)
+        ub = to_lam_max_D(bb.upper, P, pc)
+        ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
+        c = 0.5 * (lo + hi)
+        val = mpdi_lam_max(problem.system, problem.network, P, lam, c[:, :n], c[:, n:])
+        return BoxEval(upper=ub, centre_value=val, score=bb.score)
+
+    return evaluate
+
+
+def _mpdi_preconditioner(problem: Problem, lam: float, taylor: bool | str,
+                         deadline: float | None = None) -> Preconditioner:
+    """The congruence for the MPDI proof: probed (`choose_preconditioner`) for the default
+    prover, M ~ L^-1 for the plain-interval and "interval" comparison provers."""
+    if taylor is True:
+        return choose_preconditioner(problem, lam, deadline=deadline)
+    return make_preconditioner(problem.P_t)
+
+
+def mpdi_box_chunk(payload: dict, lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
+    """Executor task (module level, picklable): the MPDI box evaluation of one chunk; the
+    evaluator is rebuilt from plain data once per worker process
+    (`certify.search.distributed.payload`)."""
+    from certify.search.distributed.executor import worker_cache
+    from certify.search.distributed.payload import problem_from_payload
+    from certify.search.threads import torch_threads
+
+    def build():
+        base = {k: payload[k] for k in ("spec", "name", "architecture", "state", "lam", "P")}
+        problem = problem_from_payload(base)
+        return _mpdi_evaluator(problem, payload["prove_lam"],
+                               _mpdi_preconditioner(problem, payload["prove_lam"],
+                                                    payload["taylor"]), payload["taylor"],
+                               payload["crown"])
+
+    evaluate = worker_cache("mpdi-boxes:" + payload["key"], build)
+    with torch_threads(1):
+        return evaluate(lo, hi)
+
+
+def _mpdi_remote(problem: Problem, lam: float, taylor: bool | str, crown: bool,
+                 executor: object) -> tuple | None:
+    """(chunk_fn, payload) for an executor whose work runs in other processes (a Dask cluster,
+    even of one worker), else None (evaluate in process). A problem on a GPU is bounded in
+    process, on that GPU (the workers would rebuild it on their CPUs)."""
+    if not (getattr(executor, "remote", False) or getattr(executor, "workers", 1) > 1):
+        return None
+    if torch.device(problem.device).type != "cpu":
+        return None
+    from certify.search.distributed.executor import payload_key
+    from certify.search.distributed.payload import problem_payload
+
+    payload = problem_payload(problem)
+    payload.update(prove_lam=float(lam), taylor=taylor, crown=bool(crown))
+    payload["key"] = payload_key(payload)
+    return mpdi_box_chunk, payload
+
+
+@dataclass
+class DecisionSetup:
+    """What the MPDI decision proof runs on (`mpdi_decision`): the box evaluation, the root
+    box [d] and the number of boxes of the first round. The proof's tree (which boxes are
+    split, which closed) is a function of these and the split rule alone."""
+
+    evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval]
+    lo: torch.Tensor
+    hi: torch.Tensor
+    first_round: int
+
+
+def mpdi_decision(problem: Problem, lam: float, taylor: bool | str = True, crown: bool = True,
+                  batch: int = 1024, deadline: float | None = None) -> DecisionSetup:
+    """The `DecisionSetup` of `prove_mpdi` at rate `lam` (also used by bench/tree_size.py,
+    which follows the same tree). `deadline` (a `time.perf_counter()` value): the probes
+    that choose the bounds read the clock between their pieces and raise
+    `certify.search.bnb.OutOfTime` once it has passed (they choose only, so the setup does not
+    depend on it otherwise)."""
+    pc = _mpdi_preconditioner(problem, lam, taylor, deadline)
+    lo, hi = _root(problem)
+    # where the plain bound probe closes part of the root split into 1024 boxes (Van der Pol
+    # instances, 55-79%), coarser boxes close too: a coarse first round saves refining them
+    # (2x10 Van der Pol, seeds 0-9: 1391 -> 873 boxes, median; vdp_certified: 3012 -> 2020);
+    # where it closes nothing, every region needs that depth and the full first round saves
+    # the coarse levels (3x30 Van der Pol: 4472 boxes against 4780 from a quarter-size one)
+    coarse = crown and taylor is True and plain_screen_pays(problem, lam, pc,
+                                                            deadline=deadline)
+    plain_screen = _plain_screen(problem, lam, pc, taylor, crown, pays=coarse)
+    return DecisionSetup(_mpdi_evaluator(problem, lam, pc, taylor, crown, plain_screen,
+                                         deadline), lo, hi,
+                         batch // COARSE_START if coarse else batch)
+
+
+def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 60.0,
+               max_boxes: int = 2_000_000, progress: Progress | None = None,
+               seeds: object | None = None, batch: int = 1024, taylor: bool | str = True,
+               keep_leaves: int = 5000, crown: bool = True,
+               executor: object | None = None, task: str = "mpdi proof",
+               estimate_points: int = 256, box_seconds: float | None = None) -> ProofOutcome:
+    """Decide D(xhat, y) <= 0 over X x Y for rate `lam` (default problem.lam) and P.
+
+    PROVED: every sub-box has a sound bound lam_max(D) <= 0. VIOLATED: a point (a box
+    centre or one of `seeds` [m, n+p]) with float64 lam_max(D) > 0. UNKNOWN: budget spent
+    (`seconds`, `max_boxes`) or NaN/Inf in some bound; `upper` is then the best bound.
+    `taylor=False` uses plain interval arithmetic only (for comparison); `crown=False` keeps
+    the forward Taylor models without backward linear bound propagation (the pre-issue-9 prover).
+    `executor`: where the rounds' boxes are evaluated (default `current_executor()`; the
+    verdict and bounds do not depend on it). `task`: the name the progress display shows.
+    `seconds` counts from this call (the set-up of the bounds too) and holds within a few
+    seconds however slow a box is (`certify.search.bnb.RoundClock`: boxes a round had no time for
+    stay open with their parent's bound, and the proof is then UNKNOWN); the set-up itself
+    stops at max(seconds, SETUP_SECONDS_ANYWAY) and a cheap first round is always evaluated,
+    so that a small budget on a cheap problem still gives a bound; `box_seconds`: an
+    estimate of a box's cost, e.g. from an earlier proof on the problem (spares the timing
+    probes of the first round).
+    A proof that spent its budget estimates, by random descents (batches of `estimate_points`
+    while the standard error is above 20%, within 16 batches and 5% of the boxes the proof
+    evaluated), how many boxes a complete one needs (`certify.search.tree_estimate`; in `stats` and
+    the message); the estimate has its own time limit, `estimate_seconds(seconds)`, after the
+    proof's.
+    """
+    from certify.search.distributed.executor import current_executor
+
+    started = time.perf_counter()
+    progress = progress or NullProgress()
+    lam = float(problem.lam if lam is None else lam)
+    try:
+        setup = mpdi_decision(problem, lam, taylor, crown, batch,
+                              deadline=started + max(seconds, SETUP_SECONDS_ANYWAY))
+    except OutOfTime:
+        return _spent_in_setup(problem, seconds, max_boxes, time.perf_counter() - started)
+    lo, hi = setup.lo, setup.hi
+    n = problem.n
+    executor = current_executor() if executor is None else executor
+    out = branch_and_bound(
+        lo, hi, setup.evaluate, threshold=0.0,
+        seconds=seconds, max_boxes=max_boxes, batch=batch, first_round=setup.first_round,
+        progress=progress, task=task,
+        seeds=_seed_box(seeds, lo.shape[0], problem.device), keep_leaves=keep_leaves,
+        executor=executor,
+        remote=_mpdi_remote(problem, lam, taylor, crown, executor), started=started,
+        box_seconds=box_seconds)
+    cex = None
+    if out.best_point is not None:
+        pt = out.best_point[None]
+        v = float(mpdi_lam_max(problem.system, problem.network, problem.P_t, lam,
+                               pt[:, :n], pt[:, n:])[0])
+        cex = Counterexample(xhat=pt[0, :n].tolist(), y=pt[0, n:].tolist(), value=v,
+                             sound_bound=float(mpdi_lower(problem, pt, lam)[0]))
+    if out.violated and cex is not None and is_witness(cex.sound_bound):
+        status = Status.VIOLATED
+        msg = f"lam_max(D) = {cex.value:.6g} > 0 at xhat={cex.xhat}, y={cex.y}"
+    elif out.complete and out.upper <= 0 and math.isfinite(out.upper):
+        status = Status.PROVED
+        msg = f"proved max lam_max(D) <= {out.upper:.6g} over {out.stats.boxes_processed} boxes"
+        cex = None if cex is None or cex.value <= 0 else cex
+    else:
+        status = Status.UNKNOWN
+        why = (f"{out.stuck} boxes gave NaN/Inf or hit the depth limit" if out.stuck
+               else "proof budget spent")
+        msg = (f"{why} (seconds={seconds}, max_boxes={max_boxes}); best upper bound "
+               f"{out.upper:.6g}, proved volume {out.stats.proved_volume_fraction:.4f}; "
+               "raise proof_seconds or max_boxes")
+        if out.stats.budget_exhausted and not out.stuck and estimate_points > 0:
+            # more descents while the estimate is rough, within 5% of the proof's boxes
+            st = out.stats
+            first_depth = int(initial_grid(lo, hi, setup.first_round).depth[0])
+            est = estimate_tree(setup.evaluate, lo, hi, setup.first_round, estimate_points,
+                                target_rel_stderr=0.2, max_points=16 * estimate_points,
+                                max_evaluations=max(4096, st.boxes_processed // 20),
+                                seconds=estimate_seconds(seconds),
+                                box_seconds=st.seconds / max(st.boxes_processed, 1),
+                                levels=max(1, st.max_depth - first_depth + 1))
+            if math.isfinite(est.boxes):
+                st.estimated_boxes, st.estimate_rel_stderr = est.boxes, est.rel_stderr
+            tail = completion_text(est.boxes, est.rel_stderr, st.boxes_processed)
+            msg += "; " + tail if tail else ""
+    upper = out.upper if math.isfinite(out.upper) else float("inf")
+    return ProofOutcome(status=status, upper=upper, lower=out.lower, counterexample=cex,
+                        stats=out.stats, boxes=out.leaves, message=msg)
+
+
+def _spent_in_setup(problem: Problem, seconds: float, max_boxes: int,
+                    elapsed: float) -> ProofOutcome:
+    """The UNKNOWN outcome of a decision whose budget ran out before its first round."""
+    stats = ProofStats(boxes_processed=0, seconds=elapsed, budget_exhausted=True,
+                       rounding=ROUNDING, volume_history=[[0.0, 0.0], [elapsed, 0.0]])
+    return ProofOutcome(status=Status.UNKNOWN, upper=float("inf"), lower=-math.inf,
+                        counterexample=None, stats=stats,
+                        message=(f"proof budget spent (seconds={seconds}, max_boxes="
+                                 f"{max_boxes}) while the bounds were being set up, before "
+                                 "the first box; raise proof_seconds"))
+
+
+def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_000_000,
+               progress: Progress | None = None, tol: float = 1e-9, rel_tol: float = 1e-3,
+               batch: int = 1024, seeds: object | None = None,
+               coarse_after: tuple[int, float] | None = None,
+               give_up: tuple[int, float] | None = None) -> RateOutcome:
+    """Proved lower bound on lam_cert = -max lam_max(He{P J_cl}, P) / 2 over X x Y.
+
+    Direct branch and bound on phi(z) = lam_max(He{P J_cl(z)}, P) (no bisection): boxes are
+    refined worst-first until the gap between the proved max and the best point is within
+    max(tol, rel_tol |phi|) or the budget ends; lower = -(proved max of phi) / 2.
+    The generalised eigenvalue uses the congruence with M ~ L^-1: with A0 = M He{PJ} M^T
+    and C = M P M^T in [c_min, c_max] (bounded), lam_max(A0, C) <= mu / c_min (mu >= 0) or
+    mu / c_max (mu < 0), mu >= lam_max(A0).
+    `seeds` [S, n + p]: points evaluated first (the rate grid's worst points): their values
+    set the closing level from the start, so boxes far below the max close in the first
+    rounds instead of being refined until the search finds a point as bad. They only choose
+    what is refined; the bound is the max over every box's sound bound either way.
+    `coarse_after`: see `branch_and_bound` (the tolerance relaxes after that many boxes).
+    `give_up = (N, rate)`: after N boxes, stop (budget spent) unless the bound so far
+    already proves more than `rate` (`branch_and_bound`'s give_up at phi = -2 rate).
+    `seconds` counts from this call and holds however slow a box is (as in `prove_mpdi`).
+    """
+    started = time.perf_counter()
+    progress = progress or NullProgress()
+    pc = make_preconditioner(problem.P_t)
+    lo, hi = _root(problem)
+    n = problem.n
+    P = problem.P_t
+
+    level = _Level(rel_tol, tol)
+    try:
+        gain = estimate_crown_gain(problem.network, lo, hi,
+                                   deadline=started + max(seconds, SETUP_SECONDS_ANYWAY))
+    except OutOfTime:  # no time left for a single box: no bound
+        return RateOutcome(lower=None, upper_sampled=math.inf,
+                           stats=ProofStats(seconds=time.perf_counter() - started,
+                                            budget_exhausted=True, rounding=ROUNDING),
+                           worst=None)
+
+    def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
+        c = 0.5 * (blo + bhi)
+        val = -2.0 * pointwise_rate(problem.system, problem.network, P, c[:, :n], c[:, n:])
+        cv = torch.nan_to_num(val, nan=-math.inf)
+        level.best = max(level.best, float(cv.max())) if len(cv) else level.best
+        lv = level.value()  # phi-level -> mu-level (mu / c_min or mu / c_max <= lv)
+        screen = None if not math.isfinite(lv) else (lv * pc.c_min if lv >= 0
+                                                      else lv * pc.c_max)
+        bb = mpdi_box_bounds(problem, blo, bhi, 0.0, pc=pc, screen=screen, crown_gain=gain,
+                             root_width=hi - lo)
+        mu = bb.upper
+        ub = torch.where(mu >= 0, up(mu / pc.c_min), up(mu / pc.c_max))
+        ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
+        return BoxEval(upper=ub, centre_value=val, score=bb.score)
+
+    out = branch_and_bound(lo, hi, evaluate, threshold=None, tol=tol, rel_tol=rel_tol,
+                           seconds=seconds, max_boxes=max_boxes, batch=batch,
+                           progress=progress, task="rate proof", coarse_after=coarse_after,
+                           give_up=None if give_up is None else (give_up[0], -2.0 * give_up[1]),
+                           seeds=_seed_box(seeds, lo.shape[0], problem.device),
+                           started=started)
+    lower = -out.upper / 2.0 if math.isfinite(out.upper) else None
+    worst = None
+    upper_sampled = -out.lower / 2.0 if math.isfinite(out.lower) else float("inf")
+    if out.best_point is not None:
+        pt = out.best_point
+        worst = Counterexample(xhat=pt[:n].tolist(), y=pt[n:].tolist(), value=upper_sampled)
+    if lower is not None:
+        lower = math.nextafter(lower, -math.inf)
+    return RateOutcome(lower=lower, upper_sampled=upper_sampled, stats=out.stats, worst=worst)
+
+
+class _Level:
+    """The closing level of a maximisation branch and bound, tracked from the centre values
+    the evaluator sees (the same points `branch_and_bound` ranks): boxes whose cheap bound is
+    already at or below it skip the expensive bound. Only the choice of bound depends on it,
+    never soundness."""
+
+    def __init__(self, rel_tol: float, tol: float) -> None:
+        self.best = -math.inf
+        self.rel_tol, self.tol = rel_tol, tol
+
+    def value(self) -> float:
+        if not math.isfinite(self.best):
+            return math.inf
+        return self.best + max(self.tol, self.rel_tol * abs(self.best))
+
+    def tighten(self, cheap: torch.Tensor, centre: torch.Tensor, tight) -> torch.Tensor:
+        """min(cheap, tight(mask)) on the boxes whose cheap bound is above the level."""
+        cv = torch.nan_to_num(centre, nan=-math.inf)
+        if len(cv):
+            self.best = max(self.best, float(cv.max()))
+        work = ~(cheap <= self.value())
+        if not bool(work.any()):
+            return cheap
+        out = cheap.clone()
+        t = tight(work)
+        out[work] = torch.where(torch.isnan(t) | torch.isnan(cheap[work]), cheap[work],
+                                torch.minimum(cheap[work], t))
+        return out

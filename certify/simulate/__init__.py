@@ -1,0 +1,1 @@
+"""Simulation of plant and observer: the batched integrator and where runs start."""

@@ -1,0 +1,286 @@
+"""Batched fixed-step RK4 for plant + observer, float64, vectorised over initial conditions.
+
+    x'    = f(x)
+    xhat' = f(xhat) + k(xhat, h(x) + v(t))
+
+The noise v is held constant over each step (sample and hold), so every RK4 step integrates
+a smooth right-hand side and keeps its fourth order. Two noise models:
+
+- `bounded_noise`: piecewise constant over holds of a few steps, each value a random
+  direction scaled to norm exactly `vbar` (so ||v(t)||_2 <= vbar holds exactly; the largest
+  admissible magnitude, which stresses a bound the most);
+- `gaussian_noise`: white Gaussian samples of a given standard deviation, one per step (the
+  source's protocol; it has no bound vbar).
+
+Noise arrays have shape [steps, B, p]; states [B, n]; trajectories [steps + 1, B, n]. The
+integrator runs on float64 NumPy arrays (f and h by `System.array_rows`, k by the NumPy value
+arithmetic `_ArrayValueRows`): a step is ~100 small calls, and a NumPy call costs a quarter
+of a torch call there. `Trajectories` hands torch tensors on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from certify.model.gain import GainSpec, gain_value
+from certify.model.gain.arithmetic import PointCompose
+from certify.model.gain.propagate import NetOutput
+from certify.model.network import GainNetwork
+from certify.spec.system import System
+
+
+def as_array(x: Any) -> np.ndarray:
+    """A float64 NumPy copy of x (a torch tensor on any device, an array or nested lists)."""
+    if isinstance(x, torch.Tensor):
+        return x.detach().to(device="cpu", dtype=torch.float64).numpy().copy()
+    return np.array(x, dtype=np.float64)
+
+
+@dataclass
+class Trajectories:
+    """Time grid t [T], plant x [T, B, n], observer xhat [T, B, n], noise held per step
+    v [T, B, p] (v[k] acts on [t_k, t_k+1]; the last row repeats the previous one)."""
+
+    t: torch.Tensor
+    x: torch.Tensor
+    xhat: torch.Tensor
+    v: torch.Tensor
+
+
+def hold_steps(dt: float, hold: float) -> int:
+    """Steps per noise hold: round(hold / dt), at least 2 and even (so a run at 2 dt sees the
+    same signal; used to estimate the integration error)."""
+    k = max(2, int(round(hold / dt)))
+    return k + (k % 2)
+
+
+def bounded_noise(steps: int, batch: int, p: int, vbar: float, dt: float, *,
+                  hold: float = 0.05, seed: int = 0) -> torch.Tensor:
+    """Piecewise-constant noise with ||v||_2 = vbar exactly on each hold -> [steps, B, p]."""
+    gen = torch.Generator().manual_seed(int(seed))
+    k = hold_steps(dt, hold)
+    m = -(-steps // k)
+    d = torch.randn(m, batch, p, generator=gen, dtype=torch.float64)
+    d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True).clamp_min(1e-300)
+    v = d * float(vbar)
+    # the rounding of the scaling may exceed vbar by an ulp: clip to the exact bound
+    norm = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+    v = torch.where(norm > vbar, v * (vbar / norm) * (1 - 1e-15), v)
+    return v.repeat_interleave(k, dim=0)[:steps]
+
+
+def gaussian_noise(steps: int, batch: int, p: int, std: float, *, seed: int = 0
+                   ) -> torch.Tensor:
+    """White Gaussian noise of standard deviation `std`, one sample per step -> [steps, B, p]."""
+    gen = torch.Generator().manual_seed(int(seed))
+    return std * torch.randn(steps, batch, p, generator=gen, dtype=torch.float64)
+
+
+class _ArrayValueRows(PointCompose):
+    """The `propagate` / `compose` primitives for k alone (no tangents) on float64 NumPy
+    rows: the simulation calls k ~20 k times on a few rows, where the cost is the number of
+    library calls, and a NumPy call costs a quarter of a torch call. The same composition
+    as every evaluation (`certify.model.gain.gain_value`); the weights are copied (transposed)
+    once; the activation's `f_array` is its NumPy form. Floats agree with the torch row
+    arithmetic up to the libraries' rounding of products and tanh (last ulps)."""
+
+    def __init__(self, spec: GainSpec) -> None:
+        def array(t: torch.Tensor) -> np.ndarray:
+            return t.detach().to(device="cpu", dtype=torch.float64).numpy()
+
+        self._arrays: dict[int, np.ndarray] = {id(W): np.ascontiguousarray(array(W).T)
+                                               for W, _ in spec.layers}
+        self._arrays.update({id(b): array(b) for _, b in spec.layers})
+        self._arrays[id(spec.K)] = np.ascontiguousarray(array(spec.K).T)
+
+    def inputs(self, xhat: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.concatenate([xhat, y], axis=1)
+
+    def input_layer(self, z: np.ndarray, W: torch.Tensor, b: torch.Tensor, m: int
+                    ) -> tuple[np.ndarray, None]:
+        if m:
+            raise ValueError("the simulation evaluates k alone (no input derivatives)")
+        return z @ self._arrays[id(W)] + self._arrays[id(b)], None
+
+    def activate(self, act: Any, pre: np.ndarray, layer: int, order: int
+                 ) -> tuple[np.ndarray, None, None]:
+        return act.f_array(pre), None, None
+
+    def affine(self, a: np.ndarray, T: None, S: None, W: torch.Tensor, b: torch.Tensor,
+               layer: int) -> tuple[np.ndarray, None, None]:
+        return a @ self._arrays[id(W)] + self._arrays[id(b)], None, None
+
+    def output(self, pre: np.ndarray, T: None, S: None) -> NetOutput:
+        return NetOutput(pre, None, None)
+
+    def reshape_out(self, out: np.ndarray, n: int, p: int) -> np.ndarray:
+        return out if p == 1 else out.reshape(out.shape[0], n, p)  # p = 1: G as [B, n]
+
+    def matvec(self, A: np.ndarray, v: np.ndarray) -> np.ndarray:
+        if A.ndim == 2:  # p = 1: G r = G[:, :, 0] * r
+            return A * v
+        return (A @ v[:, :, None])[:, :, 0]
+
+    def const_matvec(self, K: torch.Tensor, v: np.ndarray) -> np.ndarray:
+        return v @ self._arrays[id(K)]
+
+
+class GainFunction:
+    """k(xhat, y) for a batch of float64 NumPy rows (xhat [B, n], y [B, p] -> [B, n]), by
+    the plain network forward (no Jacobian): `certify.model.gain.gain_value` with the NumPy
+    value arithmetic."""
+
+    def __init__(self, system: System, net: GainNetwork) -> None:
+        self.system = system
+        self.spec = net.spec(torch.float64, detach=True)
+        self.arith = _ArrayValueRows(self.spec)
+        self._h = system.array_rows("fh") if self.spec.needs_h else None
+
+    def __call__(self, xhat: np.ndarray, y: np.ndarray,
+                 h_xhat: np.ndarray | None = None) -> np.ndarray:
+        if not isinstance(xhat, np.ndarray) or not isinstance(y, np.ndarray):
+            xhat, y = as_array(xhat), as_array(y)
+        if h_xhat is None and self._h is not None:
+            h_xhat = self._h(xhat)[:, self.system.n:]
+        return gain_value(self.spec, self.system, xhat, y, h_xhat, arith=self.arith)
+
+
+def rk4(rhs: Callable[[np.ndarray, int], np.ndarray], s0: np.ndarray, dt: float,
+        steps: int) -> np.ndarray:
+    """Classic RK4 on s' = rhs(s, k) (k: the step index, for inputs held over the step).
+
+    s0 of any shape S -> states [steps + 1, *S] (float64 NumPy).
+    """
+    out = np.empty((steps + 1, *s0.shape), dtype=np.float64)
+    out[0] = s0
+    s = s0
+    coef = rk4_coefficients(dt)
+    for k in range(steps):
+        s = rk4_step(rhs, s, k, dt, coef)
+        out[k + 1] = s
+    return out
+
+
+Coefficients = tuple[Any, Any, Any]
+
+
+def rk4_coefficients(dt: float | np.ndarray) -> Coefficients:
+    """(dt/2, dt, dt/6), made once per integration; `dt` a float or a column [rows, 1]."""
+    if np.ndim(dt) == 0:
+        h = float(dt)
+        return h / 2.0, h, h / 6.0
+    col = np.asarray(dt, dtype=np.float64)
+    return col / 2.0, col, col / 6.0
+
+
+def rk4_step(rhs: Callable[[np.ndarray, int], np.ndarray], s: np.ndarray, k: int,
+             dt: float | np.ndarray, coef: Coefficients | None = None) -> np.ndarray:
+    """One RK4 step; `dt` a float or a column [rows, 1] (a step size per row of s);
+    `coef`: `rk4_coefficients(dt)` when already made."""
+    h2, h, h6 = rk4_coefficients(dt) if coef is None else coef
+    k1 = rhs(s, k)
+    k2 = rhs(s + h2 * k1, k)
+    k3 = rhs(s + h2 * k2, k)
+    k4 = rhs(s + h * k3, k)
+    return s + h6 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def simulate_plant(system: System, x0: torch.Tensor | np.ndarray, *, dt: float, steps: int
+                   ) -> torch.Tensor:
+    """The plant alone, x' = f(x), from x0 [B, n] -> states [steps + 1, B, n] (RK4)."""
+    f = system.array_rows("f")
+    with np.errstate(all="ignore"):  # a run that blows up ends as inf/NaN, found later
+        out = rk4(lambda s, k: f(s), as_array(x0), float(dt), int(steps))
+    return torch.from_numpy(out)
+
+
+def simulate(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: torch.Tensor, *,
+             dt: float, steps: int, noise: torch.Tensor | None = None) -> Trajectories:
+    """Plant + observer from x0, xhat0 [B, n] over `steps` steps of `dt`, noise [steps, B, p].
+
+    The plant and observer are integrated together (one RK4 on the stacked state [2B, n]);
+    f and h are evaluated once per stage on the stacked batch [2B, n].
+    """
+    return simulate_doubled(system, net, x0, xhat0, dt=dt, steps=steps, noise=noise)[0]
+
+
+def simulate_doubled(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: torch.Tensor,
+                     *, dt: float, steps: int, noise: torch.Tensor | None = None,
+                     doubled: list[int] | None = None, doubled_steps: int = 0
+                     ) -> tuple[Trajectories, Trajectories | None]:
+    """`simulate`, and the runs `doubled` again at step 2 dt for `doubled_steps` steps.
+
+    One batched integrator over every run: on every second step of dt the runs at 2 dt join
+    the batch (a step size per row), so the second integration costs no extra right-hand-side
+    calls. Their noise is the same signal sampled every second step (held over 2 dt when the
+    hold is even, see `hold_steps`). Returns (the dt trajectories, the 2 dt ones or None).
+    """
+    n, p = system.n, system.p
+    x0 = as_array(x0)
+    xhat0 = as_array(xhat0)
+    if x0.ndim != 2 or x0.shape[1] != n or xhat0.shape != x0.shape:
+        raise ValueError(f"x0 and xhat0 must have shape [B, {n}]; got {list(x0.shape)} and "
+                         f"{list(xhat0.shape)}")
+    B = x0.shape[0]
+    noise = (np.zeros((steps, B, p)) if noise is None
+             else as_array(noise))
+    if noise.shape != (steps, B, p):
+        raise ValueError(f"noise must have shape [{steps}, {B}, {p}]; got {list(noise.shape)}")
+    rows = list(doubled or [])
+    c_steps = min(int(doubled_steps), steps // 2) if rows else 0
+    C = len(rows) if c_steps > 0 else 0
+    gain = GainFunction(system, net)
+    f_and_h = system.array_rows("fh")
+    both = noise if C == 0 else np.concatenate([noise, noise[:, rows]], axis=1)
+    width = [B]  # rows of x (then of xhat) in the state now being stepped
+
+    def rhs(s: np.ndarray, k: int) -> np.ndarray:
+        # s [2W, n]: rows of x (first W), then rows of xhat; f and h in one call
+        W = width[0]
+        fh = f_and_h(s)  # [2W, n + p], a fresh array
+        at_x, at_xhat = fh[:W], fh[W:]
+        y = at_x[:, n:] + (noise[k] if W == B else both[k])
+        at_xhat[:, :n] += gain(s[W:], y, at_xhat[:, n:])  # f(xhat) + k, in place
+        return fh[:, :n]
+
+    dt = float(dt)
+    fine = np.empty((steps + 1, 2 * B, n))
+    fine[0] = np.concatenate([x0, xhat0])
+    coarse = np.empty((c_steps + 1, 2 * C, n)) if C else None
+    if coarse is not None:
+        coarse[0] = np.concatenate([x0[rows], xhat0[rows]])
+        col = np.concatenate([np.full((B, 1), dt), np.full((C, 1), 2 * dt)])
+        col = np.concatenate([col, col])  # x rows, then xhat rows
+        coef_joint = rk4_coefficients(col)
+    coef = rk4_coefficients(dt)
+    s_f = fine[0]
+    with np.errstate(all="ignore"):  # a run that blows up ends as inf/NaN, found later
+        for k in range(steps):
+            j = k // 2
+            if coarse is not None and k % 2 == 0 and j < c_steps:
+                s_c = coarse[j]
+                joint = np.concatenate([s_f[:B], s_c[:C], s_f[B:], s_c[C:]])
+                width[0] = B + C
+                out = rk4_step(rhs, joint, k, col, coef_joint)
+                width[0] = B
+                s_f = np.concatenate([out[:B], out[B + C: 2 * B + C]])
+                coarse[j + 1] = np.concatenate([out[B: B + C], out[2 * B + C:]])
+            else:
+                s_f = rk4_step(rhs, s_f, k, dt, coef)
+            fine[k + 1] = s_f
+    t = torch.from_numpy(np.arange(steps + 1, dtype=np.float64) * dt)
+    v_np = np.concatenate([noise, noise[-1:]]) if steps > 0 else np.zeros((1, B, p))
+    result = Trajectories(t=t, x=torch.from_numpy(fine[:, :B]),
+                          xhat=torch.from_numpy(fine[:, B:]), v=torch.from_numpy(v_np))
+    if coarse is None:
+        return result, None
+    vc = noise[: 2 * c_steps: 2, rows]
+    vc = np.concatenate([vc, vc[-1:]])
+    tc = torch.from_numpy(np.arange(c_steps + 1, dtype=np.float64) * (2 * dt))
+    return result, Trajectories(t=tc, x=torch.from_numpy(coarse[:, :C]),
+                                xhat=torch.from_numpy(coarse[:, C:]), v=torch.from_numpy(vc))
