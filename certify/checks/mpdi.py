@@ -40,7 +40,8 @@ def mpdi_score(problem: Problem, lam: float | None = None):
     lam = problem.lam if lam is None else lam
 
     def score(z: torch.Tensor) -> torch.Tensor:
-        return mpdi_lam_max(problem.system, problem.network, P, lam, z[:, :n], z[:, n:])
+        return mpdi_lam_max(problem.system, problem.network, P, lam, z[:, :n], z[:, n:],
+                            problem.shift_t)
 
     return score
 

@@ -10,16 +10,18 @@ from dataclasses import dataclass
 import torch
 
 from certify.arith.eigen import lam_max_upper_interval, taylor_upper
-from certify.arith.interval_ops import bcast, const_lam, iadd, nan_min
-from certify.arith.intervals import Interval, imul, up
+from certify.arith.interval_ops import bcast, iadd, nan_min
+from certify.arith.intervals import Interval, up
 from certify.enclose.network_interval import gain_enclosure
 from certify.enclose.preconditioner import (
     Preconditioner,
-    _congruence,
     candidate_preconditioners,
+    congruence,
+    constant_term,
     diagonal_preconditioner,
     make_preconditioner,
     to_lam_max_D,
+    with_shift,
 )
 from certify.enclose.taylor import HERTZ_MAX_N, jcl_taylor, tm_congruence, tm_lam_upper
 from certify.model.problem import Problem
@@ -73,7 +75,7 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     box goes to the linear bounds and `plain` is +inf."""
     system, net = problem.system, problem.network
     if pc is None:
-        pc = make_preconditioner(problem.P_t)
+        pc = with_shift(make_preconditioner(problem.P_t), problem.shift_t)
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     B, d = lo.shape
@@ -85,20 +87,20 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
         tay, s_w = _mixed_stage(problem, pc, lo, hi, zr, lam, screen, decide)
         return BoxBounds(tay, torch.full_like(tay, float("inf")), tay,
                          split_score(split_rule, s_w, zr, root_width, net))
-    lamC = imul(pc.C, const_lam(2.0 * lam, pc.C))
+    lamC = constant_term(pc, lam)
     # centre pass (thin intervals around A(c)) and box pass
     gc, nec = gain_enclosure(system, net, zc, zc, order=1)
     order = 2 if taylor == "interval" else 1
     gb, _ = gain_enclosure(system, net, lo, hi, order=order, center_pre=nec.pre)
-    Ab = iadd(_congruence(pc, iadd(gb.jf, gb.dk_dx)), bcast(lamC, B))
+    Ab = iadd(congruence(pc, iadd(gb.jf, gb.dk_dx)), bcast(lamC, B))
     plain = lam_max_upper_interval(Ab, level=(0.0 if screen is None else screen) if decide
                                    else None)
     if not taylor:
         return BoxBounds(plain, plain, torch.full_like(plain, float("inf")), wscore)
     if taylor == "interval":
-        Ac = iadd(_congruence(pc, iadd(gc.jf, gc.dk_dx)), bcast(lamC, B))
+        Ac = iadd(congruence(pc, iadd(gc.jf, gc.dk_dx)), bcast(lamC, B))
         dJ = iadd(gb.djf, gb.d2k)  # [B, n, n, d]
-        dA = _congruence(pc, Interval(dJ.lo.permute(0, 3, 1, 2), dJ.hi.permute(0, 3, 1, 2)))
+        dA = congruence(pc, Interval(dJ.lo.permute(0, 3, 1, 2), dJ.hi.permute(0, 3, 1, 2)))
         tay, score = taylor_upper(Ac, dA, zr)
         return BoxBounds(nan_min(plain, tay), plain, tay, score)
     # stage 1: plain intervals (screen); stage 2: forward Taylor models; stage 3 (crown): the
@@ -309,7 +311,8 @@ def diagonal_scaling(problem: Problem, lam: float) -> torch.Tensor | None:
     with torch.no_grad():
         dk = gain_terms(problem.system, problem.network, c[:, :n], c[:, n:],
                         with_dy=False).dk_dx
-        D = contraction_matrix(problem.system.jac_f(c[:, :n]), dk, problem.P_t, lam)[0]
+        D = contraction_matrix(problem.system.jac_f(c[:, :n]), dk, problem.P_t, lam,
+                               problem.shift_t)[0]
     mag = D.diagonal().abs()
     if not bool(torch.isfinite(mag).all()) or not bool((mag > 0).all()):
         return None
@@ -337,6 +340,7 @@ def choose_preconditioner(problem: Problem, lam: float, probes: int = 24,
     scaling = diagonal_scaling(problem, lam)
     if scaling is not None:  # a badly scaled D (SCALE_SPREAD)
         cands = [*cands, diagonal_preconditioner(problem.P_t, scaling, "scaled")]
+    cands = [with_shift(pc, problem.shift_t) for pc in cands]
     if len(cands) == 1:
         return cands[0]
     root = _root_box(problem)

@@ -20,14 +20,15 @@ no assumption on how accurately M inverts L).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import torch
 
 from certify.arith.eigen import lam_max_upper_point, rho_upper
-from certify.arith.interval_ops import isym, point
-from certify.arith.intervals import Interval, down, imatmul, up
+from certify.arith.interval_ops import const_lam, iadd, isym, point
+from certify.arith.intervals import Interval, down, imatmul, imul, up
 
 
 @dataclass
@@ -43,6 +44,8 @@ class Preconditioner:
     pos_scale: float = 1.0  # >= 1 / sigma_min(M)^2
     neg_scale: float = 1.0  # <= 1 / ||M||_2^2
     kind: str = "cholesky"  # "identity", "cholesky", "none" (M = I, P != I), "diagonal"
+    #: M Q M^T for the problem's constant term Q (`Problem.shift`), outward rounded; None: Q = 0
+    shift: Interval | None = None
     # (M = diag(P_ii^-1/2)) or "scaled" (M = diag(|D_ii|^-1/2), `certify.enclose.mpdi`)
 
 
@@ -94,7 +97,27 @@ def candidate_preconditioners(P: torch.Tensor) -> list[Preconditioner]:
             diagonal_preconditioner(P, P.diagonal().rsqrt())]
 
 
-def _congruence(pc: Preconditioner, Jm: Interval) -> Interval:
+def with_shift(pc: Preconditioner, Q: torch.Tensor | None) -> Preconditioner:
+    """`pc` carrying M Q M^T (an interval enclosure, `imatmul` rounds outward) for the
+    constant term Q of D; `pc` itself when Q is None."""
+    if Q is None:
+        return pc
+    Q = Q.to(torch.float64)
+    if pc.identity:
+        S = point(Q)
+    else:
+        S = imatmul(imatmul(point(pc.M), point(Q)), point(pc.M.T.contiguous()))
+    return dataclasses.replace(pc, shift=S)
+
+
+def constant_term(pc: Preconditioner, lam: float) -> Interval:
+    """M (2 lam P + Q) M^T as an interval: 2 lam C, plus `pc.shift` when the problem has a
+    constant term Q. Every stage adds this same enclosure to its bound of He{Q_pc J M^T}."""
+    lamC = imul(pc.C, const_lam(2.0 * lam, pc.C))
+    return lamC if pc.shift is None else iadd(lamC, pc.shift)
+
+
+def congruence(pc: Preconditioner, Jm: Interval) -> Interval:
     """He{Q J M^T} for interval J [B, n, n] (or [B, d, n, n] stacked)."""
     if pc.identity:
         return isym(Jm)

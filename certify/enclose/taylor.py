@@ -22,11 +22,10 @@ from certify.arith.eigen import (
     rho_upper,
     vertex_max_upper,
 )
-from certify.arith.interval_ops import const_lam
-from certify.arith.intervals import TINY, Interval, down, gamma, imul, up
+from certify.arith.intervals import TINY, Interval, down, gamma, up
 from certify.arith.taylor import TM, tm_absorb, tm_add, tm_from_intervals, tm_rho
 from certify.enclose.decide import decide_affine_family, vertex_matrices
-from certify.enclose.preconditioner import Preconditioner
+from certify.enclose.preconditioner import Preconditioner, constant_term
 from certify.enclose.system_taylor import jacobian_tm
 from certify.model.gain.propagate import GainValues, NetOutput, compose, propagate
 from certify.model.gain.taylor import TaylorArithmetic
@@ -122,7 +121,7 @@ def tm_congruence(pc: Preconditioner, J: TM, lam: float, r: torch.Tensor) -> TM:
     g = 0.5 * (A.g + A.g.transpose(1, 2))
     e = 0.5 * up(A.e + A.e.transpose(1, 2))
     A = tm_absorb(c, g, up(e), r, 2)
-    lamC = imul(pc.C, const_lam(2.0 * lam, pc.C))
+    lamC = constant_term(pc, lam)
     lc, lr = lamC.midrad()
     A = tm_absorb(A.c + lc, A.g, up(A.e + lr), r, 2)
     return A

@@ -38,9 +38,10 @@ def sym(M: torch.Tensor) -> torch.Tensor:
 
 
 def contraction_matrix(Jf: torch.Tensor, dk_dx: torch.Tensor, P: torch.Tensor,
-                       lam: float) -> torch.Tensor:
-    """D = He{P (Jf + dk/dxhat)} + 2 lam P, shape [B, n, n]."""
-    return sym(P @ (Jf + dk_dx)) + 2.0 * lam * P
+                       lam: float, shift: torch.Tensor | None = None) -> torch.Tensor:
+    """D = He{P (Jf + dk/dxhat)} + 2 lam P (+ Q, `shift` [n, n], when given), [B, n, n]."""
+    D = sym(P @ (Jf + dk_dx)) + 2.0 * lam * P
+    return D if shift is None else D + shift.to(D.dtype)
 
 
 def lam_max(S: torch.Tensor) -> torch.Tensor:
@@ -89,10 +90,11 @@ def closed_loop_jacobian(system: System, net: GainNetwork, xhat: torch.Tensor,
 
 
 def mpdi_lam_max(system: System, net: GainNetwork, P: torch.Tensor, lam: float,
-                 xhat: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """lam_max(D(xhat, y)) for a batch -> [B]."""
+                 xhat: torch.Tensor, y: torch.Tensor,
+                 shift: torch.Tensor | None = None) -> torch.Tensor:
+    """lam_max(D(xhat, y)) for a batch -> [B] (D with the constant term `shift`, if any)."""
     terms = gain_terms(system, net, xhat, y, with_dy=False)
-    return lam_max(contraction_matrix(system.jac_f(xhat), terms.dk_dx, P, lam))
+    return lam_max(contraction_matrix(system.jac_f(xhat), terms.dk_dx, P, lam, shift))
 
 
 def pointwise_rate(system: System, net: GainNetwork, P: torch.Tensor, xhat: torch.Tensor,

@@ -1,4 +1,10 @@
-"""A verification problem: the system, the gain network, the metric P and the rate lam."""
+"""A verification problem: the system, the gain network, the metric P and the rate lam.
+
+The matrix every proof is about is D = He{P (Jf + dk/dxhat)} + 2 lam P + Q, with an optional
+constant symmetric term Q (`shift`, default none): the MPDI has Q = 0; the joint dissipation
+certificate (`certify.prove.dissipation`) proves the same matrix function with a constant
+positive semidefinite Q, so it reuses the MPDI prover unchanged.
+"""
 
 from __future__ import annotations
 
@@ -20,6 +26,7 @@ class Problem:
     lam: float
     P: np.ndarray  # [n, n], symmetric positive definite
     device: str = "cpu"  # where the network's weights and P_t live (see `on`)
+    shift: np.ndarray | None = None  # [n, n] constant symmetric Q added to D (None: 0)
 
     def __post_init__(self) -> None:
         self.network = self.network.double().eval()
@@ -29,6 +36,13 @@ class Problem:
     @property
     def P_t(self) -> torch.Tensor:
         return torch.as_tensor(self.P, dtype=torch.float64, device=self.device)
+
+    @property
+    def shift_t(self) -> torch.Tensor | None:
+        """Q as a float64 tensor on the problem's device (None: no constant term)."""
+        if self.shift is None:
+            return None
+        return torch.as_tensor(self.shift, dtype=torch.float64, device=self.device)
 
     def on(self, device: torch.device | str) -> Problem:
         """This problem with a copy of the network (and P_t) on `device` (self if already
@@ -40,7 +54,7 @@ class Problem:
 
         net = copy.deepcopy(self.network).to(device)
         return Problem(system=self.system, network=net, lam=self.lam, P=self.P,
-                       device=str(device))
+                       device=str(device), shift=self.shift)
 
     @property
     def n(self) -> int:

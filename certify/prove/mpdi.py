@@ -25,7 +25,12 @@ from certify.enclose.mpdi import (
     mpdi_box_bounds,
     plain_screen_pays,
 )
-from certify.enclose.preconditioner import Preconditioner, make_preconditioner, to_lam_max_D
+from certify.enclose.preconditioner import (
+    Preconditioner,
+    make_preconditioner,
+    to_lam_max_D,
+    with_shift,
+)
 from certify.model.kernels import mpdi_lam_max, pointwise_rate
 from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress
@@ -128,7 +133,8 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
         ub = to_lam_max_D(bb.upper, P, pc)
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         c = 0.5 * (lo + hi)
-        val = mpdi_lam_max(problem.system, problem.network, P, lam, c[:, :n], c[:, n:])
+        val = mpdi_lam_max(problem.system, problem.network, P, lam, c[:, :n], c[:, n:],
+                           problem.shift_t)
         return BoxEval(upper=ub, centre_value=val, score=bb.score)
 
     return evaluate
@@ -140,7 +146,7 @@ def _mpdi_preconditioner(problem: Problem, lam: float, taylor: bool | str,
     prover, M ~ L^-1 for the plain-interval and "interval" comparison provers."""
     if taylor is True:
         return choose_preconditioner(problem, lam, deadline=deadline)
-    return make_preconditioner(problem.P_t)
+    return with_shift(make_preconditioner(problem.P_t), problem.shift_t)
 
 
 def mpdi_box_chunk(payload: dict, lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
@@ -148,11 +154,11 @@ def mpdi_box_chunk(payload: dict, lo: torch.Tensor, hi: torch.Tensor) -> BoxEval
     evaluator is rebuilt from plain data once per worker process
     (`certify.search.distributed.payload`)."""
     from certify.search.distributed.executor import worker_cache
-    from certify.search.distributed.payload import problem_from_payload
+    from certify.search.distributed.payload import PROBLEM_KEYS, problem_from_payload
     from certify.search.threads import torch_threads
 
     def build():
-        base = {k: payload[k] for k in ("spec", "name", "architecture", "state", "lam", "P")}
+        base = {k: payload[k] for k in PROBLEM_KEYS}
         problem = problem_from_payload(base)
         return _mpdi_evaluator(problem, payload["prove_lam"],
                                _mpdi_preconditioner(problem, payload["prove_lam"],
@@ -269,7 +275,7 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
     if out.best_point is not None:
         pt = out.best_point[None]
         v = float(mpdi_lam_max(problem.system, problem.network, problem.P_t, lam,
-                               pt[:, :n], pt[:, n:])[0])
+                               pt[:, :n], pt[:, n:], problem.shift_t)[0])
         cex = Counterexample(xhat=pt[0, :n].tolist(), y=pt[0, n:].tolist(), value=v,
                              sound_bound=float(mpdi_lower(problem, pt, lam)[0]))
     if out.violated and cex is not None and is_witness(cex.sound_bound):
@@ -340,6 +346,8 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     `seconds` counts from this call and holds however slow a box is (as in `prove_mpdi`).
     """
     started = time.perf_counter()
+    if problem.shift is not None:
+        raise ValueError("the proved rate is defined for D without a constant term (shift)")
     progress = progress or NullProgress()
     pc = make_preconditioner(problem.P_t)
     lo, hi = _root(problem)

@@ -51,6 +51,8 @@ def float32_misfit(problem: Problem, lam: float | None = None) -> str | None:
               (folded_constants(list(system.jh_expr), system.symbols), "a constant of dh/dx"),
               ([2.0 * lam], "2 lam")]
     checks.append((problem.P_t.detach().reshape(-1).tolist(), "an entry of P"))
+    if problem.shift is not None:
+        checks.append((problem.shift_t.reshape(-1).tolist(), "an entry of the constant term Q"))
     for i, (W, b) in enumerate(net.layer_weights()):
         checks.append((W.detach().reshape(-1).tolist(), f"a weight of layer {i + 1}"))
         checks.append((b.detach().reshape(-1).tolist(), f"a bias of layer {i + 1}"))
@@ -81,6 +83,7 @@ class GridKernel:
         self.fast = net.structure == "direct"
         self.spec = net.spec(dtype, detach=True)
         self.P = problem.P_t.to(dtype)
+        self.shift = None if problem.shift is None else problem.shift_t.to(dtype)
         self.n = problem.n
 
     def __call__(self, z: torch.Tensor) -> torch.Tensor:
@@ -88,13 +91,14 @@ class GridKernel:
         if not self.fast:
             z64 = z.to(torch.float64)
             return mpdi_lam_max(problem.system, problem.network, problem.P_t, self.lam,
-                                z64[:, :n], z64[:, n:]).to(self.dtype)
+                                z64[:, :n], z64[:, n:], problem.shift_t).to(self.dtype)
         z = z.to(self.dtype)
         xhat = z[:, :n]
         net = propagate(self.spec, COLUMNS, z, n)
         Hx = problem.system.jac_h(xhat) if self.spec.has_K else None
         dk_dx = compose(self.spec, COLUMNS, net, None, Hx, with_dy=False, with_k=False).dk_dx
-        return lam_max(contraction_matrix(problem.system.jac_f(xhat), dk_dx, self.P, self.lam))
+        return lam_max(contraction_matrix(problem.system.jac_f(xhat), dk_dx, self.P, self.lam,
+                                          self.shift))
 
 
 def float32_screen(problem: Problem, lam: float | None = None) -> GridKernel | None:

@@ -106,18 +106,22 @@ def closed_loop_interval(problem, z: torch.Tensor) -> Interval:
     return iadd(g.jf, g.dk_dx)
 
 
-def d_interval(P: torch.Tensor, J: Interval, lam: float) -> Interval:
-    """Enclosure of D = He{P J} + 2 lam P for interval J [B, n, n] and a point matrix P."""
+def d_interval(P: torch.Tensor, J: Interval, lam: float,
+               shift: torch.Tensor | None = None) -> Interval:
+    """Enclosure of D = He{P J} + 2 lam P (+ Q, `shift`, a point matrix added exactly as an
+    interval) for interval J [B, n, n] and a point matrix P."""
     from certify.arith.interval_ops import const_lam, iadd, isym
 
     B = J.lo.shape[0]
     P = torch.as_tensor(P, dtype=_F64, device=J.lo.device)
     Pb = Interval(P.expand(B, *P.shape), P.expand(B, *P.shape))
     S = isym(imatmul(Pb, J))
-    if lam == 0:
-        return S
-    lamP = Interval(*_scaled(Pb, const_lam(2.0 * float(lam), Pb)))
-    return iadd(S, lamP)
+    if lam != 0:
+        S = iadd(S, Interval(*_scaled(Pb, const_lam(2.0 * float(lam), Pb))))
+    if shift is not None:
+        Q = torch.as_tensor(shift, dtype=_F64, device=J.lo.device).expand(B, *P.shape)
+        S = iadd(S, Interval(Q, Q))
+    return S
 
 
 def _scaled(P: Interval, c: Interval) -> tuple[torch.Tensor, torch.Tensor]:
@@ -132,7 +136,7 @@ def mpdi_lower(problem, z: torch.Tensor, lam: float | None = None) -> torch.Tens
     problem's) -> [B]; > 0 proves the MPDI fails at that point."""
     lam = problem.lam if lam is None else float(lam)
     J = closed_loop_interval(problem, z)
-    return rayleigh_lower(d_interval(problem.P_t, J, lam))
+    return rayleigh_lower(d_interval(problem.P_t, J, lam, problem.shift_t))
 
 
 def rate_sign_lower(problem, z: torch.Tensor) -> torch.Tensor:

@@ -22,6 +22,9 @@ import torch
 from certify.model.problem import Problem
 from certify.search.distributed.executor import payload_key, worker_cache
 
+#: the keys of `problem_payload` (a task's payload may carry more)
+PROBLEM_KEYS = ("spec", "name", "architecture", "state", "lam", "P", "shift")
+
 
 def problem_payload(problem: Problem) -> dict[str, Any]:
     """Plain data from which `problem_from_payload` rebuilds `problem` exactly."""
@@ -30,7 +33,9 @@ def problem_payload(problem: Problem) -> dict[str, Any]:
              for k, v in net.state_dict().items()}
     return {"spec": problem.system.source, "name": problem.system.name,
             "architecture": net.architecture(), "state": state, "lam": float(problem.lam),
-            "P": np.asarray(problem.P, dtype=np.float64).copy()}
+            "P": np.asarray(problem.P, dtype=np.float64).copy(),
+            "shift": None if problem.shift is None
+            else np.asarray(problem.shift, dtype=np.float64).copy()}
 
 
 def _build(payload: dict[str, Any]) -> Problem:
@@ -40,7 +45,8 @@ def _build(payload: dict[str, Any]) -> Problem:
     system = System.from_text(payload["spec"], origin=f"system {payload['name']}")
     net = GainNetwork.from_architecture(payload["architecture"]).double()
     net.load_state_dict({k: torch.as_tensor(v) for k, v in payload["state"].items()})
-    return Problem(system=system, network=net, lam=payload["lam"], P=payload["P"])
+    return Problem(system=system, network=net, lam=payload["lam"], P=payload["P"],
+                   shift=payload.get("shift"))
 
 
 def problem_from_payload(payload: dict[str, Any]) -> Problem:
@@ -66,8 +72,7 @@ def _grid_kernels(payload: dict[str, Any]) -> tuple[Any, Any]:
     def build() -> tuple[Any, Any]:
         from certify.arith.device import resolve_device
 
-        problem = problem_from_payload({k: payload[k] for k in
-                                        ("spec", "name", "architecture", "state", "lam", "P")})
+        problem = problem_from_payload({k: payload[k] for k in PROBLEM_KEYS})
         problem = problem.on(resolve_device(payload.get("device", "cpu")))
         exact = GridKernel(problem, payload["grid_lam"])
         screen = (GridKernel(problem, payload["grid_lam"], dtype=torch.float32)
