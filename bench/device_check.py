@@ -30,7 +30,7 @@ from bench.instances import InstanceSpec  # noqa: E402
 from bench.prove_suite import FAMILIES, _cached_instance  # noqa: E402
 from certify.arith.device import describe, resolve_device  # noqa: E402
 from certify.model.kernels import mpdi_lam_max  # noqa: E402
-from certify.prove.mpdi import _mpdi_evaluator, _mpdi_preconditioner, _root  # noqa: E402
+from certify.prove.mpdi import _mpdi_evaluator, _mpdi_preconditioner, root_box  # noqa: E402
 
 
 def _sync(device: torch.device) -> None:
@@ -55,7 +55,7 @@ def _timed_bounds(problem, lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Te
 
 def check(problem, boxes: int, radius: float, samples: int, device: torch.device,
           seed: int) -> dict:
-    rlo, rhi = _root(problem)
+    rlo, rhi = root_box(problem)
     w = rhi - rlo
     d = len(w)
     gen = torch.Generator().manual_seed(seed)

@@ -29,8 +29,8 @@ from certify.checks.lipschitz import (  # noqa: E402
     naive_bound,
     sampled_lower,
 )
-from certify.checks.metric import observer_lmi, synthesize_metric  # noqa: E402
-from certify.design import sdp  # noqa: E402
+from certify.design import lipsdp  # noqa: E402
+from certify.design.metric import observer_lmi, synthesize_metric  # noqa: E402
 from certify.model import checkpoint  # noqa: E402
 from certify.model.network import GainNetwork  # noqa: E402
 from certify.model.problem import Problem  # noqa: E402
@@ -63,7 +63,7 @@ def main() -> None:
     if args.clarabel and res is not None:
         Ws, Wo = mlp_in_y(pr.network, pr.n)
         t = time.perf_counter()
-        rc = sdp.lipsdp_neuron(Ws, Wo, pr.network.K.numpy(), method="clarabel")
+        rc = lipsdp.lipsdp_neuron(Ws, Wo, pr.network.K.numpy(), method="clarabel")
         out["lipsdp_clarabel"] = {"seconds": time.perf_counter() - t, "value": rc.value,
                                   "iterations": rc.iterations,
                                   "solve_seconds": rc.solve_seconds}

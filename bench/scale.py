@@ -53,7 +53,7 @@ def emit(record: dict) -> None:
 
 def lmi_checkpoint(name: str, folder: Path, margin: float = 0.5) -> str:
     """The certified joint-LMI observer of a built-in as a checkpoint (||P K|| <= 1e4; for
-    n = 6 the memory-bounded LMI, `training.baseline.bounded_observer_lmi`)."""
+    n = 6 the memory-bounded LMI, `certify.design.metric.bounded_observer_lmi`)."""
     from certify.spec.system import load_system
     from training.baseline import save_lmi_baseline
 

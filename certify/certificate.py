@@ -13,13 +13,13 @@ from typing import Any
 
 from certify.errors import CertifyError
 from certify.figuredata import FigureData
+from certify.presentation import Presentation
 from certify.results import (
     RESULT_TYPES,
     Status,
     result_from_jsonable,
     to_jsonable,
 )
-from certify.settings import CERTIFICATE_CHECK
 
 SCHEMA_NAME = "certify-certificate"
 #: v2: a check may hold a `CheckFailure` record (`"failed": true`) instead of its own
@@ -71,6 +71,24 @@ class Certificate:
     def status_of(self, name: str) -> Status:
         result = self.checks.get(name)
         return Status.SKIPPED if result is None else result.status
+
+    def title(self, name: str) -> str:
+        """The report title of check `name` (its name when this certify does not know it)."""
+        from certify.checks.registry import get_check  # the checks import torch: on demand
+
+        try:
+            return get_check(name).title or name
+        except KeyError:
+            return name
+
+    def presentation(self, name: str) -> Presentation | None:
+        """What the reports show for check `name`, from its presenter (`Check.present`);
+        None when it did not run or this certify does not know it. The renderers read the
+        checks only through this method and `title`."""
+        from certify.checks.registry import presentation  # the checks import torch: on demand
+
+        r = self.checks.get(name)
+        return None if r is None else presentation(name, r, self)
 
     def to_dict(self, *, trajectories: bool = False) -> dict[str, Any]:
         """The JSON form; each simulated run's states `x` and `xhat` only with
@@ -157,54 +175,6 @@ def format_json(data: Any, width: int = JSON_WIDTH) -> str:
         return "[\n" + ",\n".join(inner + fmt(v, ind + 1) for v in o) + "\n" + pad + "]"
 
     return fmt(data, 0)
-
-
-def decide_verdict(checks: dict[str, Any], required: list[str],
-                   allow_unknown: bool) -> tuple[str, str]:
-    """Verdict and a one-line summary from the required checks' statuses.
-
-    The MPDI is the certificate: it is always required (added to `required` should a caller
-    have dropped it) and CERTIFIED needs it PROVED, whatever `allow_unknown` says: that waiver
-    is for the other required checks, never for the certificate itself.
-
-    Any required VIOLATED -> NOT CERTIFIED (a counterexample stands on its own); else any
-    required ERROR (the check failed internally: nothing was established either way) ->
-    INCONCLUSIVE, whatever `allow_unknown` says; else any required UNKNOWN (or SKIPPED, not
-    run, NOT APPLICABLE) -> INCONCLUSIVE unless `allow_unknown` (never for the MPDI); else
-    CERTIFIED. Checks that are not required never change the verdict; one in ERROR is named
-    in the summary.
-    """
-    if CERTIFICATE_CHECK not in required:
-        required = [CERTIFICATE_CHECK, *required]
-
-    def status(n: str) -> Status | None:
-        return checks[n].status if n in checks else None
-
-    violated = [n for n in required if status(n) == Status.VIOLATED]
-    errors = [n for n in required if status(n) == Status.ERROR]
-    unknown = [n for n in required if status(n) in (None, Status.UNKNOWN, Status.SKIPPED,
-                                                    Status.NOT_APPLICABLE)]
-    other_errors = [n for n in checks if n not in required and status(n) == Status.ERROR]
-    aside = (f"; not required, ended in ERROR: {', '.join(other_errors)}"
-             if other_errors else "")
-    if violated:
-        return "NOT CERTIFIED", "failed: " + ", ".join(
-            f"{n} ({checks[n].status.value})" for n in violated) + aside
-    if errors:
-        return "INCONCLUSIVE", ("check error: " + ", ".join(errors) + " ended in ERROR "
-                                "(internal failure, see its message)"
-                                + (f"; not established: {', '.join(unknown)}" if unknown
-                                   else "") + aside)
-    mpdi = status(CERTIFICATE_CHECK)
-    if mpdi != Status.PROVED:
-        return "INCONCLUSIVE", (f"not established: {CERTIFICATE_CHECK} "
-                                f"({mpdi.value if mpdi is not None else 'not run'}): the MPDI "
-                                "is the certificate and must be PROVED (allow_unknown never "
-                                "waives it)" + aside)
-    if unknown and not allow_unknown:
-        return "INCONCLUSIVE", "not established: " + ", ".join(unknown) + aside
-    note = f" (allowed unknown: {', '.join(unknown)})" if unknown else ""
-    return "CERTIFIED", "all required checks proved: " + ", ".join(required) + note + aside
 
 
 def exit_code(certificate: Certificate) -> int:

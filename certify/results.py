@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 import types
 import typing
 from dataclasses import dataclass, field
 from typing import Any
+
+from certify.settings import CERTIFICATE_CHECK
 
 
 class Status(str, enum.Enum):
@@ -60,6 +63,14 @@ class ProofStats:
     # random descents (`certify.search.tree_estimate`; not a bound), and its relative standard error
     estimated_boxes: float | None = None
     estimate_rel_stderr: float | None = None
+
+    def seconds_to_finish(self) -> float | None:
+        """Seconds a complete proof still needs at this run's speed, from the estimate of an
+        unfinished proof (None without an estimate or a measured speed)."""
+        boxes = self.estimated_boxes
+        if boxes is None or not math.isfinite(boxes) or not self.boxes_per_second > 0:
+            return None
+        return max(boxes - self.boxes_processed, 0.0) / self.boxes_per_second
 
 
 @dataclass
@@ -261,6 +272,54 @@ RESULT_TYPES: dict[str, type] = {
     "bounds": BoundsResult,
     "simulation": SimulationResult,
 }
+
+
+def decide_verdict(checks: dict[str, Any], required: list[str],
+                   allow_unknown: bool) -> tuple[str, str]:
+    """Verdict and a one-line summary from the required checks' statuses.
+
+    The MPDI is the certificate: it is always required (added to `required` should a caller
+    have dropped it) and CERTIFIED needs it PROVED, whatever `allow_unknown` says: that waiver
+    is for the other required checks, never for the certificate itself.
+
+    Any required VIOLATED -> NOT CERTIFIED (a counterexample stands on its own); else any
+    required ERROR (the check failed internally: nothing was established either way) ->
+    INCONCLUSIVE, whatever `allow_unknown` says; else any required UNKNOWN (or SKIPPED, not
+    run, NOT APPLICABLE) -> INCONCLUSIVE unless `allow_unknown` (never for the MPDI); else
+    CERTIFIED. Checks that are not required never change the verdict; one in ERROR is named
+    in the summary.
+    """
+    if CERTIFICATE_CHECK not in required:
+        required = [CERTIFICATE_CHECK, *required]
+
+    def status(n: str) -> Status | None:
+        return checks[n].status if n in checks else None
+
+    violated = [n for n in required if status(n) == Status.VIOLATED]
+    errors = [n for n in required if status(n) == Status.ERROR]
+    unknown = [n for n in required if status(n) in (None, Status.UNKNOWN, Status.SKIPPED,
+                                                    Status.NOT_APPLICABLE)]
+    other_errors = [n for n in checks if n not in required and status(n) == Status.ERROR]
+    aside = (f"; not required, ended in ERROR: {', '.join(other_errors)}"
+             if other_errors else "")
+    if violated:
+        return "NOT CERTIFIED", "failed: " + ", ".join(
+            f"{n} ({checks[n].status.value})" for n in violated) + aside
+    if errors:
+        return "INCONCLUSIVE", ("check error: " + ", ".join(errors) + " ended in ERROR "
+                                "(internal failure, see its message)"
+                                + (f"; not established: {', '.join(unknown)}" if unknown
+                                   else "") + aside)
+    mpdi = status(CERTIFICATE_CHECK)
+    if mpdi != Status.PROVED:
+        return "INCONCLUSIVE", (f"not established: {CERTIFICATE_CHECK} "
+                                f"({mpdi.value if mpdi is not None else 'not run'}): the MPDI "
+                                "is the certificate and must be PROVED (allow_unknown never "
+                                "waives it)" + aside)
+    if unknown and not allow_unknown:
+        return "INCONCLUSIVE", "not established: " + ", ".join(unknown) + aside
+    note = f" (allowed unknown: {', '.join(unknown)})" if unknown else ""
+    return "CERTIFIED", "all required checks proved: " + ", ".join(required) + note + aside
 
 
 def to_jsonable(obj: Any) -> Any:

@@ -15,14 +15,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from certify.certificate import Certificate, decide_verdict
+from certify.certificate import Certificate
 from certify.checks.base import Context
 from certify.checks.registry import run_checks
 from certify.figuredata import MAP_POINTS, FigureData, GridMap
 from certify.model.checkpoint import Checkpoint, versions
 from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress, finish_step, start_step
-from certify.results import CheckFailure
+from certify.results import CheckFailure, decide_verdict
 from certify.search.threads import torch_threads
 from certify.settings import VerifySettings, required_checks
 
@@ -136,7 +136,7 @@ def report_maps(problem: Problem, checks: dict[str, Any], out: FigureData) -> Fi
         if ran("residual"):
             out.residual_map = grid(residual_norm(problem, pts))
         if ran("necessary"):
-            from certify.checks.necessary_quantity import manifold_quantity
+            from certify.design.manifold import manifold_quantity
 
             q = manifold_quantity(system, problem.P, problem.lam, pts)
             yv = system.h(pts)

@@ -14,8 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from certify.certificate import Certificate
-from certify.checks.base import Quantity
-from certify.checks.registry import get_check, presentation
+from certify.presentation import Quantity
 from certify.results import CheckFailure, Status
 
 DASH = "\u2014"
@@ -187,11 +186,6 @@ def check_names(cert: Certificate) -> list[str]:
     return names
 
 
-def check_title(name: str) -> str:
-    try:
-        return get_check(name).title or name
-    except KeyError:
-        return name
 
 
 def check_rows(cert: Certificate) -> list[CheckRow]:
@@ -199,13 +193,13 @@ def check_rows(cert: Certificate) -> list[CheckRow]:
     rows = []
     for name in check_names(cert):
         r = cert.checks.get(name)
-        title = check_title(name)
+        title = cert.title(name)
         required = name in cert.required
         if r is None:
             rows.append(CheckRow(name, title, Status.SKIPPED.value, required,
                                  Side("", DASH), Side("", DASH), "", "not run", None))
             continue
-        pres = presentation(name, r, cert)
+        pres = cert.presentation(name)
         if pres is None:
             sampled, proved, setting, nums = Side("", DASH), Side("", DASH), "", []
         else:
@@ -221,8 +215,7 @@ def check_rows(cert: Certificate) -> list[CheckRow]:
 
 def check_facts(cert: Certificate, name: str) -> list[tuple[str, str]]:
     """The key facts of a check's section, from its presenter (empty if it did not run)."""
-    r = cert.checks.get(name)
-    pres = None if r is None else presentation(name, r, cert)
+    pres = cert.presentation(name)
     return [] if pres is None else pairs(pres.facts)
 
 

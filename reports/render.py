@@ -14,7 +14,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from certify.certificate import Certificate
-from certify.model.checkpoint import atomic_write_bytes
+from certify.files import atomic_write_bytes
 from reports.junit import render_junit
 
 PathLike = str | Path

@@ -71,15 +71,13 @@ def proof_facts(cert: Certificate) -> list[tuple[str, str]]:
 
 def _estimate_rows(p) -> list[tuple[str, str]]:
     """An unfinished proof's estimate of a complete one (`certify.search.tree_estimate`)."""
-    from certify.search.tree_estimate import seconds_to_finish
-
     boxes = to_float(getattr(p, "estimated_boxes", None))
     if boxes is None:
         return []
     rel = to_float(getattr(p, "estimate_rel_stderr", None))
     spread = f" (\u00b1{100 * rel:.0f} %)" if rel is not None and rel == rel else ""
     rows = [("Boxes a complete proof needs (estimate)", f"{boxes:.3g}{spread}")]
-    more = seconds_to_finish(p)
+    more = p.seconds_to_finish() if hasattr(p, "seconds_to_finish") else None
     if more:
         rows.append(("Time it needs at this speed (estimate)", fmt_seconds(more)))
     return rows

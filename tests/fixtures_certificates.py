@@ -19,7 +19,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from certify.certificate import Certificate, decide_verdict
+from certify.certificate import Certificate
 from certify.results import (
     BoundResult,
     BoundsResult,
@@ -34,6 +34,7 @@ from certify.results import (
     SimulationResult,
     SimulationRun,
     Status,
+    decide_verdict,
     to_jsonable,
 )
 from certify.settings import VerifySettings

@@ -12,7 +12,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.arith.eigen import _vertices, lam_max_at_most
+from certify.arith.eigen import cube_vertices, lam_max_at_most
 from certify.arith.taylor import TM
 from certify.enclose.taylor import tm_lam_upper
 from tests.mp_reference import exact_lam_max
@@ -99,7 +99,7 @@ def test_vertex_bound_with_level_contains_sampled_lam_max(seed: int, n: int, d: 
     # `certify.enclose.decide`, weighs the remainder against the room in each direction;
     # what must hold is that no member is above the level, sampled below)
     # samples: vertices and random points, remainders at random signs
-    V = torch.cat([_vertices(d), torch.rand(32, d, generator=gen, dtype=F64) * 2 - 1])
+    V = torch.cat([cube_vertices(d), torch.rand(32, d, generator=gen, dtype=F64) * 2 - 1])
     z = V[None] * r[:, None]  # [B, S, d]
     Az = c[:, None] + torch.einsum("bijd,bsd->bsij", g, z)
     sgn = torch.randint(0, 2, Az.shape, generator=gen).to(F64) * 2 - 1

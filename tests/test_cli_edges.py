@@ -198,7 +198,7 @@ STATUSES = [Status.PROVED, Status.VIOLATED, Status.UNKNOWN, Status.ERROR, Status
        required=st.lists(st.sampled_from(CHECK_NAMES), unique=True),
        allow_unknown=st.booleans())
 def test_certified_always_means_the_mpdi_was_proved(statuses, required, allow_unknown):
-    from certify.certificate import decide_verdict
+    from certify.results import decide_verdict
 
     checks = {n: types.SimpleNamespace(status=s) for n, s in statuses.items()}
     verdict, summary = decide_verdict(checks, list(required), allow_unknown)
@@ -209,7 +209,7 @@ def test_certified_always_means_the_mpdi_was_proved(statuses, required, allow_un
 
 
 def test_allow_unknown_still_waives_the_other_checks():
-    from certify.certificate import decide_verdict
+    from certify.results import decide_verdict
 
     checks = {"mpdi": types.SimpleNamespace(status=Status.PROVED),
               "rate": types.SimpleNamespace(status=Status.UNKNOWN)}

@@ -13,7 +13,6 @@ import pytest
 import torch
 
 from certify.certificate import Certificate
-from certify.checks.base import Presentation, Quantity
 from certify.checks.bounds import check_bounds
 from certify.checks.lipschitz import check_lipschitz
 from certify.checks.mpdi import check_mpdi
@@ -24,6 +23,7 @@ from certify.checks.residual import check_residual
 from certify.checks.simulation import check_simulation
 from certify.model import checkpoint
 from certify.model.problem import Problem
+from certify.presentation import Presentation, Quantity
 from certify.results import (
     RESULT_TYPES,
     CheckFailure,

@@ -10,7 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.arith.eigen import _vertices, lam_max_at_most, rho_upper
+from certify.arith.eigen import cube_vertices, lam_max_at_most, rho_upper
 from certify.arith.taylor import TM
 from certify.enclose.decide import decide_affine_family, vertex_test
 from certify.enclose.taylor import tm_lam_upper
@@ -42,7 +42,7 @@ def _worst_members(A: TM, r: torch.Tensor, gen: torch.Generator) -> torch.Tensor
     random points of the affine part, each with the remainder at random signs and at the
     signs of u u^T for u the member's top eigenvector (the remainder's worst case there)."""
     d = r.shape[1]
-    V = torch.cat([_vertices(d), torch.rand(32, d, generator=gen, dtype=F64) * 2 - 1])
+    V = torch.cat([cube_vertices(d), torch.rand(32, d, generator=gen, dtype=F64) * 2 - 1])
     z = V[None] * r[:, None]
     Az = A.c[:, None] + torch.einsum("bijd,bsd->bsij", A.g, z)
     e = A.e[:, None]
@@ -122,7 +122,7 @@ def test_vertex_tried_first_changes_no_decision() -> None:
     A = _spread_family(gen, B, n, d, torch.linspace(-0.5, 0.1, B, dtype=F64), 1.0, 0.05, 0.0)
     rG = (A.g * 0.5).permute(0, 3, 1, 2)
     t = torch.zeros(B, dtype=F64)
-    V = _vertices(d)
+    V = cube_vertices(d)
     S = A.c[:, None] + torch.einsum("vd,bdij->bvij", V, rG)
     every = lam_max_at_most(S, t[:, None].expand(B, len(V))).all(-1)
     assert bool(every.any()) and bool((~every).any())

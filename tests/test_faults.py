@@ -13,8 +13,8 @@ import certify.checks.bounds as bounds_mod
 import certify.checks.lipschitz as lipschitz_mod
 import certify.checks.simulation as simulation_mod
 import certify.verify as verify_mod
-from certify.certificate import Certificate, decide_verdict
-from certify.results import CheckFailure, SimulationResult, Status
+from certify.certificate import Certificate
+from certify.results import CheckFailure, SimulationResult, Status, decide_verdict
 
 from .cli_helpers import FAST_POLICY, run_cli, save_linear
 

@@ -17,8 +17,10 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 import fixtures_certificates as F  # noqa: E402
 
-from certify.certificate import decide_verdict  # noqa: E402
-from certify.results import Status  # noqa: E402
+from certify.results import (
+    Status,  # noqa: E402
+    decide_verdict,  # noqa: E402
+)
 from reports.junit import render_internal_error, render_junit  # noqa: E402
 
 etree = pytest.importorskip("lxml.etree", reason="lxml validates against junit-10.xsd")

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from certify.checks.metric import synthesize_metric
 from certify.checks.necessary import check_necessary
-from certify.checks.necessary_bound import vertex_upper_bound
+from certify.design.manifold import vertex_upper_bound
+from certify.design.metric import synthesize_metric
 from certify.errors import SpecError
 from certify.results import NecessaryResult, Status, from_jsonable, to_jsonable
 from certify.spec.system import System, load_system

@@ -391,7 +391,7 @@ def test_failing_render_leaves_no_file(exc: BaseException, tmp_path: Path,
 
 def test_interrupt_while_writing_leaves_no_partial_file(tmp_path: Path,
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
-    import certify.model.checkpoint as ck
+    import certify.files as ck
 
     cert = F.violated_vdp_certificate()
     calls = {"n": 0}

@@ -16,7 +16,8 @@ from certify.checks.lipschitz import (
     naive_bound,
     sampled_lower,
 )
-from certify.checks.metric import (
+from certify.design import lipsdp, sdp
+from certify.design.metric import (
     enclosure_vertices,
     kernel_basis,
     observer_lmi,
@@ -25,7 +26,6 @@ from certify.checks.metric import (
     sub_boxes,
     synthesize_metric,
 )
-from certify.design import sdp
 from certify.model import checkpoint
 from certify.model.kernels import mpdi_lam_max
 from certify.model.network import GainNetwork
@@ -56,7 +56,7 @@ def test_lipsdp_between_sampled_and_naive_and_recheck_passes(hidden, seed):
     # the re-check is independent: rebuild the LMI at the returned multipliers
     Ws, Wo = mlp_in_y(pr.network, 2)
     K = pr.network.K.numpy()
-    M = sdp.lipsdp_lmi(Ws, Wo, K, res.variables["t"], res.variables["rho_verified"])
+    M = lipsdp.lipsdp_lmi(Ws, Wo, K, res.variables["t"], res.variables["rho_verified"])
     assert np.linalg.eigvalsh(M)[-1] < 0
     assert all(np.all(t >= 0) for t in res.variables["t"])
 
@@ -77,7 +77,7 @@ def test_lipsdp_exact_on_scalar_chain(widths):
     Ws = [rng.uniform(0.5, 2.0, size=(1, 1)) * rng.choice([-1, 1]) for _ in widths]
     Wo = rng.normal(size=(2, 1))
     exact = float(np.prod([abs(W[0, 0]) for W in Ws]) * np.linalg.norm(Wo))
-    res = sdp.lipsdp_neuron(Ws, Wo, None)
+    res = lipsdp.lipsdp_neuron(Ws, Wo, None)
     assert res.status is Status.PROVED
     assert res.value == pytest.approx(exact, rel=1e-5)
     assert res.value >= exact * (1 - 1e-12)  # an upper bound, never below the truth
@@ -90,7 +90,7 @@ def test_lipsdp_with_linear_skip_beats_triangle_inequality():
     pr = _problem(net)
     joint = lipsdp_for(pr).value
     Ws, Wo = mlp_in_y(pr.network, 2)
-    alone = sdp.lipsdp_neuron(Ws, Wo, None).value
+    alone = lipsdp.lipsdp_neuron(Ws, Wo, None).value
     assert joint <= alone + math.sqrt(5.0) + 1e-9
     lower, _ = sampled_lower(pr, points=4000, steps=30)
     assert lower <= joint * (1 + 1e-9)
@@ -100,8 +100,8 @@ def test_ipm_agrees_with_clarabel_chordal_form():
     net = random_network(2, 1, hidden=(8, 6, 5), seed=6, scale=1.5)
     Ws, Wo = mlp_in_y(net.double(), 2)
     K = net.K.numpy()
-    a = sdp.lipsdp_neuron(Ws, Wo, K, method="ipm")
-    b = sdp.lipsdp_neuron(Ws, Wo, K, method="clarabel")
+    a = lipsdp.lipsdp_neuron(Ws, Wo, K, method="ipm")
+    b = lipsdp.lipsdp_neuron(Ws, Wo, K, method="clarabel")
     assert a.status is b.status is Status.PROVED
     assert b.solver == "CLARABEL" and b.iterations and b.raw_status == "optimal"
     assert a.value == pytest.approx(b.value, rel=1e-5)
@@ -111,19 +111,19 @@ def test_recheck_inflates_rho_and_refuses_bad_multipliers():
     rng = np.random.default_rng(7)
     Ws = [rng.normal(size=(4, 1)), rng.normal(size=(3, 4))]
     Wo = rng.normal(size=(2, 3))
-    res = sdp.lipsdp_neuron(Ws, Wo, None)
+    res = lipsdp.lipsdp_neuron(Ws, Wo, None)
     t, rho = res.variables["t"], res.variables["rho"]
-    rho_ok, top, tol = sdp.check_lipsdp_lmi(Ws, Wo, None, t, 0.5 * rho)  # rho too small
+    rho_ok, top, tol = lipsdp.check_lipsdp_lmi(Ws, Wo, None, t, 0.5 * rho)  # rho too small
     assert rho_ok is not None and rho_ok >= rho * (1 - 1e-6) and top <= -tol
     # zero multipliers: the hidden block is W_out^T W_out >= 0, no rho can verify it
-    assert sdp.check_lipsdp_lmi(Ws, Wo, None, [np.zeros(4), np.zeros(3)], 1e6)[0] is None
+    assert lipsdp.check_lipsdp_lmi(Ws, Wo, None, [np.zeros(4), np.zeros(3)], 1e6)[0] is None
     # negative multipliers are clipped (they would void the S-procedure)
     neg = [-np.abs(ti) for ti in t]
-    assert sdp.check_lipsdp_lmi(Ws, Wo, None, neg, 1e6)[0] is None
+    assert lipsdp.check_lipsdp_lmi(Ws, Wo, None, neg, 1e6)[0] is None
 
 
 def test_lipsdp_refuses_nonfinite_weights():
-    res = sdp.lipsdp_neuron([np.array([[np.nan]])], np.ones((1, 1)))
+    res = lipsdp.lipsdp_neuron([np.array([[np.nan]])], np.ones((1, 1)))
     assert res.status is Status.ERROR and res.value is None
 
 
@@ -285,3 +285,15 @@ def test_lmi_baseline_network_and_checkpoint(tmp_path):
     verts = enclosure_vertices(system, lo, hi)
     C = output_matrix(system)
     assert observer_values(verts.all, pr.P, pr.network.K.numpy(), C, 2.5).max() < 0
+
+
+def test_a_network_too_wide_for_the_fallback_is_unknown_not_a_crash():
+    """The interior point is skipped (method clarabel) and the chordal form would be too large:
+    an UNKNOWN result at once, saying why, instead of a solver that exhausts memory."""
+    rng = np.random.default_rng(0)
+    Ws = [rng.normal(size=(128, 2))] + [rng.normal(size=(128, 128)) / 11 for _ in range(5)]
+    Wo = rng.normal(size=(4, 128)) / 11
+    assert lipsdp.largest_clique(Ws) == 2 + 256
+    res = lipsdp.lipsdp_neuron(Ws, Wo, None, method="clarabel")
+    assert res.status == Status.UNKNOWN and res.value is None
+    assert "not tried" in res.message

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from certify.design import sdp
+from certify.design import lipsdp
 from certify.model.problem import Problem
 from certify.results import Status
 
@@ -72,7 +72,7 @@ def test_ipm_failure_falls_back_to_clarabel_and_is_rechecked(workdir, capsys, mo
     def broken(*args, **kwargs):
         raise torch.linalg.LinAlgError("linalg.eigh: The algorithm failed to converge")
 
-    monkeypatch.setattr(sdp, "lipsdp_pdip", broken)
+    monkeypatch.setattr(lipsdp, "lipsdp_pdip", broken)
     path = save_problem(workdir / "net.ckpt", _network_problem(1.0))
     code, out, err = run_cli(capsys, "run", path, "--json", "c.json", *ONLY_LIPSCHITZ)
     assert code in (0, 1, 3), out + err  # the MPDI's verdict; no crash
@@ -85,9 +85,9 @@ def test_both_solvers_failing_is_a_reason_not_a_crash(workdir, capsys, monkeypat
     def broken(*args, **kwargs):
         raise RuntimeError("simulated solver fault")
 
-    monkeypatch.setattr(sdp, "lipsdp_pdip", broken)
-    monkeypatch.setattr(sdp, "_lipsdp_clarabel", broken)
-    res = sdp.lipsdp_neuron([np.ones((3, 1))], np.ones((1, 3)))
+    monkeypatch.setattr(lipsdp, "lipsdp_pdip", broken)
+    monkeypatch.setattr(lipsdp, "_lipsdp_clarabel", broken)
+    res = lipsdp.lipsdp_neuron([np.ones((3, 1))], np.ones((1, 3)))
     assert res.status is Status.ERROR and res.value is None
     assert "interior point failed" in res.message and "Clarabel" in res.message
     path = save_problem(workdir / "net.ckpt", _network_problem(1.0))
@@ -101,7 +101,7 @@ def test_power_of_two_scaling_is_exact_and_scaled_back():
     gen = np.random.default_rng(0)
     Ws = [gen.standard_normal((4, 1)), gen.standard_normal((4, 4))]
     Wo = gen.standard_normal((2, 4))
-    base = sdp.lipsdp_neuron(Ws, Wo)
-    big = sdp.lipsdp_neuron([np.ldexp(Ws[0], 300), Ws[1]], np.ldexp(Wo, 400))
+    base = lipsdp.lipsdp_neuron(Ws, Wo)
+    big = lipsdp.lipsdp_neuron([np.ldexp(Ws[0], 300), Ws[1]], np.ldexp(Wo, 400))
     assert base.status is Status.PROVED and big.status is Status.PROVED
     assert big.value == pytest.approx(np.ldexp(base.value, 700), rel=1e-6)

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 import torch
 
+from certify.design import metric as design_metric
 from certify.model.kernels import gain_terms, mpdi_lam_max
 from certify.results import Status
 from certify.spec.system import load_system
-from training import baseline, certified
+from training import certified
 from training.cegis import warm_start_network
 from training.presets import make_config
 
@@ -31,15 +32,15 @@ def test_six_state_lmi_is_memory_bounded_and_really_certifies():
     LMI uses at most MAX_SDP_VERTICES, and its gain makes lam_max(D) <= -margin at sampled
     points of X (the LMI holds on the hull of the Jacobian enclosure, so everywhere)."""
     vdp3 = load_system("vdp3")
-    assert baseline.default_vertex_count(vdp3) > baseline.MAX_DEFAULT_VERTICES
+    assert design_metric.default_vertex_count(vdp3) > design_metric.MAX_DEFAULT_VERTICES
     for name in ("vdp", "lorenz", "vdp2"):  # their preset keeps observer_lmi's subdivision
-        assert baseline.default_vertex_count(load_system(name)) <= \
-            baseline.MAX_DEFAULT_VERTICES
+        assert design_metric.default_vertex_count(load_system(name)) <= \
+            design_metric.MAX_DEFAULT_VERTICES
     margin = 4.0
-    res = baseline.bounded_observer_lmi(vdp3, vdp3.lam, margin=margin, kappa_max=1e4,
+    res = design_metric.bounded_observer_lmi(vdp3, vdp3.lam, margin=margin, kappa_max=1e4,
                                         gain_max=1e4)
     assert res.status is Status.PROVED, res.message
-    assert res.solver["sdp_vertices"] <= baseline.MAX_SDP_VERTICES
+    assert res.solver["sdp_vertices"] <= design_metric.MAX_SDP_VERTICES
     assert res.solver["check_max_vertex_value"] <= -0.5 * margin
     net = warm_start_network(vdp3, (4,), K=np.asarray(res.K))
     z = _box_points(vdp3, 3000, seed=1)
@@ -115,5 +116,5 @@ def test_unproved_training_returns_the_proved_warm_start(monkeypatch):
 @pytest.mark.parametrize("bad", [0.0, -1.0])
 def test_bounded_lmi_refuses_a_nonpositive_rate(bad):
     with pytest.raises(ValueError, match="lam must be > 0"):
-        baseline.bounded_observer_lmi(load_system("vdp3"), bad, margin=1.0, kappa_max=1e4,
+        design_metric.bounded_observer_lmi(load_system("vdp3"), bad, margin=1.0, kappa_max=1e4,
                                       gain_max=1e4)

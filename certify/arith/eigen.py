@@ -318,7 +318,7 @@ def rho_upper(R: torch.Tensor, iters: int = 8) -> torch.Tensor:
 _VERTEX_CACHE: dict[tuple[int, torch.device], torch.Tensor] = {}
 
 
-def _vertices(d: int, device: torch.device | str = "cpu") -> torch.Tensor:
+def cube_vertices(d: int, device: torch.device | str = "cpu") -> torch.Tensor:
     """The 2^d vertices of [-1, 1]^d: [V, d] float64 on `device` (cached per device)."""
     key = (d, torch.device(device))
     if key not in _VERTEX_CACHE:
@@ -351,7 +351,7 @@ def taylor_upper(Ac: Interval, dA: Interval, zr: torch.Tensor
     rem = Cr + (zr4 * R).sum(1)
     rem = up(rem * (1.0 + g) + g * absum * (1.0 + g) + (d + 2) * TINY)
     if d <= MAX_VERTEX_DIM:
-        V = _vertices(d, rG.device)  # [V, d]
+        V = cube_vertices(d, rG.device)  # [V, d]
         S = C0[:, None] + torch.einsum("vd,bdij->bvij", V, rG)  # [B, V, n, n]
         S = 0.5 * (S + S.transpose(-1, -2))
         lv = lam_max_upper_point(S).amax(-1)

@@ -10,8 +10,8 @@ module (`certify/checks/<name>.py`, as `CHECK`) next to the computation it runs.
 - `uses`: checks whose results it reads when they exist (a missing one is `None`);
 - `run(context) -> result`: the computation; it may raise, the runner isolates it;
 - `present(result, certificate) -> Presentation`: what the reports show, as pure data
-  (labels, numbers, reasons); `reports/` formats and lays it out, and imports this module,
-  never the reverse.
+  (labels, numbers, reasons; the types of `certify.presentation`); `reports/` formats and
+  lays it out through the certificate, never importing the checks.
 
 `certify.checks.registry` orders the registered checks by their dependencies and runs them;
 adding a check is its module (with `CHECK`) plus its name in `settings.CHECK_NAMES`.
@@ -22,50 +22,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
 
-from certify.results import CheckFailure, Status
+from certify.presentation import NOTHING, Presentation
+from certify.results import CheckFailure
 
 if TYPE_CHECKING:  # pragma: no cover
-    from certify.certificate import Certificate
     from certify.figuredata import FigureData
     from certify.model.problem import Problem
     from certify.progress import Progress
     from certify.settings import VerifySettings
-
-
-@dataclass(frozen=True)
-class Quantity:
-    """One thing a report shows: a label, a value, and why the value may be missing.
-
-    `value` is plain data: a number, a bool, a word, a point (list of floats) or a matrix
-    (list of lists); `None` means "not established" and `missing` says why. `sig`, `signed`
-    and `suffix` are formatting hints for the renderer (which does all formatting).
-    """
-
-    label: str
-    value: Any = None
-    missing: str = ""
-    sig: int = 4
-    signed: bool = False
-    suffix: str = ""
-
-
-@dataclass(frozen=True)
-class Presentation:
-    """A check in every report: its two sides, what it was checked with, every number.
-
-    `sampled` is the falsification side (a value found at concrete points), `proved` the
-    sound side; `setting` names the knobs it ran with; `numbers` lists every number (JUnit
-    and the HTML table); `facts` are the key facts of the check's report section.
-    """
-
-    sampled: Quantity
-    proved: Quantity
-    setting: tuple[Quantity, ...] = ()
-    numbers: tuple[Quantity, ...] = ()
-    facts: tuple[Quantity, ...] = ()
-
-
-NOTHING = Quantity("", None)
 
 
 @dataclass
@@ -100,19 +64,10 @@ class Check:
     def run(self, context: Context) -> Any:  # pragma: no cover - abstract
         raise NotImplementedError(f"check {self.name!r} has no run()")
 
-    def present(self, result: Any, certificate: Certificate) -> Presentation:
-        """Default presentation: no numbers (a check should override this)."""
+    def present(self, result: Any, certificate: Any) -> Presentation:
+        """Default presentation: no numbers (a check should override this). `certificate`: the
+        `certify.Certificate` the result belongs to (checks may read other results there)."""
         return Presentation(NOTHING, NOTHING)
 
     def __repr__(self) -> str:
         return f"<check {self.name}>"
-
-
-def present_failure(result: CheckFailure) -> Presentation:
-    """A check that raised (ERROR) or could not run (not applicable): the reason only."""
-    why = ("internal error" if result.status == Status.ERROR else "not applicable")
-    side = Quantity("", None, why)
-    facts = (Quantity("Status", result.status.value), Quantity("Reason", result.message))
-    if result.error_type:
-        facts += (Quantity("Exception", result.error_type),)
-    return Presentation(side, side, (), facts, facts)

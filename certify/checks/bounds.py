@@ -29,9 +29,10 @@ from typing import Any
 
 import numpy as np
 
-from certify.checks.base import Check, Context, Presentation, Quantity
+from certify.checks.base import Check, Context
 from certify.errors import SettingsError
 from certify.model.problem import Problem
+from certify.presentation import Presentation, Quantity
 from certify.results import BoundResult, BoundsResult, Status
 
 #: Names accepted by `bound_curve`.

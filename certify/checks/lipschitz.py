@@ -20,11 +20,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from certify.checks.base import Check, Context, Presentation, Quantity
-from certify.design import sdp
+from certify.checks.base import Check, Context
+from certify.design import lipsdp, sdp
 from certify.model.kernels import gain_terms
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
+from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
 from certify.results import LipschitzResult, Status
 from certify.search.falsify import maximize_over_box
@@ -148,7 +149,7 @@ def lipsdp_for(problem: Problem, metric_weighted: bool = False,
         L = float(np.linalg.norm(Wo + K, 2)) * _ROUND_UP
         return sdp.SdpResult(Status.PROVED, "affine in y: exact", L, solver="closed-form",
                              raw_value=L, verified=True)
-    return sdp.lipsdp_neuron(Ws, Wo, K, method=method, slope=net.act.slope_bounds)
+    return lipsdp.lipsdp_neuron(Ws, Wo, K, method=method, slope=net.act.slope_bounds)
 
 
 def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,

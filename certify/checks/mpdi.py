@@ -15,10 +15,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from certify.checks.base import Check, Context, Presentation, Quantity
+from certify.checks.base import Check, Context
 from certify.figuredata import ProofBoxes
 from certify.model.kernels import mpdi_lam_max
 from certify.model.problem import Problem
+from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
 from certify.results import Counterexample, MpdiResult, Status
 from certify.search.falsify import SearchOutcome, maximize_over_box
@@ -239,12 +240,10 @@ class MpdiCheck(Check):
                         Quantity("proved volume fraction", r.proof.proved_volume_fraction),
                         Quantity("budget exhausted", r.proof.budget_exhausted)]
             if r.proof.estimated_boxes is not None:  # an unfinished proof (tree_estimate)
-                from certify.search.tree_estimate import seconds_to_finish
-
                 numbers += [Quantity("boxes a complete proof needs (estimate)",
                                      r.proof.estimated_boxes, sig=2),
                             Quantity("seconds more at this run's speed (estimate)",
-                                     seconds_to_finish(r.proof), sig=2,
+                                     r.proof.seconds_to_finish(), sig=2,
                                      missing="no speed measured")]
         return Presentation(
             sampled=Quantity("max \u03bb_max(D) found (grid + ascent)", r.lower, signed=True),

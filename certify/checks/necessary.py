@@ -11,9 +11,8 @@ sound upper bound <= 0 (vertex enclosures of Jf on sub-boxes, then the interval 
 Also reported: the rate cap for gains with exact BC and, for linear h, the residual eps_bar
 that any gain satisfying the MPDI everywhere must pay (chords along ker C).
 
-This module is the check: it runs the pieces and says what the result means. The quantities
-are in `necessary_quantity`, the search on the manifold in `necessary_search`, the sound
-bound in `necessary_bound` (all in `certify/checks/`).
+This module is the check: it runs the pieces and says what the result means. The quantities,
+the search on the manifold and the sound bound are in `certify.design.manifold`.
 """
 
 from __future__ import annotations
@@ -25,11 +24,19 @@ from typing import Any
 import numpy as np
 import torch
 
-from certify.checks.base import Check, Context, Presentation, Quantity
-from certify.checks.metric import kernel_basis, output_matrix
-from certify.checks.necessary_bound import vertex_upper_bound
-from certify.checks.necessary_quantity import gain_free_D, q_values, rate_values, residual_price
-from certify.checks.necessary_search import manifold_grid, on_manifold, search_manifold
+from certify.checks.base import Check, Context
+from certify.design.manifold import (
+    gain_free_D,
+    manifold_grid,
+    on_manifold,
+    q_values,
+    rate_values,
+    residual_price,
+    search_manifold,
+    vertex_upper_bound,
+)
+from certify.design.metric import kernel_basis, output_matrix
+from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
 from certify.results import NecessaryResult, Status
 from certify.search.witness import is_witness, manifold_witness_lower

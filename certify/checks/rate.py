@@ -13,10 +13,11 @@ from typing import Any
 
 import torch
 
-from certify.checks.base import Check, Context, Presentation, Quantity
+from certify.checks.base import Check, Context
 from certify.checks.mpdi import counterexamples_from, joint_box
 from certify.model.kernels import pointwise_rate
 from certify.model.problem import Problem
+from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
 from certify.results import MpdiResult, RateResult, Status
 from certify.search.falsify import maximize_over_box

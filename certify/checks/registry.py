@@ -18,8 +18,9 @@ import logging
 import time
 from typing import Any
 
-from certify.checks.base import Check, Context, Presentation, present_failure
+from certify.checks.base import Check, Context
 from certify.errors import CertifyError
+from certify.presentation import Presentation, present_failure
 from certify.progress import finish_step, start_step
 from certify.results import CheckFailure, Status
 from certify.settings import CHECK_NAMES

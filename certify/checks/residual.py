@@ -7,9 +7,10 @@ from typing import Any
 
 import torch
 
-from certify.checks.base import Check, Context, Presentation, Quantity
+from certify.checks.base import Check, Context
 from certify.model.kernels import gain_terms
 from certify.model.problem import Problem
+from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
 from certify.results import ResidualResult, Status
 from certify.search.falsify import maximize_over_box

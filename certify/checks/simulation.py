@@ -28,10 +28,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from certify.checks.base import Check, Context, Presentation, Quantity
+from certify.checks.base import Check, Context
 from certify.checks.bounds import BOUND_NAMES, bound_curve, initial_value, metric_constants
 from certify.figuredata import FIGURE_DIGITS, round_list
 from certify.model.problem import Problem
+from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
 from certify.results import BoundsResult, SimulationResult, SimulationRun, Status
 from certify.settings import VerifySettings
@@ -358,7 +359,7 @@ class SimulationCheck(Check):
     uses = ("necessary", "mpdi", "rate", "residual", "lipschitz")
 
     def run(self, context: Context) -> SimulationResult:
-        from certify.certificate import decide_verdict
+        from certify.results import decide_verdict
 
         bounds = context.result("bounds")
         verdict, _ = decide_verdict(context.results, context.required,

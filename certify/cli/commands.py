@@ -234,8 +234,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     when one is found), 3 undecided."""
     check_paths([("--json", args.json)], [("the spec being checked",
                                             system_argument(args.system))])
-    from certify.checks.metric import synthesize_metric
     from certify.checks.necessary import check_necessary
+    from certify.design.metric import synthesize_metric
     from certify.results import Status, to_jsonable
     from certify.spec.system import load_system, parse_metric, validate_lam, validate_metric
 

@@ -139,7 +139,7 @@ def _junit_for_crash(args: argparse.Namespace, where: str, exc: Exception) -> No
         return
     try:
         from certify.checks.registry import internal_error_message
-        from certify.model.checkpoint import atomic_write_bytes
+        from certify.files import atomic_write_bytes
         from reports.junit import render_internal_error
 
         text = render_internal_error(where, internal_error_message(exc), type(exc).__name__)

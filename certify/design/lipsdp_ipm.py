@@ -3,7 +3,7 @@ power-of-two scaling of extreme weights, and the dense primal-dual interior-poin
 that solves it (the fast default route).
 
 Split from `certify.design.sdp` (the cvxpy side, the driver and its fallbacks). The IPM's answer
-is never trusted as it stands: `certify.design.sdp.lipsdp_neuron` rebuilds the LMI here at the
+is never trusted as it stands: `certify.design.lipsdp.lipsdp_neuron` rebuilds the LMI here at the
 returned multipliers (`check_lipsdp_lmi`) and falls back to cvxpy + Clarabel when the IPM
 fails (an exception, no strictly feasible start, or an answer that does not verify).
 """
@@ -181,7 +181,7 @@ def lipsdp_pdip(Ws: Sequence[np.ndarray], M0: np.ndarray, W_out_norm: float, del
     """LipSDP-Neuron by a primal-dual interior-point method (HKM direction, Mehrotra
     predictor-corrector) on the dense LMI, exploiting that it has few variables.
 
-    Ws: the hidden layers [W0y, W1, ..]; M0: the full LMI M(0, 0) (`certify.design.sdp.lipsdp_lmi`
+    Ws: the hidden layers [W0y, W1, ..]; M0: the full LMI M(0, 0) (`lipsdp_lmi`
     at zero multipliers, output term included); W_out_norm: ||W_out||_2 (for the start).
     Dual form: maximise -rho s.t. S = -M(t, rho) - delta diag(0, I) >= 0 with y = (t, rho),
     only sum n_i + 1 of them; the Schur matrix H_ij = tr(F_i X F_j S^-1) is built from dense

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import torch
 
-from certify.arith.eigen import _vertices, lam_max_at_most, lam_max_upper_point, rho_upper
+from certify.arith.eigen import cube_vertices, lam_max_at_most, lam_max_upper_point, rho_upper
 from certify.arith.intervals import TINY, down, gamma, up
 from certify.arith.linalg import eigh
 
@@ -101,7 +101,7 @@ def vertex_matrices(c: torch.Tensor, rG: torch.Tensor, sym: bool) -> torch.Tenso
     """c + sum_m v_m rG_m at the 2^d vertices v of [-1, 1]^d: [B, 2^d, n, n] (float; the
     caller's remainder covers the rounding); `sym`: symmetrised, else as computed (for
     consumers of the lower triangle only)."""
-    S = c[:, None] + torch.einsum("vd,bdij->bvij", _vertices(rG.shape[1], rG.device), rG)
+    S = c[:, None] + torch.einsum("vd,bdij->bvij", cube_vertices(rG.shape[1], rG.device), rG)
     return 0.5 * (S + S.transpose(-1, -2)) if sym else S
 
 

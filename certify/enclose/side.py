@@ -213,7 +213,7 @@ def _tm_frobenius_upper(c: torch.Tensor, g: torch.Tensor, e: torch.Tensor, r: to
     magnitude; sums and square roots are rounded up. Where the 2^d vertices would not fit
     (`MAX_VERTEX_ENTRIES`), each entry's magnitude is bounded on its own (`_tm_mag`).
     """
-    from certify.arith.eigen import _vertices
+    from certify.arith.eigen import cube_vertices
 
     B, d = r.shape
     rr = r[:, None, None, :]
@@ -223,7 +223,8 @@ def _tm_frobenius_upper(c: torch.Tensor, g: torch.Tensor, e: torch.Tensor, r: to
         return up(torch.sqrt(up((mag * mag).sum((-1, -2)) * (1.0 + 2.0 * gamma(size + 1)))))
     gr = g * rr  # one rounding per product, covered by the gamma below
     err = up((c.abs() + gr.abs().sum(-1)) * gamma(d + 2))  # [B, n, p]
-    lin = c[:, None] + torch.einsum("bijd,vd->bvij", gr, _vertices(d, gr.device))  # [B, V, n, p]
+    corners = cube_vertices(d, gr.device)
+    lin = c[:, None] + torch.einsum("bijd,vd->bvij", gr, corners)  # [B, V, n, p]
     mag = lin.abs() + err[:, None]
     sq = up((mag * mag).sum((-1, -2)) * (1.0 + 2.0 * gamma(size + 1)))
     lin_norm = up(torch.sqrt(sq.amax(1)))

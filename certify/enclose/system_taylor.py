@@ -39,7 +39,7 @@ import torch
 from certify.arith.intervals import TINY, Interval, gamma, up
 from certify.arith.taylor import TM, tm_from_intervals
 from certify.spec.enclosures import (
-    _enclose_list,
+    enclose_list,
     hessian_f_enclosure,
     hessian_h_enclosure,
     jacobian_f_enclosure,
@@ -93,7 +93,7 @@ def quadratic_enclosure(system: Any, which: str, lo: torch.Tensor, hi: torch.Ten
     n = system.n
     m = n if which == "f" else system.p
     lo, r = lo.to(torch.float64), r.to(torch.float64)
-    Tlo, Thi = _enclose_list(system, exprs, lo, hi)  # [B, E]
+    Tlo, Thi = enclose_list(system, exprs, lo, hi)  # [B, E]
     dev = lo.device
     tt = torch.tensor(terms, dtype=torch.long, device=dev)  # [K, 5]
     src, dst, k, l_, off = tt.unbind(-1)

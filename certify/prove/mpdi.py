@@ -79,7 +79,7 @@ class RateOutcome:
     worst: Counterexample | None
 
 
-def _root(problem: Problem) -> tuple[torch.Tensor, torch.Tensor]:
+def root_box(problem: Problem) -> tuple[torch.Tensor, torch.Tensor]:
     """The root box X x Y as (lo, hi) [d] float64 on the problem's device."""
     s = problem.system
     box = np.concatenate([s.X, s.Y], 0)
@@ -87,7 +87,7 @@ def _root(problem: Problem) -> tuple[torch.Tensor, torch.Tensor]:
     return t[:, 0].clone(), t[:, 1].clone()
 
 
-def _seed_box(seeds: object | None, d: int, device: str = "cpu") -> Box | None:
+def seed_box(seeds: object | None, d: int, device: str = "cpu") -> Box | None:
     if seeds is None:
         return None
     if isinstance(seeds, torch.Tensor):
@@ -118,7 +118,7 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
     n = problem.n
     P = problem.P_t
     gain = CROWN_GAIN
-    rlo, rhi = _root(problem)
+    rlo, rhi = root_box(problem)
     if plain_screen is None:
         plain_screen = _plain_screen(problem, lam, pc, taylor, crown)
     if crown and taylor is True and not direct_mixed(problem, pc):
@@ -208,7 +208,7 @@ def mpdi_decision(problem: Problem, lam: float, taylor: bool | str = True, crown
     `certify.search.bnb.OutOfTime` once it has passed (they choose only, so the setup does not
     depend on it otherwise)."""
     pc = _mpdi_preconditioner(problem, lam, taylor, deadline)
-    lo, hi = _root(problem)
+    lo, hi = root_box(problem)
     # where the plain bound probe closes part of the root split into 1024 boxes (Van der Pol
     # instances, 55-79%), coarser boxes close too: a coarse first round saves refining them
     # (2x10 Van der Pol, seeds 0-9: 1391 -> 873 boxes, median; vdp_certified: 3012 -> 2020);
@@ -267,7 +267,7 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
         lo, hi, setup.evaluate, threshold=0.0,
         seconds=seconds, max_boxes=max_boxes, batch=batch, first_round=setup.first_round,
         progress=progress, task=task,
-        seeds=_seed_box(seeds, lo.shape[0], problem.device), keep_leaves=keep_leaves,
+        seeds=seed_box(seeds, lo.shape[0], problem.device), keep_leaves=keep_leaves,
         executor=executor,
         remote=_mpdi_remote(problem, lam, taylor, crown, executor), started=started,
         box_seconds=box_seconds)
@@ -350,11 +350,11 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
         raise ValueError("the proved rate is defined for D without a constant term (shift)")
     progress = progress or NullProgress()
     pc = make_preconditioner(problem.P_t)
-    lo, hi = _root(problem)
+    lo, hi = root_box(problem)
     n = problem.n
     P = problem.P_t
 
-    level = _Level(rel_tol, tol)
+    level = Level(rel_tol, tol)
     try:
         gain = estimate_crown_gain(problem.network, lo, hi,
                                    deadline=started + max(seconds, SETUP_SECONDS_ANYWAY))
@@ -383,7 +383,7 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
                            seconds=seconds, max_boxes=max_boxes, batch=batch,
                            progress=progress, task="rate proof", coarse_after=coarse_after,
                            give_up=None if give_up is None else (give_up[0], -2.0 * give_up[1]),
-                           seeds=_seed_box(seeds, lo.shape[0], problem.device),
+                           seeds=seed_box(seeds, lo.shape[0], problem.device),
                            started=started)
     lower = -out.upper / 2.0 if math.isfinite(out.upper) else None
     worst = None
@@ -396,7 +396,7 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     return RateOutcome(lower=lower, upper_sampled=upper_sampled, stats=out.stats, worst=worst)
 
 
-class _Level:
+class Level:
     """The closing level of a maximisation branch and bound, tracked from the centre values
     the evaluator sees (the same points `branch_and_bound` ranks): boxes whose cheap bound is
     already at or below it skip the expensive bound. Only the choice of bound depends on it,

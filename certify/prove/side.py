@@ -5,7 +5,7 @@ of sup ||dk/dy||_2, and of the manifold quantity lam_max(Z^T (He{P Jf} + 2 lam P
 Each is a maximisation `certify.search.bnb.branch_and_bound` over boxes with bounds from
 `certify.enclosures` / `certify.enclose.side` (outward rounding as in
 `certify.arith.intervals.ROUNDING`); the cheap interval bound runs first and the linear bounds only
-on boxes above the closing level (`certify.prove.mpdi._Level`). NaN/Inf leave the bound None.
+on boxes above the closing level (`certify.prove.mpdi.Level`). NaN/Inf leave the bound None.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from certify.enclose.side import (
 )
 from certify.model.problem import Problem
 from certify.progress import Progress
-from certify.prove.mpdi import _Level, _root, _seed_box
+from certify.prove.mpdi import Level, root_box, seed_box
 from certify.results import ProofStats
 from certify.search.bnb import branch_and_bound
 from certify.search.evaluation import BoxEval
@@ -52,7 +52,7 @@ def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 
     s = problem.system
     X = torch.as_tensor(s.X, dtype=torch.float64, device=problem.device)
 
-    level = _Level(rel_tol, 1e-12)
+    level = Level(rel_tol, 1e-12)
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
         ub, cen = residual_box_upper(s, problem.network, lo, hi)
@@ -64,7 +64,7 @@ def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 
     out = branch_and_bound(X[:, 0].clone(), X[:, 1].clone(), evaluate, threshold=None,
                            rel_tol=rel_tol, tol=1e-12, seconds=seconds, max_boxes=max_boxes,
                            batch=batch, progress=progress, task="residual bound", project=None,
-                           seeds=_seed_box(seeds, X.shape[0], problem.device))
+                           seeds=seed_box(seeds, X.shape[0], problem.device))
     upper = out.upper if math.isfinite(out.upper) else None
     worst = out.best_point.tolist() if out.best_point is not None else None
     return upper, worst, out.stats
@@ -75,9 +75,9 @@ def bound_dk_dy(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_0
                 batch: int = 1024) -> float | None:
     """Sound upper bound on sup over X x Y of ||dk/dy||_2 (by the Frobenius norm of the
     entry magnitudes; exact for p = 1). None when a box stayed NaN/Inf."""
-    lo, hi = _root(problem)
+    lo, hi = root_box(problem)
 
-    level = _Level(rel_tol, 1e-12)
+    level = Level(rel_tol, 1e-12)
 
     def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
         iv = dk_dy_interval(problem.system, problem.network, blo, bhi)

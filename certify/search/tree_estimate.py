@@ -109,15 +109,6 @@ def summarize(leaf: torch.Tensor, evaluations: int, first_round: int = 0) -> Tre
                         evaluations, [int(v) for v in q])
 
 
-def seconds_to_finish(stats) -> float | None:
-    """Seconds a complete proof still needs at the run's speed, from an unfinished proof's
-    `ProofStats` estimate (None without an estimate or a measured speed)."""
-    boxes = stats.estimated_boxes
-    if boxes is None or not math.isfinite(boxes) or not stats.boxes_per_second > 0:
-        return None
-    return max(boxes - stats.boxes_processed, 0.0) / stats.boxes_per_second
-
-
 def estimate_tree(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], lo: torch.Tensor,
                   hi: torch.Tensor, first_round: int, points: int = 256, seed: int = 0,
                   threshold: float = 0.0, max_depth: int = 80, *,
@@ -173,5 +164,4 @@ def completion_text(boxes: float | None, rel_stderr: float | None, done: int) ->
             f"estimate{spread}; this run: {done})")
 
 
-__all__ = ["TreeEstimate", "leaf_depths", "summarize", "estimate_tree", "completion_text",
-           "seconds_to_finish"]
+__all__ = ["TreeEstimate", "leaf_depths", "summarize", "estimate_tree", "completion_text"]

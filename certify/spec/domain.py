@@ -32,7 +32,7 @@ import torch
 
 from certify.arith.intervals import Interval, const_interval, imul, ipow_int, ipow_real
 from certify.errors import SpecError
-from certify.spec.interval_rules import _contains_point, enclose_function
+from certify.spec.interval_rules import contains_point, enclose_function
 
 MAX_ROUNDS = 40  # bisection rounds
 MAX_BOXES = 4096  # flagged sub-boxes kept per round
@@ -119,7 +119,7 @@ class _Walker:
                           a.hi <= 0)
                 a = _positive(a)
             elif name == "tan":
-                pole = _contains_point(a, math.pi / 2, math.pi) | ((a.hi - a.lo) >= math.pi)
+                pole = contains_point(a, math.pi / 2, math.pi) | ((a.hi - a.lo) >= math.pi)
                 self.flag(pole, f"tan of '{self.name(e.args[0])}', which can reach a pole")
             elif name == "abs":
                 zero = (a.lo <= 0) & (a.hi >= 0)

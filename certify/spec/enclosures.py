@@ -35,7 +35,7 @@ def _derivatives(system: Any) -> dict[str, list[sympy.Expr]]:
     return cached
 
 
-def _enclose_list(system: Any, exprs: list[sympy.Expr], lo: torch.Tensor, hi: torch.Tensor
+def enclose_list(system: Any, exprs: list[sympy.Expr], lo: torch.Tensor, hi: torch.Tensor
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     if lo.ndim != 2 or lo.shape[1] != system.n or lo.shape != hi.shape:
         raise ValueError(f"expected boxes lo, hi of shape [batch, {system.n}]; got "
@@ -50,19 +50,19 @@ def _enclose_list(system: Any, exprs: list[sympy.Expr], lo: torch.Tensor, hi: to
 def f_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """f over boxes: lo, hi [B, n] -> [B, n] each."""
-    return _enclose_list(system, system.f_expr, lo, hi)
+    return enclose_list(system, system.f_expr, lo, hi)
 
 
 def h_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """h over boxes: lo, hi [B, n] -> [B, p] each."""
-    return _enclose_list(system, system.h_expr, lo, hi)
+    return enclose_list(system, system.h_expr, lo, hi)
 
 
 def jacobian_f_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor]:
     """Symbolic Jf over boxes: lo, hi [B, n] -> Jlo, Jhi [B, n, n]."""
-    a, b = _enclose_list(system, list(system.jf_expr), lo, hi)
+    a, b = enclose_list(system, list(system.jf_expr), lo, hi)
     n = system.n
     return a.reshape(-1, n, n), b.reshape(-1, n, n)
 
@@ -70,14 +70,14 @@ def jacobian_f_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
 def jacobian_h_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor]:
     """Symbolic dh/dx over boxes -> [B, p, n] each."""
-    a, b = _enclose_list(system, list(system.jh_expr), lo, hi)
+    a, b = enclose_list(system, list(system.jh_expr), lo, hi)
     return a.reshape(-1, system.p, system.n), b.reshape(-1, system.p, system.n)
 
 
 def hessian_f_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
                         ) -> tuple[torch.Tensor, torch.Tensor]:
     """d^2 f_i / dx_j dx_k over boxes -> [B, n, n, n] (index order i, j, k)."""
-    a, b = _enclose_list(system, _derivatives(system)["hf"], lo, hi)
+    a, b = enclose_list(system, _derivatives(system)["hf"], lo, hi)
     n = system.n
     return a.reshape(-1, n, n, n), b.reshape(-1, n, n, n)
 
@@ -85,7 +85,7 @@ def hessian_f_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
 def hessian_h_enclosure(system: Any, lo: torch.Tensor, hi: torch.Tensor
                         ) -> tuple[torch.Tensor, torch.Tensor]:
     """d^2 h_l / dx_j dx_k over boxes -> [B, p, n, n]."""
-    a, b = _enclose_list(system, _derivatives(system)["hh"], lo, hi)
+    a, b = enclose_list(system, _derivatives(system)["hh"], lo, hi)
     n = system.n
     return a.reshape(-1, system.p, n, n), b.reshape(-1, system.p, n, n)
 

@@ -45,7 +45,7 @@ def _monotone_increasing(point: Callable[[torch.Tensor], torch.Tensor]
     return rule
 
 
-def _contains_point(a: Interval, offset: float, period: float) -> torch.Tensor:
+def contains_point(a: Interval, offset: float, period: float) -> torch.Tensor:
     """Whether [lo, hi] may contain offset + k * period for an integer k (errs towards yes)."""
     s = 1e-7
     k_lo = torch.ceil((a.lo - offset) / period - s)
@@ -64,8 +64,8 @@ def _sin_cos_rule(point: Callable[[torch.Tensor], torch.Tensor], max_at: float, 
         lo = widen_down(torch.minimum(v1, v2))
         hi = widen_up(torch.maximum(v1, v2))
         trivial = ((a.hi - a.lo) >= _TWO_PI) | (a.mag() > _BIG)
-        has_max = trivial | _contains_point(a, max_at, _TWO_PI)
-        has_min = trivial | _contains_point(a, min_at, _TWO_PI)
+        has_max = trivial | contains_point(a, max_at, _TWO_PI)
+        has_min = trivial | contains_point(a, min_at, _TWO_PI)
         one = torch.ones_like(lo)
         hi = torch.where(has_max, one, hi).clamp(max=1.0)
         lo = torch.where(has_min, -one, lo).clamp(min=-1.0)
@@ -76,7 +76,7 @@ def _sin_cos_rule(point: Callable[[torch.Tensor], torch.Tensor], max_at: float, 
 
 
 def _tan_rule(a: Interval) -> Interval:
-    pole = _contains_point(a, math.pi / 2, math.pi) | ((a.hi - a.lo) >= math.pi) | (a.mag() > _BIG)
+    pole = contains_point(a, math.pi / 2, math.pi) | ((a.hi - a.lo) >= math.pi) | (a.mag() > _BIG)
     lo = torch.where(pole, torch.full_like(a.lo, -_POS_INF), widen_down(torch.tan(a.lo)))
     hi = torch.where(pole, torch.full_like(a.lo, _POS_INF), widen_up(torch.tan(a.hi)))
     return Interval(lo, hi)

@@ -1,25 +1,42 @@
-"""The quantities of the necessary condition (METHOD §3.5), batched over points.
+"""The gain-free part of D on the output manifold: its quantities, their search, their bound.
 
-With S(xhat) = He{P Jf(xhat)} + 2 lam P, the part of D that no gain changes along ker dh:
+If k is C^1 and k(x, h(x)) = 0 on X, then on the manifold y = h(xhat) and along ker dh(xhat),
+v^T D v = v^T (He{P Jf} + 2 lam P) v has no k in it (METHOD §3.5). With S(xhat) = He{P Jf(xhat)}
++ 2 lam P:
 
 - q(xhat) = lam_max(Z^T S Z), Z an orthonormal basis of ker dh(xhat) (`q_values`,
-  `manifold_quantity`): > 0 anywhere on the output manifold means no gain can pass;
+  `manifold_quantity`): > 0 anywhere on {x in X : h(x) in Y} means no gain can pass;
 - the largest rate any gain with exact BC could have at a point (`rate_values`);
-- for linear h, the residual eps_bar any gain satisfying the MPDI everywhere must pay,
-  from chords along ker C (`residual_price`).
+- for linear h, the residual any gain satisfying the MPDI everywhere must pay
+  (`residual_price`);
+- the search for the largest value of such a quantity on the manifold (`search_manifold`: a
+  tensor grid filtered to the manifold, then projected ascent that refuses steps leaving
+  h(x) in Y; sampled, float64, its witness re-checked soundly by `certify.search.witness`);
+- the sound upper bound of q for linear h (`vertex_upper_bound`: q is convex in Jf, so on
+  each sub-box it is at most its largest value at the vertices of the interval enclosure of
+  Jf there; floating-point error carried as a margin, see the function).
 
-Float64 point evaluations (the sampled side of `certify.checks.necessary`); the sound side is
-`certify.checks.necessary_bound`.
+Used by the pre-flight check (`certify.checks.necessary`) and the report maps.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
+import numpy as np
 import torch
 
-from certify.checks.metric import kernel_basis, output_matrix
+from certify.design.metric import (
+    enclosure_vertices,
+    kernel_basis,
+    kernel_values,
+    output_matrix,
+    sub_boxes,
+)
 from certify.model.kernels import lam_max
+from certify.prove.side import kernel_basis_with_error
+from certify.search.falsify import projected_ascent
 from certify.spec.system import System
 
 _F64 = torch.float64
@@ -131,3 +148,91 @@ def residual_price(system: System, P: torch.Tensor, lam: float, directions: torc
             best = val
             where = pts[i_best, ib].tolist() + pts[i_best, jb].tolist()
     return best, where
+
+
+_F64 = torch.float64
+Quantity = Callable[[torch.Tensor], torch.Tensor]  # points [B, n] -> values [B]
+
+
+def manifold_grid(system: System, points: int) -> torch.Tensor:
+    """Odd tensor grid over X with the centre lines exactly on it."""
+    n = system.n
+    per = max(3, int(round(points ** (1.0 / n))) | 1)
+    k = torch.arange(per, dtype=_F64) / (per - 1)
+    axes = []
+    for a, b in system.X:
+        ax = float(a) + (float(b) - float(a)) * k
+        ax[per // 2] = 0.5 * (float(a) + float(b))
+        ax[-1] = float(b)
+        axes.append(ax)
+    return torch.cartesian_prod(*axes).reshape(-1, n)
+
+
+def on_manifold(system: System, x: torch.Tensor) -> torch.Tensor:
+    """Mask [B]: h(x) in Y at each of x [B, n]."""
+    Y = torch.as_tensor(system.Y, dtype=_F64)
+    hx = system.h(x)
+    return ((hx >= Y[:, 0]) & (hx <= Y[:, 1])).all(-1)
+
+
+def maximise_on_manifold(system: System, fn: Quantity, x0: torch.Tensor, steps: int = 150
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Projected ascent of fn over X from x0 [B, n], refusing steps that leave h(x) in Y."""
+    X = torch.as_tensor(system.X, dtype=_F64)
+    return projected_ascent(fn, x0, X[:, 0], X[:, 1], steps,
+                            feasible=lambda x: on_manifold(system, x))
+
+
+def search_manifold(system: System, fn: Quantity, x: torch.Tensor, vals: torch.Tensor,
+                    starts: int, seed: int) -> tuple[float, torch.Tensor]:
+    """Best of grid values and a multi-start ascent from the top grid points + random ones."""
+    vals = torch.where(torch.isfinite(vals), vals, torch.full_like(vals, -math.inf))
+    k = min(starts, len(vals))
+    centre = torch.as_tensor(system.X.mean(1), dtype=_F64)
+    diam = float(np.linalg.norm(system.X[:, 1] - system.X[:, 0]))
+    fin = vals[torch.isfinite(vals)]
+    scale = 1.0 + (float(fin.abs().max()) if len(fin) else 0.0)
+    # rank by value, ties broken towards the centre of X (a witness that reads best)
+    key = vals - 1e-10 * scale * torch.linalg.vector_norm(x - centre, dim=1) / diam
+    top = torch.topk(key, k).indices
+    gen = torch.Generator().manual_seed(seed)
+    rnd = x[torch.randint(len(x), (max(1, starts // 2),), generator=gen)]
+    bx, bv = maximise_on_manifold(system, fn, torch.cat([x[top], rnd]))
+    allv = torch.cat([vals[top], bv])
+    allx = torch.cat([x[top], bx])
+    best = float(allv.max())
+    # among (numerically) tied maxima, the point nearest the centre of X reads best
+    tied = allv >= best - 1e-12 * (1.0 + abs(best))
+    dist = torch.where(tied, torch.linalg.vector_norm(allx - centre, dim=1),
+                       torch.full_like(allv, math.inf))
+    i = int(torch.argmin(dist))
+    return float(allv[i]), allx[i]
+
+
+def vertex_upper_bound(system: System, P: np.ndarray, lam: float, subdivisions: int | None = None
+                       ) -> float | None:
+    """Sound bound on max q over the manifold (linear h): q is lam_max of an affine function
+    of Jf, hence convex in Jf, so on each sub-box it is at most its value at the vertices of
+    the interval enclosure of Jf. Sub-boxes whose h-enclosure misses Y are dropped. A margin
+    of 64 n u (||S|| + 1) covers LAPACK's eigenvalue error and the rounding in S."""
+    if not system.h_is_linear:
+        return None
+    Z, z_err = kernel_basis_with_error(output_matrix(system))
+    n = system.n
+    if Z.shape[1] == 0:
+        return -math.inf
+    per = subdivisions or max(1, int(4096 ** (1.0 / n)))
+    lo, hi = sub_boxes(system, per)
+    if len(lo) == 0:
+        return -math.inf
+    relevant = np.repeat((np.abs(Z).sum(1) > 0)[None, :], n, axis=0)
+    try:
+        verts = enclosure_vertices(system, lo, hi, relevant)
+    except ValueError:
+        return None
+    vals = kernel_values(verts.all, P, Z, lam)
+    if not np.all(np.isfinite(vals)):
+        return None
+    Snorm = np.abs(P).sum() * np.abs(verts.all).max(initial=0.0) + 2 * abs(lam) * np.abs(P).sum()
+    # 3 z_err ||S||: Z is within z_err of an exact orthonormal kernel basis (as in the prover)
+    return float(vals.max() + 64 * n * np.finfo(float).eps * (Snorm + 1.0) + 3 * z_err * Snorm)
