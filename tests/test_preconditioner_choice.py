@@ -119,7 +119,7 @@ def test_linear_metric_problem_decides_as_its_closed_form() -> None:
 
 
 def test_each_split_rule_scores_every_dimension() -> None:
-    from certify.search.split import split_score
+    from certify.enclose.split import split_score
 
     prob = _problem(2, 3, 8.0)
     root = torch.tensor([[-1.0, 1.0]] * 4, dtype=F64)

@@ -23,9 +23,9 @@ from certify.enclose.preconditioner import (
     to_lam_max_D,
     with_shift,
 )
+from certify.enclose.split import split_score
 from certify.enclose.taylor import HERTZ_MAX_N, jcl_taylor, tm_congruence, tm_lam_upper
 from certify.model.problem import Problem
-from certify.search.split import split_score
 
 DIRECT_MIXED = True  # with M = I and a direct network: skip the Taylor stage (see below)
 #: the mixed stage keeps the last hidden layer's relaxation errors as a matrix
@@ -67,7 +67,7 @@ def mpdi_box_bounds(problem: Problem, lo: torch.Tensor, hi: torch.Tensor, lam: f
     `choose_preconditioner`) and a direct network, the boxes the plain bound leaves go straight
     to the linear bounds of P dN/dx with mixed rows (`certify.enclose.mixed`), which contain
     the Taylor models entry by entry. split_rule: how the split score is formed
-    (`certify.search.split.split_score`). decide: the caller only asks whether each bound is
+    (`certify.enclose.split.split_score`). decide: the caller only asks whether each bound is
     <= the level (screen, else 0; a decision, not a maximisation): for n >= 4 the vertex
     matrices are tested by the certified Cholesky test (`tm_lam_upper(level=...)`) and a box
     it decides reports (just below) the level instead of its eigenvalue bound. plain_screen=False
@@ -231,9 +231,9 @@ def estimate_crown_gain(net, root_lo: torch.Tensor, root_hi: torch.Tensor,
     sizes: at each relative radius, the median ratio of Taylor-model to linear-bound remainders
     over `probes` deterministic boxes inside the root box, clamped to [2, 1e6]. Deterministic
     in the problem, so every worker of a distributed proof chooses alike. `deadline`: a proof's
-    budget, read before each size (`certify.search.bnb.OutOfTime` once it has passed)."""
+    budget, read before each size (`certify.budget.OutOfTime` once it has passed)."""
+    from certify.budget import check_clock
     from certify.enclose.crown import forward_bounds, jacobian_crown, to_tm
-    from certify.search.bnb import check_clock
 
     d = root_lo.shape[0]
     g = torch.Generator().manual_seed(1234)
@@ -277,8 +277,9 @@ def plain_screen_pays(problem: Problem, lam: float, pc: Preconditioner, grid: in
     deterministic in the problem, so every worker of a distributed proof chooses alike.
     The boxes are bounded `chunk` at a time (the plain bound of a box does not depend on
     the others), the `deadline` of a proof's budget read before each chunk
-    (`certify.search.bnb.OutOfTime` once it has passed)."""
-    from certify.search.bnb import check_clock, initial_grid
+    (`certify.budget.OutOfTime` once it has passed)."""
+    from certify.arith.boxes import initial_grid
+    from certify.budget import check_clock
 
     root = _root_box(problem)
     boxes = initial_grid(root[:, 0], root[:, 1], grid)
@@ -333,8 +334,8 @@ def choose_preconditioner(problem: Problem, lam: float, probes: int = 24,
     (median bounds -0.24 and -0.76 at radius 1/16). Only tightness depends on the choice,
     never soundness; it is deterministic in the problem, so every worker of a distributed
     proof chooses alike. `deadline`: a proof's budget, read before each candidate
-    (`certify.search.bnb.OutOfTime` once it has passed)."""
-    from certify.search.bnb import check_clock
+    (`certify.budget.OutOfTime` once it has passed)."""
+    from certify.budget import check_clock
 
     cands = candidate_preconditioners(problem.P_t)
     scaling = diagonal_scaling(problem, lam)

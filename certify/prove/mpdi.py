@@ -16,7 +16,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from certify.arith.boxes import Box, initial_grid
 from certify.arith.intervals import ROUNDING, up
+from certify.budget import OutOfTime
 from certify.enclose.mpdi import (
     CROWN_GAIN,
     choose_preconditioner,
@@ -35,7 +37,7 @@ from certify.model.kernels import mpdi_lam_max, pointwise_rate
 from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import Counterexample, ProofStats, Status
-from certify.search.bnb import SETUP_SECONDS_ANYWAY, Box, OutOfTime, branch_and_bound, initial_grid
+from certify.search.bnb import SETUP_SECONDS_ANYWAY, branch_and_bound
 from certify.search.evaluation import BoxEval
 from certify.search.tree_estimate import completion_text, estimate_tree
 from certify.search.witness import is_witness, mpdi_lower
@@ -113,7 +115,7 @@ def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bo
                     crown: bool = True, plain_screen: bool | None = None,
                     deadline: float | None = None):
     """The MPDI box evaluation (`plain_screen`: `_plain_screen`'s answer when the caller
-    already has it; `deadline`: a proof's budget, `certify.search.bnb.OutOfTime` past it while
+    already has it; `deadline`: a proof's budget, `certify.budget.OutOfTime` past it while
     the evaluation is being set up)."""
     n = problem.n
     P = problem.P_t
@@ -205,7 +207,7 @@ def mpdi_decision(problem: Problem, lam: float, taylor: bool | str = True, crown
     """The `DecisionSetup` of `prove_mpdi` at rate `lam` (also used by bench/tree_size.py,
     which follows the same tree). `deadline` (a `time.perf_counter()` value): the probes
     that choose the bounds read the clock between their pieces and raise
-    `certify.search.bnb.OutOfTime` once it has passed (they choose only, so the setup does not
+    `certify.budget.OutOfTime` once it has passed (they choose only, so the setup does not
     depend on it otherwise)."""
     pc = _mpdi_preconditioner(problem, lam, taylor, deadline)
     lo, hi = _root(problem)

@@ -56,31 +56,13 @@ from typing import Any
 
 import torch
 
+from certify.arith.boxes import Box, initial_grid, split
 from certify.arith.intervals import ROUNDING
 from certify.progress import NullProgress, Progress
 from certify.results import ProofStats
 from certify.search.evaluation import BoxEval, join
 from certify.search.frontier import Frontier
 from certify.search.rounds import RoundPipeline
-
-
-@dataclass
-class Box:
-    """A batch of boxes: lo, hi [batch, d] (float64) and their bisection depth [batch]."""
-
-    lo: torch.Tensor
-    hi: torch.Tensor
-    depth: torch.Tensor
-
-    @property
-    def centre(self) -> torch.Tensor:
-        return 0.5 * (self.lo + self.hi)
-
-    def volume(self) -> torch.Tensor:
-        return (self.hi - self.lo).prod(-1)
-
-    def __len__(self) -> int:
-        return int(self.lo.shape[0])
 
 
 @dataclass
@@ -95,29 +77,6 @@ class BnBOutcome:
     stats: ProofStats
     leaves: dict[str, list] = field(default_factory=dict)  # projected leaves for the report
     stuck: int = 0  # boxes set aside as UNKNOWN (NaN or max depth)
-
-
-def initial_grid(lo: torch.Tensor, hi: torch.Tensor, target: int) -> Box:
-    """Split the root box [d] into about `target` equal boxes (more cuts on wider sides)."""
-    d = lo.shape[0]
-    width = (hi - lo).double()
-    sides = width.cpu()  # the cut counts are chosen on the CPU
-    cuts = torch.ones(d, dtype=torch.long, device="cpu")
-    while int(cuts.prod()) * 2 <= max(target, 1):
-        i = int(torch.argmax(sides / cuts))
-        cuts[i] *= 2
-    axes = [torch.linspace(0.0, 1.0, int(c) + 1, dtype=torch.float64, device=lo.device)
-            for c in cuts]
-    los = torch.cartesian_prod(*[a[:-1] for a in axes]).reshape(-1, d)
-    his = torch.cartesian_prod(*[a[1:] for a in axes]).reshape(-1, d)
-    blo = lo + los * width
-    bhi = lo + his * width
-    # exact shared faces and the exact root faces
-    blo = torch.where(los == 0, lo.expand_as(blo), blo)
-    bhi = torch.where(his == 1, hi.expand_as(bhi), bhi)
-    depth = torch.full((blo.shape[0],), int(torch.log2(cuts.double()).sum()), dtype=torch.long,
-                       device=lo.device)
-    return Box(blo, bhi, depth)
 
 
 #: rounds in flight before the oldest is merged (1: synchronous rounds). 2 keeps the next
@@ -139,31 +98,6 @@ def split_dimensions(lo: torch.Tensor, hi: torch.Tensor, score: torch.Tensor | N
         norm = ws.amax(-1, keepdim=True)
         s = torch.where(norm > 0, ws / norm.clamp_min(1e-300) + 1e-3 * widths, widths)
     return torch.argmax(s, -1)
-
-
-def split(box: Box, dims: torch.Tensor) -> Box:
-    """Bisect each box along dims [N]; the two halves share the (float) midpoint exactly."""
-    N = len(box)
-    ar = torch.arange(N, device=box.lo.device)
-    mid = 0.5 * (box.lo[ar, dims] + box.hi[ar, dims])
-    lo1, hi1 = box.lo.clone(), box.hi.clone()
-    lo2, hi2 = box.lo.clone(), box.hi.clone()
-    hi1[ar, dims] = mid
-    lo2[ar, dims] = mid
-    depth = box.depth + 1
-    return Box(torch.cat([lo1, lo2]), torch.cat([hi1, hi2]), torch.cat([depth, depth]))
-
-
-class OutOfTime(Exception):
-    """A proof's set-up (before its first round) ran past the deadline of its budget: the
-    proof stops there, UNKNOWN (raised by the set-up steps that read the clock, e.g.
-    `certify.enclose.mpdi.plain_screen_pays`)."""
-
-
-def check_clock(deadline: float | None) -> None:
-    """Raise `OutOfTime` when `deadline` (a `time.perf_counter()` value) has passed."""
-    if deadline is not None and time.perf_counter() > deadline:
-        raise OutOfTime
 
 
 #: a round predicted to take at most this many seconds is evaluated in one call whatever the
