@@ -10,7 +10,6 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import certify.enclose.crown as crown_module
 from certify.arith.intervals import Interval, down, imul, matmul_point_right, midrad_to_interval, up
 from certify.arith.taylor import TM, tm_linear, tm_mul, tm_rho
 from certify.enclose.crown import AffineInputNetwork, ForwardBounds, forward_bounds
@@ -150,12 +149,10 @@ def _assert_identical(new: ForwardBounds, ref: ForwardBounds) -> None:
 @pytest.mark.parametrize("act", activations.names())
 @pytest.mark.parametrize("cols", [None, [1], []])
 @pytest.mark.parametrize("crown", [True, False])
-def test_forward_bounds_bit_identical(act: str, cols: list[int] | None, crown: bool,
-                                     monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(crown_module, "ONE_LAYER_CLOSED_FORM", False)  # the reference's pass
+def test_forward_bounds_bit_identical(act: str, cols: list[int] | None, crown: bool) -> None:
     net = _net(3, 4, 3, 6, 1.5, act)
     lo, hi = _boxes(5, 5, 4, 0.2)
-    new = forward_bounds(net, lo, hi, cols=cols, crown=crown)
+    new = forward_bounds(net, lo, hi, cols=cols, crown=crown, closed_form=False)  # as ref
     ref = _reference_forward_bounds(net, lo, hi, cols=cols, crown=crown)
     _assert_identical(new, ref)
     if cols != []:  # the backward pass on the recorded layers gives the same Jacobian bounds
@@ -173,11 +170,9 @@ def test_forward_bounds_bit_identical(act: str, cols: list[int] | None, crown: b
 
 @pytest.mark.parametrize("act", ["tanh", "softplus", "gelu"])
 @pytest.mark.parametrize("cols", [None, []])
-def test_forward_bounds_bit_identical_composed_first_layer(act: str, cols: list[int] | None,
-                                                           monkeypatch: pytest.MonkeyPatch
+def test_forward_bounds_bit_identical_composed_first_layer(act: str, cols: list[int] | None
                                                            ) -> None:
     """The composed network z -> N(A x + a) with the first layer's rounding slack b0_slack."""
-    monkeypatch.setattr(crown_module, "ONE_LAYER_CLOSED_FORM", False)
     net = _net(7, 4, 2, 5, 1.2, act)
     gen = torch.Generator().manual_seed(11)
     A = torch.randn(4, 2, generator=gen, dtype=F64)
@@ -186,7 +181,8 @@ def test_forward_bounds_bit_identical_composed_first_layer(act: str, cols: list[
     lo, hi = _boxes(9, 4, 2, 0.3)
     slack = comp.first_layer_slack(lo, hi)
     for crown in (True, False):
-        new = forward_bounds(comp, lo, hi, cols=cols, crown=crown, b0_slack=slack)
+        new = forward_bounds(comp, lo, hi, cols=cols, crown=crown, b0_slack=slack,
+                             closed_form=False)
         ref = _reference_forward_bounds(comp, lo, hi, cols=cols, crown=crown, b0_slack=slack)
         _assert_identical(new, ref)
         assert new.layers[0].bslack is not None
@@ -263,11 +259,8 @@ def test_second_layer_closed_form_matches_the_backward_pass(seed: int, act: str,
     net = _net(seed, 3, depth, 5, 2.0, act)
     lo, hi = _boxes(seed, 6, 3, scale)
     closed = forward_bounds(net, lo, hi, cols=cols, crown=True, taylor=False)
-    crown_module.ONE_LAYER_CLOSED_FORM = False
-    try:
-        general = forward_bounds(net, lo, hi, cols=cols, crown=True, taylor=False)
-    finally:
-        crown_module.ONE_LAYER_CLOSED_FORM = True
+    general = forward_bounds(net, lo, hi, cols=cols, crown=True, taylor=False,
+                             closed_form=False)
     for a, b in ((closed.pre[1], general.pre[1]), (closed.tan[1], general.tan[1])):
         tol = 1e-9 * (b.hi - b.lo) + 1e-12 * (1 + b.lo.abs() + b.hi.abs())
         assert bool(((a.lo - b.lo).abs() <= tol).all()), float((a.lo - b.lo).abs().max())

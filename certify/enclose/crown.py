@@ -30,10 +30,6 @@ from certify.model.gain.interval import IntervalArithmetic
 from certify.model.gain.paired import Paired, PairedArithmetic
 from certify.model.network import GainNetwork
 
-#: the second layer's queries in closed form (`certify.enclose.one_layer`); False: the general
-#: backward pass (the tests compare the two)
-ONE_LAYER_CLOSED_FORM = True
-
 
 @dataclass
 class ForwardBounds:
@@ -63,14 +59,16 @@ class LinearEnclosure:
 class _ForwardRanges:
     """The `layer_hook` of `forward_bounds`: per hidden layer l, the ranges of pre_l and
     t_l (interval meet Taylor range, then the CROWN queries; without Taylor models the
-    interval step meet the CROWN queries), recorded with their `_Layer`."""
+    interval step meet the CROWN queries), recorded with their `_Layer`. `closed_form`:
+    the second layer's queries in closed form where `closed_form_applies`."""
 
     def __init__(self, arith: PairedArithmetic | IntervalArithmetic, spec: GainSpec,
                  lo: torch.Tensor, hi: torch.Tensor, colt: torch.Tensor, crown: bool,
-                 b0_slack: torch.Tensor | None) -> None:
+                 b0_slack: torch.Tensor | None, closed_form: bool = True) -> None:
         self.arith, self.spec, self.lo, self.hi = arith, spec, lo, hi
         self.r = arith.r if isinstance(arith, PairedArithmetic) else arith.zr
         self.colt, self.crown, self.b0_slack = colt, crown, b0_slack
+        self.closed_form = closed_form
         self.zmag = torch.maximum(lo.abs(), hi.abs())
         self.pres: list[Interval] = []
         self.tans: list[Interval] = []
@@ -113,8 +111,7 @@ class _ForwardRanges:
         B, m = lo.shape[0], W.shape[0]
         paired = isinstance(pre, Paired)
         piv, tiv = (pre.iv, T.iv) if paired else (pre, T)
-        if li == 1 and self.layers[0].bslack is None and ONE_LAYER_CLOSED_FORM:
-            # through the first layer alone the queries have a closed form
+        if self.closed_form and closed_form_applies(li, self.layers):
             lowv, highv, lowt, hight = second_layer_ranges(self.layers[0], W, b, colt,
                                                            0.5 * (lo + hi), r)
         else:
@@ -141,9 +138,17 @@ class _ForwardRanges:
         return piv, tiv
 
 
+def closed_form_applies(li: int, layers: list) -> bool:
+    """Whether hidden layer `li`'s queries have the closed form of `certify.enclose.one_layer`
+    (the same linear functions as the general backward pass, from a few batched products):
+    the second hidden layer, over a first layer that is not composed (no `bslack`)."""
+    return li == 1 and layers[0].bslack is None
+
+
 def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: torch.Tensor,
                    cols: list[int] | None = None, crown: bool = True,
-                   b0_slack: torch.Tensor | None = None, taylor: bool = True) -> ForwardBounds:
+                   b0_slack: torch.Tensor | None = None, taylor: bool = True,
+                   closed_form: bool = True) -> ForwardBounds:
     """Ranges of every pre-activation and tangent: interval propagation of the intersected
     ranges, intersected with the Taylor-model ranges and (crown) with backward linear bounds
     of pre_l and of the tangent columns `cols` (default all; [] for value-only), layer by
@@ -154,7 +159,11 @@ def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: 
     below. Measured on the 2x10 4-state chain and the 5x30 Van der Pol instance (256 boxes
     at each of several radii): the backward bounds alone were the tightest range of every
     pre-activation and queried tangent column in >= 99.9% of the cases, and the Taylor
-    models were the forward pass's largest cost."""
+    models were the forward pass's largest cost.
+
+    closed_form=False: the second layer's queries by the general backward pass too, where
+    `closed_form_applies` would take the closed form (the two agree up to rounding; the
+    tests compare them)."""
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     B, d = lo.shape
@@ -166,7 +175,7 @@ def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: 
     paired = taylor or not crown  # without the queries the Taylor ranges are needed
     arith = (PairedArithmetic(zc, r, len(spec.layers) - 1) if paired
              else IntervalArithmetic(zc, r))
-    ranges = _ForwardRanges(arith, spec, lo, hi, colt, crown, b0_slack)
+    ranges = _ForwardRanges(arith, spec, lo, hi, colt, crown, b0_slack, closed_form)
     out = propagate(spec, arith, None, d, layer_hook=ranges)
     return ForwardBounds(ranges.pres, ranges.tans, out.value if paired else None,
                          out.jac if paired else None, r, ranges.layers)
