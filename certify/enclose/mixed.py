@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
-from certify.arith.intervals import TINY, U, down, gamma, up
+from certify.arith.intervals import TINY, Interval, U, down, gamma, up
 from certify.arith.taylor import TM, tm_absorb, tm_add
 from certify.enclose.crown import (
     ForwardBounds,
@@ -25,6 +25,7 @@ from certify.enclose.crown import (
     forward_bounds,
     to_tm,
 )
+from certify.enclose.preconditioner import constant_term
 from certify.enclose.taylor import jcl_taylor, tm_congruence
 from certify.enclose.top_rank import TopRank, lower_apart_applies, top_rank
 from certify.model.network import GainNetwork
@@ -98,16 +99,17 @@ def network_crown_mixed_jacobian(net: GainNetwork, lo: torch.Tensor, hi: torch.T
 
 
 def contraction_tm_mixed(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: torch.Tensor,
-                         lam: float, top_apart: bool = False
+                         lam: float, top_apart: bool = False, constant: Interval | None = None
                          ) -> tuple[TM, TopLayerRemainder | None]:
     """TM of A = He{P J} + 2 lam P over each box for the congruence M = I (pc.kind "none")
     and a direct network: He{P (Jf - K dh/dx)} + 2 lam P from the Taylor models
     (`jcl_taylor` with the network's Jacobian left out, then `tm_congruence`, whose Q = I P
     encloses P), plus He{P dN/dx} from `network_crown_mixed_jacobian` with R = P exactly.
     top_apart: the last hidden layer's relaxation errors are not in the TM's remainder; A
-    lies within the TM plus He{C eps} (the returned `TopLayerRemainder`; else None)."""
+    lies within the TM plus He{C eps} (the returned `TopLayerRemainder`; else None).
+    `constant`: M (2 lam P + Q) M^T when the caller has it (`constant_term(pc, lam)`)."""
     n = problem.n
-    rest = contraction_rest(problem, pc, lo, hi, r, lam)
+    rest = contraction_rest(problem, pc, lo, hi, r, lam, constant)
     Nt, top = network_crown_mixed_jacobian(problem.network, lo, hi, list(range(n)),
                                            problem.P_t, top_apart=top_apart)  # [B, n, n]
     c = 0.5 * (Nt.c + Nt.c.transpose(1, 2))
@@ -117,7 +119,7 @@ def contraction_tm_mixed(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: tor
 
 
 def contraction_rest(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: torch.Tensor,
-                     lam: float) -> TM:
+                     lam: float, constant: Interval | None = None) -> TM:
     """TM of He{P (Jf - K dh/dx)} + 2 lam P over boxes (a direct network's Jacobian left
     out): `jcl_taylor` with zero network models, then `tm_congruence`.
 
@@ -127,7 +129,7 @@ def contraction_rest(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: torch.T
     the constant is the function's value, so c +- e contains it everywhere). Measured on the
     2x10 six-state chain: this function was 16% of the proof's time."""
     if problem.system.jacobians_constant and lo.shape[0] > 1:
-        one = contraction_rest(problem, pc, lo[:1], hi[:1], r[:1], lam)
+        one = contraction_rest(problem, pc, lo[:1], hi[:1], r[:1], lam, constant)
         B, d = lo.shape
         n = one.c.shape[-1]
         return TM(one.c.expand(B, n, n), torch.zeros(B, n, n, d, dtype=one.c.dtype,
@@ -141,4 +143,7 @@ def contraction_rest(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: torch.T
     val = TM(z, torch.zeros(B, n, d, **f64), z)
     jac0 = TM(torch.zeros(B, n, d, **f64), torch.zeros(B, n, d, d, **f64),
               torch.zeros(B, n, d, **f64))
-    return tm_congruence(pc, jcl_taylor(system, net, lo, hi, net_tms=(val, jac0, r)), lam, r)
+    if constant is None:
+        constant = constant_term(pc, lam)
+    return tm_congruence(pc, jcl_taylor(system, net, lo, hi, net_tms=(val, jac0, r)), constant,
+                         r)

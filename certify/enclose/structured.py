@@ -42,12 +42,20 @@ from certify.enclose.top_rank import rank_loewner_upper, room_inverse
 
 
 def loewner_upper(A: TM, top: TopLayerRemainder, level: float = 0.0) -> TM:
-    """The TM (c + W, g, e + rounding) whose members bound every member of A + He{C eps}
-    from above in the Loewner order (module docstring): A [B, n, n] (coefficients [B, n, n,
-    d]), `top` the last layer's relaxation errors (C [n, h], w [B, n, h]); W is balanced
-    against the room level I - c (the level the bounds will be held to)."""
-    if top.rank is not None:  # the errors' directions are known: `certify.enclose.top_rank`
+    """An upper model of A + He{C eps} in the Loewner order: the rank-structured one
+    (`certify.enclose.top_rank.rank_loewner_upper`) where the errors' directions are known
+    (`top.rank`), else `independent_upper`."""
+    if top.rank is not None:
         return rank_loewner_upper(A, top.C, top.w, top.rank, level)
+    return independent_upper(A, top, level)
+
+
+def independent_upper(A: TM, top: TopLayerRemainder, level: float = 0.0) -> TM:
+    """The TM (c + W, g, e + rounding) whose members bound every member of A + He{C eps}
+    from above in the Loewner order, the errors |eps_kj| <= w_jk taken independent (module
+    docstring): A [B, n, n] (coefficients [B, n, n, d]), `top` the last layer's relaxation
+    errors (C [n, h], w [B, n, h]); W is balanced against the room level I - c (the level
+    the bounds will be held to)."""
     C, w = top.C.to(torch.float64), top.w.to(torch.float64)
     n, h = C.shape
     s = up(w.sum(1) * (1.0 + gamma(n + 1)))  # [B, h] >= sum_j w_jk
