@@ -156,10 +156,9 @@ def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: 
 
     taylor=False (with crown): no Taylor models are propagated (value_tm and jac_tm are
     None); the ranges are the backward bounds met with the interval step from the layer
-    below. Measured on the 2x10 4-state chain and the 5x30 Van der Pol instance (256 boxes
-    at each of several radii): the backward bounds alone were the tightest range of every
-    pre-activation and queried tangent column in >= 99.9% of the cases, and the Taylor
-    models were the forward pass's largest cost.
+    below. On the benchmark families (`bench/instances.py`) the backward bounds alone were
+    the tightest range of nearly every pre-activation and queried tangent column, and the
+    Taylor models the forward pass's largest cost (whole proofs: `bench/prove_suite.py`).
 
     closed_form=False: the second layer's queries by the general backward pass too, where
     `closed_form_applies` would take the closed form (the two agree up to rounding; the
@@ -222,7 +221,8 @@ def network_crown_tms(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, cols
 
     With `crown_intermediate` (the default) no forward Taylor models are propagated
     (`forward_bounds(taylor=False)`): met with the linear bounds they changed the MPDI
-    bounds of examples/vdp_certified.ckpt by 2e-17 and cost 10% of its proofs. The columns
+    bounds only in the last bits and cost a noticeable share of the proofs
+    (`bench/prove_suite.py`, `bench/run.py`). The columns
     outside `cols` then carry NaN remainders: a bound that reads them is NaN and closes no
     box. Without it the forward Taylor models are the ranges, kept where they are tighter."""
     if crown_intermediate:

@@ -1,8 +1,8 @@
 """Linear bound propagation for mixed Jacobian rows R dN/dz and the contraction matrix built
-from them (issue 9): with the congruence M = I (`certify.enclose.preconditioner`), A = He{P J}
-+ 2 lam P, and bounding P dN/dx directly keeps the cancellations between the outputs that P
-mixes (measured on the 4-state chain: the spectral radius of the remainder 1.27x smaller than
-|P| times the entrywise remainders of dN/dx).
+from them: with the congruence M = I (`certify.enclose.preconditioner`), A = He{P J} + 2 lam
+P (+ Q), and bounding P dN/dx directly keeps the cancellations between the outputs that P
+mixes (a smaller remainder than |P| times the entrywise remainders of dN/dx;
+`bench/remainder_gap.py` measures the remainders).
 
 Rounding: R W_H is a float product whose error is bounded with gamma_k |.| and added outward
 (`mixed_jacobian_crown` says how); the rest is
@@ -89,10 +89,10 @@ def network_crown_mixed_jacobian(net: GainNetwork, lo: torch.Tensor, hi: torch.T
     """TM of R dN/dz[:, cols] over each box [B, m, J] (R = `rows` [m, out]) from the linear
     bounds with the mixed rows (`mixed_jacobian_crown`) on forward ranges without Taylor
     models (`forward_bounds(taylor=False)`), and (top_apart) the last hidden layer's
-    relaxation errors apart, as there. R times the forward Taylor model, which this
-    used to take entry by entry where tighter, was never the tighter one in whole proofs
-    (0 of 4k-1.3M entries on the 2x10 chains with n = 2, 3, 4, 6 and the 3x30 Van der Pol
-    instance) and propagating it was the forward pass's largest cost."""
+    relaxation errors apart, as there. R times the forward Taylor model (entry by entry
+    where tighter) is not taken: in whole proofs of the benchmark families it was never the
+    tighter one, and propagating it was the forward pass's largest cost
+    (`bench/prove_suite.py`)."""
     fb = forward_bounds(net, lo, hi, cols=cols, crown=True, taylor=False)
     le, top = mixed_jacobian_crown(net, lo, hi, cols, rows, fb, top_apart=top_apart)
     return to_tm(le, fb.r), top
@@ -120,14 +120,16 @@ def contraction_tm_mixed(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: tor
 
 def contraction_rest(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: torch.Tensor,
                      lam: float, constant: Interval | None = None) -> TM:
-    """TM of He{P (Jf - K dh/dx)} + 2 lam P over boxes (a direct network's Jacobian left
-    out): `jcl_taylor` with zero network models, then `tm_congruence`.
+    """TM of He{P (Jf - K dh/dx)} + 2 lam P (+ Q) over boxes (a direct network's Jacobian
+    left out): `jcl_taylor` with zero network models, then `tm_congruence` (`constant`: M (2
+    lam P + Q) M^T when the caller has it, else `constant_term(pc, lam)`).
 
     When Jf and dh/dx are constant (a linear plant and output: the chain families) so is
     this matrix: its model is made on the first box only, and its centre and remainder
     serve every box with no first-order part (the model holds at that box's centre, where
-    the constant is the function's value, so c +- e contains it everywhere). Measured on the
-    2x10 six-state chain: this function was 16% of the proof's time."""
+    the constant is the function's value, so c +- e contains it everywhere); on the chain
+    families this function had been a large share of the proof's time
+    (`bench/prove_suite.py`)."""
     if problem.system.jacobians_constant and lo.shape[0] > 1:
         one = contraction_rest(problem, pc, lo[:1], hi[:1], r[:1], lam, constant)
         B, d = lo.shape

@@ -116,12 +116,12 @@ def plain_screen_pays(problem: Problem, lam: float, pc: Preconditioner, grid: in
                       chunk: int = 256) -> bool:
     """Whether the plain interval stage should screen the boxes before the linear bounds: it
     closes at least `min_closed` of the root split into `grid` boxes (the B&B's first round
-    at the default batch; one plain-only evaluation of it). Measured on that grid: 55-79% on
-    the 2x10 Van der Pol instances (seeds 0-2; in whole proofs the screen closed a third of
-    the boxes there), at most 0.1% on the 2x10 chains with n = 3, 4, 6 and the 3x30 and 5x30
-    Van der Pol instances, where in whole proofs it closed none and cost about an eighth of
-    the time. (Random boxes of a given size do not predict this: a proof only refines boxes
-    in the hard regions.) Only which bound is computed depends on it, never soundness; it is
+    at the default batch; one plain-only evaluation of it). On the benchmark families it
+    either closes a large share of that grid (and of a whole proof's boxes) or almost none,
+    where in whole proofs it closed none and cost time (the stage counts of
+    `bench/prove_suite.py`). (Random boxes of a given size do not predict this: a proof only
+    refines boxes in the hard regions.) Only which bound is computed depends on it, never
+    soundness; it is
     deterministic in the problem, so every worker of a distributed proof chooses alike.
     The boxes are bounded `chunk` at a time (the plain bound of a box does not depend on
     the others), the `deadline` of a proof's budget read before each chunk
@@ -177,9 +177,10 @@ def choose_preconditioner(problem: Problem, lam: float, probes: int = 24,
     of `probes` deterministic boxes per relative radius in `scales`; ties go to the smaller
     median bound on lam_max(D) over the probes (then the earlier candidate, M ~ L^-1 first).
     A badly scaled D adds the candidate `diagonal_scaling`.
-    The tie-break matters: on examples/vdp2_lmi.ckpt M ~ L^-1 and M = I both close all 48
-    probes, and the whole proof takes 88,768 boxes with the first against 256 with the second
-    (median bounds -0.24 and -0.76 at radius 1/16). Only tightness depends on the choice,
+    The tie-break matters: on examples/vdp2_lmi.ckpt M ~ L^-1 and M = I both close every
+    probe, and the whole proof takes far more boxes with the first than with the second,
+    whose median bound is the smaller (`bench/same_numbers.py` records that proof's boxes;
+    tests/test_preconditioner_choice.py holds it). Only tightness depends on the choice,
     never soundness; it is deterministic in the problem, so every worker of a distributed
     proof chooses alike. `deadline`: a proof's budget, read before each candidate
     (`certify.budget.OutOfTime` once it has passed)."""

@@ -1,5 +1,5 @@
 """Linear bounds of the second hidden layer's pre-activations and tangents through the first
-layer, in closed form (issue 9: the forward pass's cost on two-layer networks).
+layer, in closed form (the forward pass's cost on two-layer networks).
 
 The backward pass (`certify.enclose.crown_backward._backward`) is general: any depth, value and
 derivative paths, products relaxed by McCormick planes. Through the first layer alone its
@@ -14,9 +14,10 @@ box z = zc + dz, |dz| <= r:
 
 p = W0 zc + b0, G = W1 diag(A) W0, H_kj = sum_l W1_kl W0_lj a_l W0_l: the same linear functions
 the general pass composes (equal up to rounding), from a few batched products instead of a
-pass with McCormick planes of the point tangent and per-layer slack constants. Measured on
-the 2x10 four-state chain's proof boxes: the second layer's queries took 0.58 of the forward
-pass's 0.92 s per 16 k boxes (see `certify.enclose.crown._ForwardRanges`).
+pass with McCormick planes of the point tangent and per-layer slack constants (through the
+general pass, the second layer's queries had been most of the forward pass's time on
+two-layer networks: `bench/prove_suite.py`; `certify.enclose.crown.forward_bounds`'s
+`closed_form` compares the two).
 
 Rounding (each bound for the real-number quantity, the float values as computed): p is a
 float product, |p - (W0 zc + b0)| <= gamma_{d+1} (|W0| |zc| + |b0|) = e_p; the centre terms
