@@ -29,8 +29,14 @@ import torch  # noqa: E402
 from bench.instances import InstanceSpec  # noqa: E402
 from bench.prove_suite import FAMILIES, _cached_instance  # noqa: E402
 from certify.arith.device import describe, resolve_device  # noqa: E402
+from certify.enclose.options import Technique  # noqa: E402
 from certify.model.kernels import mpdi_lam_max  # noqa: E402
-from certify.prove.mpdi import _mpdi_evaluator, _mpdi_preconditioner, root_box  # noqa: E402
+from certify.prove.mpdi import (  # noqa: E402
+    _mpdi_evaluator,
+    _mpdi_preconditioner,
+    mpdi_options,
+    root_box,
+)
 
 
 def _sync(device: torch.device) -> None:
@@ -42,8 +48,8 @@ def _timed_bounds(problem, lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Te
     """The evaluator's upper bounds of lam_max(D) on the boxes (on the CPU) and the seconds
     of the second of two evaluations (the first warms caches and kernels)."""
     device = torch.device(problem.device)
-    pc = _mpdi_preconditioner(problem, problem.lam, True)
-    evaluate = _mpdi_evaluator(problem, problem.lam, pc)
+    pc = _mpdi_preconditioner(problem, problem.lam, Technique.TAYLOR)
+    evaluate = _mpdi_evaluator(problem, mpdi_options(problem, problem.lam, pc))
     lo, hi = lo.to(device), hi.to(device)
     evaluate(lo[:64], hi[:64])
     _sync(device)

@@ -47,15 +47,14 @@ def _history(hist: list[list[float]], cap: int = 12) -> list[list[float]]:
 def _run(prob, seconds: float, max_boxes: int, taylor: object, crown: bool = True,
          batch: int = 1024, executor: object | None = None) -> dict:
     """One proof; `cpu_seconds` is this process's CPU time (with a Dask executor the
-    workers' CPU is not in it: compare wall `seconds` then, on a quiet machine)."""
-    from certify.enclose.mpdi import STAGE_COUNTS
-
-    before = dict(STAGE_COUNTS)
+    workers' CPU is not in it: compare wall `seconds` then, on a quiet machine). `stages`:
+    per stage of the box bound, the boxes it bounded and closed in the proof's rounds
+    (`ProofStats.stages`; None from a `--code` checkout older than them)."""
     t, cpu = time.perf_counter(), time.process_time()
     out = prove_mpdi(prob, seconds=seconds, max_boxes=max_boxes, taylor=taylor, crown=crown,
                      batch=batch, executor=executor)
     st = out.stats
-    stages = {k: STAGE_COUNTS[k] - before[k] for k in STAGE_COUNTS}
+    stages = getattr(st, "stages", None)
     return {"status": out.status.value, "boxes": st.boxes_processed, "stages": stages,
             "seconds": round(time.perf_counter() - t, 3),
             "cpu_seconds": round(time.process_time() - cpu, 3), "upper": out.upper,
@@ -139,8 +138,7 @@ def main() -> None:
                     help="torch device of the proof's boxes and bounds (cpu, cuda)")
     ap.add_argument("--workers", type=int, default=1,
                     help="Dask LocalCluster worker processes for the prover (1: serial, in "
-                         "process); the stage counts then stay in the workers, and the "
-                         "workers import the installed certify, not --code's")
+                         "process); the workers import the installed certify, not --code's")
     ap.add_argument("--cache", default="/tmp/certify-bench/instances.json")
     ap.add_argument("--code", default=None,
                     help="checkout whose `certify` is imported (default: this one); for "

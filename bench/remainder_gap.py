@@ -4,8 +4,8 @@ The MPDI prover bounds A(z) = M D(z) M^T on a sub-box by an affine matrix functi
 interval remainder E, and closes the box when max over the vertices of lam_max(affine) +
 rho(E) <= 0. This bench measures, on sub-boxes of the issue-9 instance families:
 
-- `sound_rho`: rho(E) of the prover's own Taylor model of A (`certify.enclose.mpdi.
-  crown_contraction_tm`, the linear-bound stage);
+- `sound_rho`: rho(E) of the prover's own Taylor model of A (`crown_contraction_tm` below,
+  the linear-bound stage);
 - `best_affine_rho`: rho of the entrywise half-range of A(z) minus its least-squares affine
   fit, over `--points` random points of the sub-box. A sampled ESTIMATE (not a bound) of the
   remainder of the best affine enclosure; no sound linear relaxation can do much better;
@@ -43,13 +43,24 @@ import torch  # noqa: E402
 from bench.prove_suite import add_family_arguments, family_instances  # noqa: E402
 from certify.arith.eigen import rho_upper  # noqa: E402
 from certify.arith.intervals import up  # noqa: E402
-from certify.enclose.mpdi import (  # noqa: E402
-    choose_preconditioner,
-    crown_contraction_tm,
-    mpdi_box_bounds,
-)
-from certify.enclose.taylor import tm_lam_upper
+from certify.enclose.mixed import contraction_tm_mixed  # noqa: E402
+from certify.enclose.mpdi import choose_preconditioner, mpdi_box_bounds  # noqa: E402
+from certify.enclose.options import box_bound_options, mixed_rows_apply  # noqa: E402
+from certify.enclose.preconditioner import constant_term  # noqa: E402
+from certify.enclose.stages import linear_contraction_tm  # noqa: E402
+from certify.enclose.taylor import tm_lam_upper  # noqa: E402
 from certify.model.kernels import closed_loop_jacobian, contraction_matrix  # noqa: E402
+
+
+def crown_contraction_tm(problem, pc, lo: torch.Tensor, hi: torch.Tensor, r: torch.Tensor,
+                         lam: float):
+    """The Taylor model of A = M D M^T over boxes (radii r) from the backward linear bounds
+    of the prover's linear stage for this problem: the mixed rows where they apply
+    (`mixed_rows_apply`), else the network's linear-bound Taylor models."""
+    constant = constant_term(pc, lam)
+    if mixed_rows_apply(problem, pc):
+        return contraction_tm_mixed(problem, pc, lo, hi, r, lam, constant=constant)[0]
+    return linear_contraction_tm(problem, pc, lo, hi, r, constant)
 
 
 def contraction_at(problem, pc, z: torch.Tensor, lam: float) -> torch.Tensor:
@@ -101,8 +112,8 @@ def measure(problem, rel_radius: float, boxes: int, points: int, seed: int) -> d
     ratio = sound / best.clamp_min(1e-300)
     # what the prover's own box bound decides (every stage: rank-structured top layer, mixed
     # rows, congruence tests), at the level 0 of its decision mode
-    decided = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, screen=0.0, decide=True,
-                              root_width=rhi - rlo).upper <= 0
+    decided = mpdi_box_bounds(box_bound_options(problem, lam, pc=pc, screen=0.0, decide=True,
+                                                root_width=rhi - rlo), lo, hi).upper <= 0
     rec = {"rel_radius": rel_radius, "boxes": boxes, "points": points,
             "preconditioner": pc.kind,
             "sound_rho_median": round(float(sound.median()), 5),
@@ -135,10 +146,9 @@ def error_budget(problem, pc, lo, hi, r, lam: float) -> dict | None:
 
     from certify.arith.taylor import TM
     from certify.enclose.mixed import contraction_tm_mixed
-    from certify.enclose.mpdi import direct_mixed
     from certify.enclose.top_rank import rank_loewner_upper
 
-    if not direct_mixed(problem, pc):
+    if not mixed_rows_apply(problem, pc):
         return None
     A, top = contraction_tm_mixed(problem, pc, lo, hi, r, lam, top_apart=True)
     if top is None or top.rank is None:

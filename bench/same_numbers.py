@@ -53,6 +53,7 @@ def scrub(obj):
 
 def record(out: Path) -> None:
     import certify
+    import certify.model.checkpoint  # noqa: F401  (certify.model as an attribute)
 
     out.mkdir(parents=True, exist_ok=True)
     settings = certify.VerifySettings(proof_seconds=1e5, rate_seconds=1e5,

@@ -11,10 +11,11 @@ count beside the estimate when it finishes.
 
 `--what-if-majorant F` / `--what-if-remainder F` (what-ifs, NOT bounds: the descents then
 follow a tree no sound proof has) scale the two remainders of the mixed-row stage by F: the
-Loewner majorant W of the top layers' product errors (`certify.enclose.structured.
-loewner_upper`: c + W becomes c + F W) and the entrywise remainder e. Only proofs that use
-that stage (metric congruence M = I and a direct network, as on the issue-9 families) change,
-and for n <= 3 the entrywise form the stage also tries stays as built. Descents with the same
+Loewner majorant W of the top layers' product errors (the matrix-form upper models of
+`certify.enclose.stages.MixedRows`: c + W becomes c + F W) and the entrywise remainder e.
+Only proofs that use that stage (metric congruence M = I and a direct network, as on the
+issue-9 families) change, and for n <= 3 the entrywise form the stage also tries stays as
+built. Descents with the same
 `--point-seed` follow the same points, so the line says what a F-times tighter enclosure of
 that part would be worth in whole-tree boxes before anyone builds it. Measured on the six-state
 chain, seed 0 (session 14): 8192 descents, 21.8 M boxes (+-14%) as built, 2.2 M (+-48%) with
@@ -48,17 +49,22 @@ from certify.search.tree_estimate import estimate_tree  # noqa: E402
 def scale_remainders(majorant: float, remainder: float) -> None:
     """The what-if of `--what-if-majorant` / `--what-if-remainder` (module docstring): the
     mixed-row stage's Loewner majorant W and entrywise remainder e scaled, in this process
-    only (the stage imports `loewner_upper` from its module at each call). Not sound."""
-    import certify.enclose.structured as structured
+    only (its matrix-form upper models, `certify.enclose.stages.MixedRows.models`, replaced
+    by scaled ones; the entrywise model stays as built). Not sound."""
+    from dataclasses import replace
+
     from certify.arith.taylor import TM
+    from certify.enclose.stages import ENTRYWISE, MixedRows
 
-    exact = structured.loewner_upper
+    def scaled(exact):
+        def model(A, top, level):
+            T = exact(A, top, level)
+            return TM(A.c + majorant * (T.c - A.c), T.g, remainder * T.e)
 
-    def scaled(A, top, level=0.0):
-        T = exact(A, top, level)
-        return TM(A.c + majorant * (T.c - A.c), T.g, remainder * T.e)
+        return model
 
-    structured.loewner_upper = scaled
+    MixedRows.models = tuple(m if m is ENTRYWISE else replace(m, model=scaled(m.model))
+                             for m in MixedRows.models)
 
 
 def main() -> None:

@@ -63,6 +63,9 @@ class ProofStats:
     # random descents (`certify.search.tree_estimate`; not a bound), and its relative standard error
     estimated_boxes: float | None = None
     estimate_rel_stderr: float | None = None
+    # per stage of the box bound (`certify.enclose.stages`): the boxes it bounded and of those
+    # the ones it closed, over the proof's rounds ({} for bounds without stages)
+    stages: dict[str, dict[str, int]] = field(default_factory=dict)
 
     def seconds_to_finish(self) -> float | None:
         """Seconds a complete proof still needs at this run's speed, from the estimate of an

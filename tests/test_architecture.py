@@ -22,12 +22,6 @@ BASE = {"certify", "certify.errors", "certify.results", "certify.settings", "cer
 REPORTS_MAY_IMPORT = {"certify.certificate", "certify.results", "certify.presentation",
                       "certify.figuredata", "certify.files", "certify.errors"}
 #: private names of the enclosure stages still imported across their modules (to go)
-KNOWN_PRIVATE = {("certify.enclose.crown", "certify.enclose.crown_backward"),
-                 ("certify.enclose.mixed", "certify.enclose.crown"),
-                 ("certify.enclose.top_rank", "certify.enclose.crown_backward")}
-#: upward imports still being removed (each entry must go; the test fails on any other)
-KNOWN: set[tuple[str, str]] = {("certify.enclose.mpdi", "certify.search.bnb"),
-                               ("certify.enclose.mpdi", "certify.search.split")}
 
 
 def modules() -> dict[str, Path]:
@@ -132,7 +126,7 @@ def test_imports_point_down_the_layers():
         la = layer(a)
         for b in targets:
             lb = layer(b)
-            if lb[0] == "base" or (a, b) in KNOWN:
+            if lb[0] == "base":
                 continue
             if la[0] == "reports":
                 if b.startswith("certify") and b not in REPORTS_MAY_IMPORT:
@@ -145,12 +139,10 @@ def test_imports_point_down_the_layers():
             elif la[0] == "top" and b.startswith(("certify.cli", "training", "reports")):
                 bad.append((a, b))
     assert not bad, "upward imports:\n" + "\n".join(f"{a} -> {b}" for a, b in sorted(bad))
-    still = {(a, b) for a, b in KNOWN if b in edges.get(a, set())}
-    assert still == KNOWN, f"remove from KNOWN (fixed): {sorted(KNOWN - still)}"
 
 
 def test_no_private_names_imported_across_modules():
     _, private = graph()
-    private = [(a, m, n) for a, m, n in private if (a, m) not in KNOWN_PRIVATE]
+    private = [(a, m, n) for a, m, n in private]
     assert not private, "private names imported: " + ", ".join(
         f"{a} imports {n} from {m}" for a, m, n in private)

@@ -16,6 +16,7 @@ from certify.enclose.crown import (
     value_crown,
 )
 from certify.enclose.mpdi import mpdi_box_bounds
+from certify.enclose.options import box_bound_options
 from certify.enclose.preconditioner import make_preconditioner, to_lam_max_D
 from certify.model import activations
 from certify.model.kernels import mpdi_lam_max
@@ -134,7 +135,7 @@ def test_mpdi_bound_with_crown_is_sound(act: str, seed: int, structure: str, sca
         box[:, 1] - box[:, 0])
     lo, hi = c - scale, c + scale
     pc = make_preconditioner(prob.P_t)
-    bb = mpdi_box_bounds(prob, lo, hi, prob.lam, pc=pc, crown=True)
+    bb = mpdi_box_bounds(box_bound_options(prob, prob.lam, pc=pc, crown=True), lo, hi)
     ub = to_lam_max_D(bb.upper, prob.P_t, pc)
     z = _points(lo, hi, 300, seed).reshape(-1, 3)
     v = mpdi_lam_max(s, prob.network, prob.P_t, prob.lam, z[:, :2], z[:, 2:]).reshape(8, -1)

@@ -10,11 +10,10 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import certify.enclose.crown as crown_module
 from certify.arith.intervals import Interval, down, imul, matmul_point_right, midrad_to_interval, up
 from certify.arith.taylor import TM, tm_linear, tm_mul, tm_rho
 from certify.enclose.crown import AffineInputNetwork, ForwardBounds, forward_bounds
-from certify.enclose.crown_backward import _backward, _concretize, _Layer, _queries
+from certify.enclose.crown_backward import BackwardLayer, backward_pass, concretize, queries
 from certify.model import activations
 from certify.model.gain.taylor import tm_activation
 from certify.model.network import GainNetwork
@@ -70,12 +69,12 @@ def _reference_forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.T
     pre_iv = _tm_range(val, r)
     tan_iv = Interval(W0.expand(B, h0, d), W0.expand(B, h0, d))  # [B, h, d]
     pres, tans = [], []
-    layers: list[_Layer] = []
+    layers: list[BackwardLayer] = []
     for L, (W, b) in enumerate(weights[1:], start=1):
         pres.append(pre_iv)
         tans.append(tan_iv)
         Win, bin_ = weights[L - 1]
-        layers.append(_Layer(pre_iv, tan_iv, Win, bin_, layers[-1] if layers else None, zmag,
+        layers.append(BackwardLayer(pre_iv, tan_iv, Win, bin_, layers[-1] if layers else None, zmag,
                              act))
         if L == 1 and b0_slack is not None:
             layers[0].bslack = b0_slack[:, None, None, :]
@@ -99,18 +98,18 @@ def _reference_forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.T
             m = W.shape[0]
             tangents = len(colt) > 0
             # value queries on pre_L = W_L[i] a_{L-1} + b_L[i] (both sides in one pass)
-            La = _queries(W, 1, B)
+            La = queries(W, 1, B)
             bias = b[None, :, None].expand(B, m, 1)
-            lowv, highv = _concretize(*_backward(layers, L, La, None, bias, colt[:1], lo, hi),
+            lowv, highv = concretize(*backward_pass(layers, L, La, None, bias, colt[:1], lo, hi),
                                       r)
             pre_iv = Interval(torch.maximum(pre_iv.lo, lowv[..., 0]),
                               torch.minimum(pre_iv.hi, highv[..., 0]))
             if not tangents:
                 continue
             # tangent queries on t_L^j = W_L[i] Q_{L-1}^j
-            LQ = _queries(W, len(colt), B)
+            LQ = queries(W, len(colt), B)
             zero = torch.zeros(B, m, len(colt), dtype=torch.float64)
-            lowt, hight = _concretize(*_backward(layers, L, None, LQ, zero, colt, lo, hi), r)
+            lowt, hight = concretize(*backward_pass(layers, L, None, LQ, zero, colt, lo, hi), r)
             tl, th = tan_iv.lo.clone(), tan_iv.hi.clone()
             tl[..., colt] = torch.maximum(tl[..., colt], lowt)
             th[..., colt] = torch.minimum(th[..., colt], hight)
@@ -150,34 +149,30 @@ def _assert_identical(new: ForwardBounds, ref: ForwardBounds) -> None:
 @pytest.mark.parametrize("act", activations.names())
 @pytest.mark.parametrize("cols", [None, [1], []])
 @pytest.mark.parametrize("crown", [True, False])
-def test_forward_bounds_bit_identical(act: str, cols: list[int] | None, crown: bool,
-                                     monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(crown_module, "ONE_LAYER_CLOSED_FORM", False)  # the reference's pass
+def test_forward_bounds_bit_identical(act: str, cols: list[int] | None, crown: bool) -> None:
     net = _net(3, 4, 3, 6, 1.5, act)
     lo, hi = _boxes(5, 5, 4, 0.2)
-    new = forward_bounds(net, lo, hi, cols=cols, crown=crown)
+    new = forward_bounds(net, lo, hi, cols=cols, crown=crown, closed_form=False)  # as ref
     ref = _reference_forward_bounds(net, lo, hi, cols=cols, crown=crown)
     _assert_identical(new, ref)
     if cols != []:  # the backward pass on the recorded layers gives the same Jacobian bounds
         c = [0, 1, 2, 3] if cols is None else cols
         WH = net.weights()[-1][0].to(F64)
-        LQ = _queries(WH, len(c), lo.shape[0])
+        LQ = queries(WH, len(c), lo.shape[0])
         zero = torch.zeros(lo.shape[0], WH.shape[0], len(c), dtype=F64)
         ct = torch.as_tensor(c)
-        a = _concretize(*_backward(new.layers, len(new.layers), None, LQ, zero, ct, lo, hi),
+        a = concretize(*backward_pass(new.layers, len(new.layers), None, LQ, zero, ct, lo, hi),
                         new.r)
-        b = _concretize(*_backward(ref.layers, len(ref.layers), None, LQ, zero, ct, lo, hi),
+        b = concretize(*backward_pass(ref.layers, len(ref.layers), None, LQ, zero, ct, lo, hi),
                         ref.r)
         assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
 
 
 @pytest.mark.parametrize("act", ["tanh", "softplus", "gelu"])
 @pytest.mark.parametrize("cols", [None, []])
-def test_forward_bounds_bit_identical_composed_first_layer(act: str, cols: list[int] | None,
-                                                           monkeypatch: pytest.MonkeyPatch
+def test_forward_bounds_bit_identical_composed_first_layer(act: str, cols: list[int] | None
                                                            ) -> None:
     """The composed network z -> N(A x + a) with the first layer's rounding slack b0_slack."""
-    monkeypatch.setattr(crown_module, "ONE_LAYER_CLOSED_FORM", False)
     net = _net(7, 4, 2, 5, 1.2, act)
     gen = torch.Generator().manual_seed(11)
     A = torch.randn(4, 2, generator=gen, dtype=F64)
@@ -186,7 +181,8 @@ def test_forward_bounds_bit_identical_composed_first_layer(act: str, cols: list[
     lo, hi = _boxes(9, 4, 2, 0.3)
     slack = comp.first_layer_slack(lo, hi)
     for crown in (True, False):
-        new = forward_bounds(comp, lo, hi, cols=cols, crown=crown, b0_slack=slack)
+        new = forward_bounds(comp, lo, hi, cols=cols, crown=crown, b0_slack=slack,
+                             closed_form=False)
         ref = _reference_forward_bounds(comp, lo, hi, cols=cols, crown=crown, b0_slack=slack)
         _assert_identical(new, ref)
         assert new.layers[0].bslack is not None
@@ -263,11 +259,8 @@ def test_second_layer_closed_form_matches_the_backward_pass(seed: int, act: str,
     net = _net(seed, 3, depth, 5, 2.0, act)
     lo, hi = _boxes(seed, 6, 3, scale)
     closed = forward_bounds(net, lo, hi, cols=cols, crown=True, taylor=False)
-    crown_module.ONE_LAYER_CLOSED_FORM = False
-    try:
-        general = forward_bounds(net, lo, hi, cols=cols, crown=True, taylor=False)
-    finally:
-        crown_module.ONE_LAYER_CLOSED_FORM = True
+    general = forward_bounds(net, lo, hi, cols=cols, crown=True, taylor=False,
+                             closed_form=False)
     for a, b in ((closed.pre[1], general.pre[1]), (closed.tan[1], general.tan[1])):
         tol = 1e-9 * (b.hi - b.lo) + 1e-12 * (1 + b.lo.abs() + b.hi.abs())
         assert bool(((a.lo - b.lo).abs() <= tol).all()), float((a.lo - b.lo).abs().max())

@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from certify.arith.device import PROOF_BATCH, proof_batch
+from certify.enclose.options import Technique
 from certify.prove.mpdi import _mpdi_remote, prove_mpdi, prove_rate
 
 from .test_preconditioner_choice import _problem
@@ -81,9 +82,9 @@ def test_a_gpu_problem_is_bounded_in_process_and_in_larger_rounds() -> None:
         remote, workers = True, 2
 
     prob = _problem(1, 2, 8.0)
-    assert _mpdi_remote(prob, prob.lam, True, True, TwoWorkers()) is not None
+    assert _mpdi_remote(prob, prob.lam, Technique.TAYLOR, True, TwoWorkers()) is not None
     prob.device = "cuda:0"
-    assert _mpdi_remote(prob, prob.lam, True, True, TwoWorkers()) is None
+    assert _mpdi_remote(prob, prob.lam, Technique.TAYLOR, True, TwoWorkers()) is None
     assert proof_batch(torch.device("cuda", 0)) == PROOF_BATCH["cuda"] > proof_batch(
         torch.device("cpu")) == PROOF_BATCH["cpu"]
 

@@ -14,6 +14,7 @@ from certify.arith.eigen import lam_max_upper_interval, lam_max_upper_point, rho
 from certify.arith.intervals import ROUNDING, Interval, ipow_int, ipow_real
 from certify.enclose.mpdi import mpdi_box_bounds
 from certify.enclose.network_interval import gain_enclosure
+from certify.enclose.options import Technique, box_bound_options
 from certify.enclose.preconditioner import make_preconditioner, to_lam_max_D
 from certify.enclose.taylor import jcl_taylor
 from certify.errors import SpecError
@@ -309,7 +310,8 @@ def test_mpdi_box_bound_is_sound(act: str, seed: int, structure: str, scale: flo
     s, net = prob.system, prob.network
     n = s.n
     lo, hi, _ = _boxes(seed, 16, *_root(prob), scale)
-    bb = mpdi_box_bounds(prob, lo, hi, prob.lam, taylor=taylor)
+    bb = mpdi_box_bounds(box_bound_options(prob, prob.lam, technique=Technique.of(taylor)),
+                         lo, hi)
     pc = make_preconditioner(prob.P_t)
     ub = to_lam_max_D(bb.upper, prob.P_t, pc)
     g = torch.Generator().manual_seed(seed)

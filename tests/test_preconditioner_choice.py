@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from certify.enclose.mpdi import choose_preconditioner, mpdi_box_bounds, plain_screen_pays
+from certify.enclose.options import box_bound_options
 from certify.enclose.preconditioner import (
     candidate_preconditioners,
     diagonal_preconditioner,
@@ -69,8 +70,8 @@ def test_every_candidate_bounds_lam_max_of_D_over_boxes(seed: int, n: int, cond:
     assert [pc.kind for pc in cands] == ["cholesky", "none", "diagonal"]
     for pc in cands:
         for crown, plain_screen in ((False, True), (True, True), (True, False)):
-            bb = mpdi_box_bounds(prob, lo, hi, prob.lam, pc=pc, crown=crown,
-                                 plain_screen=plain_screen)
+            bb = mpdi_box_bounds(box_bound_options(prob, prob.lam, pc=pc, crown=crown,
+                                                   plain_screen=plain_screen), lo, hi)
             ub = to_lam_max_D(bb.upper, prob.P_t, pc)
             assert bool((torch.isnan(ub) | (vmax <= ub)).all()), (pc.kind, crown)
 
@@ -119,7 +120,7 @@ def test_linear_metric_problem_decides_as_its_closed_form() -> None:
 
 
 def test_each_split_rule_scores_every_dimension() -> None:
-    from certify.search.split import split_score
+    from certify.enclose.split import split_score
 
     prob = _problem(2, 3, 8.0)
     root = torch.tensor([[-1.0, 1.0]] * 4, dtype=F64)
@@ -151,9 +152,10 @@ def test_plain_screen_is_kept_where_it_closes_boxes_and_dropped_where_it_cannot(
     pc = diagonal_preconditioner(prob.P_t, torch.ones(3, dtype=F64), "none")
     gen = torch.Generator().manual_seed(3)
     c = 2 * torch.rand(32, 4, generator=gen, dtype=F64) - 1
-    on = mpdi_box_bounds(prob, c - 0.02, c + 0.02, prob.lam, pc=pc, screen=0.0, decide=True)
-    off = mpdi_box_bounds(prob, c - 0.02, c + 0.02, prob.lam, pc=pc, screen=0.0, decide=True,
-                          plain_screen=False)
+    opts = box_bound_options(prob, prob.lam, pc=pc, screen=0.0, decide=True)
+    on = mpdi_box_bounds(opts, c - 0.02, c + 0.02)
+    off = mpdi_box_bounds(box_bound_options(prob, prob.lam, pc=pc, screen=0.0, decide=True,
+                                            plain_screen=False), c - 0.02, c + 0.02)
     assert bool((off.plain == float("inf")).all())
     # where the plain stage did not close a box, the linear bounds are the same either way
     # (to LAPACK's sub-batch last bits), so the screen only ever adds closed boxes

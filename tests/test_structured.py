@@ -89,7 +89,8 @@ def test_matrix_errors_decide_boxes_the_entrywise_remainder_cannot() -> None:
     of radius 0.1, a level between the boxes' sampled maxima: the upper model decides
     strictly more boxes than the entrywise remainder, and none whose
     sampled lam_max exceeds the level."""
-    import certify.enclose.mpdi as mpdi
+    from certify.enclose.mpdi import mpdi_box_bounds
+    from certify.enclose.options import box_bound_options
 
     prob = _problem(3, 4, 30.0)
     pc, lo, hi, r, sampled, level = boxes_and_level(prob, 0.8, 0.1, 0.8)
@@ -100,7 +101,13 @@ def test_matrix_errors_decide_boxes_the_entrywise_remainder_cannot() -> None:
     assert int(structured.sum()) > int(plain.sum()), (int(plain.sum()), int(structured.sum()))
     assert bool((sampled[structured] <= level).all())
     assert bool((sampled > level).any())
-    assert mpdi.STRUCTURED_TOP  # the prover's mixed stage uses the matrix form
+    # the prover's mixed-row stage uses the matrix form: it decides more than the entrywise
+    # remainder too, and no box above the level
+    opts = box_bound_options(prob, prob.lam, pc=pc, screen=level, decide=True,
+                             plain_screen=False)
+    stage = mpdi_box_bounds(opts, lo, hi).upper <= level
+    assert int(stage.sum()) > int(plain.sum()), (int(plain.sum()), int(stage.sum()))
+    assert bool((sampled[stage] <= level).all())
 
 
 def boxes_and_level(prob, spread: float, radius: float, quantile: float) -> tuple:

@@ -5,7 +5,7 @@ the tangents t_l = d pre_l / dz): `certify.model.gain.propagate` over `PairedAri
 first-order Taylor model and an interval per value), whose `layer_hook` here, per hidden
 layer, intersects the interval with the Taylor model's range, tightens pre_l and the
 tangent columns by backward CROWN queries on the layers below (`certify.enclose.
-crown_backward`), and records the layer's relaxations (`_Layer`). `jacobian_crown` and
+crown_backward`), and records the layer's relaxations (`BackwardLayer`). `jacobian_crown` and
 `value_crown` run the backward pass from the output; `network_crown_tms` turns their lines
 into Taylor models (`to_tm`) and keeps the tighter one per entry.
 
@@ -23,16 +23,12 @@ import torch
 
 from certify.arith.intervals import TINY, Interval, down, gamma, up
 from certify.arith.taylor import TM
-from certify.enclose.crown_backward import U, _backward, _concretize, _Layer, _queries
+from certify.enclose.crown_backward import BackwardLayer, U, backward_pass, concretize, queries
 from certify.enclose.one_layer import second_layer_ranges
 from certify.model.gain import GainSpec, propagate
 from certify.model.gain.interval import IntervalArithmetic
 from certify.model.gain.paired import Paired, PairedArithmetic
 from certify.model.network import GainNetwork
-
-#: the second layer's queries in closed form (`certify.enclose.one_layer`); False: the general
-#: backward pass (the tests compare the two)
-ONE_LAYER_CLOSED_FORM = True
 
 
 @dataclass
@@ -45,7 +41,7 @@ class ForwardBounds:
     value_tm: TM | None  # None when no Taylor models were propagated (taylor=False)
     jac_tm: TM | None
     r: torch.Tensor
-    layers: list = field(default_factory=list)  # _Layer per hidden layer (relaxations)
+    layers: list = field(default_factory=list)  # BackwardLayer per hidden layer (relaxations)
 
 
 @dataclass
@@ -63,18 +59,20 @@ class LinearEnclosure:
 class _ForwardRanges:
     """The `layer_hook` of `forward_bounds`: per hidden layer l, the ranges of pre_l and
     t_l (interval meet Taylor range, then the CROWN queries; without Taylor models the
-    interval step meet the CROWN queries), recorded with their `_Layer`."""
+    interval step meet the CROWN queries), recorded with their `BackwardLayer`. `closed_form`:
+    the second layer's queries in closed form where `closed_form_applies`."""
 
     def __init__(self, arith: PairedArithmetic | IntervalArithmetic, spec: GainSpec,
                  lo: torch.Tensor, hi: torch.Tensor, colt: torch.Tensor, crown: bool,
-                 b0_slack: torch.Tensor | None) -> None:
+                 b0_slack: torch.Tensor | None, closed_form: bool = True) -> None:
         self.arith, self.spec, self.lo, self.hi = arith, spec, lo, hi
         self.r = arith.r if isinstance(arith, PairedArithmetic) else arith.zr
         self.colt, self.crown, self.b0_slack = colt, crown, b0_slack
+        self.closed_form = closed_form
         self.zmag = torch.maximum(lo.abs(), hi.abs())
         self.pres: list[Interval] = []
         self.tans: list[Interval] = []
-        self.layers: list[_Layer] = []
+        self.layers: list[BackwardLayer] = []
 
     def __call__(self, li: int, pre: Paired | Interval, T: Paired | Interval
                  ) -> tuple[Paired | Interval, Paired | Interval]:
@@ -99,7 +97,7 @@ class _ForwardRanges:
         self.pres.append(piv)
         self.tans.append(tan)
         W, b = self.spec.layers[li]
-        self.layers.append(_Layer(piv, tan, W, b, self.layers[-1] if self.layers else None,
+        self.layers.append(BackwardLayer(piv, tan, W, b, self.layers[-1] if self.layers else None,
                                   self.zmag, self.spec.activation))
         if li == 0 and self.b0_slack is not None:
             self.layers[0].bslack = self.b0_slack[:, None, None, :]
@@ -113,22 +111,21 @@ class _ForwardRanges:
         B, m = lo.shape[0], W.shape[0]
         paired = isinstance(pre, Paired)
         piv, tiv = (pre.iv, T.iv) if paired else (pre, T)
-        if li == 1 and self.layers[0].bslack is None and ONE_LAYER_CLOSED_FORM:
-            # through the first layer alone the queries have a closed form
+        if self.closed_form and closed_form_applies(li, self.layers):
             lowv, highv, lowt, hight = second_layer_ranges(self.layers[0], W, b, colt,
                                                            0.5 * (lo + hi), r)
         else:
             # value queries on pre_L = W_L[i] a_{L-1} + b_L[i] (both sides in one pass)
             bias = b[None, :, None].expand(B, m, 1)
-            lowv, highv = _concretize(*_backward(self.layers, li, _queries(W, 1, B), None,
+            lowv, highv = concretize(*backward_pass(self.layers, li, queries(W, 1, B), None,
                                                  bias, colt[:1], lo, hi), r)
             lowv, highv = lowv[..., 0], highv[..., 0]
             lowt = hight = None
             if len(colt) > 0:
                 # tangent queries on t_L^j = W_L[i] Q_{L-1}^j, rows [B, m, J] here
                 zero = torch.zeros(B, m, len(colt), dtype=torch.float64, device=lo.device)
-                lowt, hight = _concretize(*_backward(self.layers, li, None,
-                                                     _queries(W, len(colt), B), zero, colt,
+                lowt, hight = concretize(*backward_pass(self.layers, li, None,
+                                                     queries(W, len(colt), B), zero, colt,
                                                      lo, hi), r)
         piv = Interval(torch.maximum(piv.lo, lowv), torch.minimum(piv.hi, highv))
         if len(colt) > 0:
@@ -141,9 +138,17 @@ class _ForwardRanges:
         return piv, tiv
 
 
+def closed_form_applies(li: int, layers: list) -> bool:
+    """Whether hidden layer `li`'s queries have the closed form of `certify.enclose.one_layer`
+    (the same linear functions as the general backward pass, from a few batched products):
+    the second hidden layer, over a first layer that is not composed (no `bslack`)."""
+    return li == 1 and layers[0].bslack is None
+
+
 def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: torch.Tensor,
                    cols: list[int] | None = None, crown: bool = True,
-                   b0_slack: torch.Tensor | None = None, taylor: bool = True) -> ForwardBounds:
+                   b0_slack: torch.Tensor | None = None, taylor: bool = True,
+                   closed_form: bool = True) -> ForwardBounds:
     """Ranges of every pre-activation and tangent: interval propagation of the intersected
     ranges, intersected with the Taylor-model ranges and (crown) with backward linear bounds
     of pre_l and of the tangent columns `cols` (default all; [] for value-only), layer by
@@ -151,10 +156,13 @@ def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: 
 
     taylor=False (with crown): no Taylor models are propagated (value_tm and jac_tm are
     None); the ranges are the backward bounds met with the interval step from the layer
-    below. Measured on the 2x10 4-state chain and the 5x30 Van der Pol instance (256 boxes
-    at each of several radii): the backward bounds alone were the tightest range of every
-    pre-activation and queried tangent column in >= 99.9% of the cases, and the Taylor
-    models were the forward pass's largest cost."""
+    below. On the benchmark families (`bench/instances.py`) the backward bounds alone were
+    the tightest range of nearly every pre-activation and queried tangent column, and the
+    Taylor models the forward pass's largest cost (whole proofs: `bench/prove_suite.py`).
+
+    closed_form=False: the second layer's queries by the general backward pass too, where
+    `closed_form_applies` would take the closed form (the two agree up to rounding; the
+    tests compare them)."""
     lo = lo.to(torch.float64)
     hi = hi.to(torch.float64)
     B, d = lo.shape
@@ -166,7 +174,7 @@ def forward_bounds(net: GainNetwork | AffineInputNetwork, lo: torch.Tensor, hi: 
     paired = taylor or not crown  # without the queries the Taylor ranges are needed
     arith = (PairedArithmetic(zc, r, len(spec.layers) - 1) if paired
              else IntervalArithmetic(zc, r))
-    ranges = _ForwardRanges(arith, spec, lo, hi, colt, crown, b0_slack)
+    ranges = _ForwardRanges(arith, spec, lo, hi, colt, crown, b0_slack, closed_form)
     out = propagate(spec, arith, None, d, layer_hook=ranges)
     return ForwardBounds(ranges.pres, ranges.tans, out.value if paired else None,
                          out.jac if paired else None, r, ranges.layers)
@@ -182,8 +190,8 @@ def jacobian_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, cols: l
     out = WH.shape[0]
     colt = torch.as_tensor(cols, dtype=torch.long, device=lo.device)
     J = len(cols)
-    LQ = _queries(WH, J, B)
-    Lz, cl, cu = _backward(fb.layers, len(fb.layers), None, LQ,
+    LQ = queries(WH, J, B)
+    Lz, cl, cu = backward_pass(fb.layers, len(fb.layers), None, LQ,
                            torch.zeros(B, out, J, dtype=torch.float64, device=lo.device), colt,
                            lo, hi)
     return LinearEnclosure(gl=Lz, cl=cl, gu=Lz, cu=cu)
@@ -197,9 +205,9 @@ def value_crown(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, fb: Forwar
     B, d = lo.shape
     WH, bH = (x.to(torch.float64) for x in net.weights()[-1])
     out = WH.shape[0]
-    La = _queries(WH, 1, B)
+    La = queries(WH, 1, B)
     bias = bH[None, :, None].expand(B, out, 1)
-    Lz, cl, cu = _backward(fb.layers, len(fb.layers), La, None, bias,
+    Lz, cl, cu = backward_pass(fb.layers, len(fb.layers), La, None, bias,
                            torch.zeros(1, dtype=torch.long, device=lo.device), lo, hi)
     return LinearEnclosure(gl=Lz[..., 0, :], cl=cl[..., 0], gu=Lz[..., 0, :], cu=cu[..., 0])
 
@@ -213,7 +221,8 @@ def network_crown_tms(net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor, cols
 
     With `crown_intermediate` (the default) no forward Taylor models are propagated
     (`forward_bounds(taylor=False)`): met with the linear bounds they changed the MPDI
-    bounds of examples/vdp_certified.ckpt by 2e-17 and cost 10% of its proofs. The columns
+    bounds only in the last bits and cost a noticeable share of the proofs
+    (`bench/prove_suite.py`, `bench/run.py`). The columns
     outside `cols` then carry NaN remainders: a bound that reads them is NaN and closes no
     box. Without it the forward Taylor models are the ranges, kept where they are tighter."""
     if crown_intermediate:
@@ -297,7 +306,7 @@ def tm_tighter(a: TM, b: TM) -> TM:
               torch.where(use_b, b.e, a.e))
 
 
-# _backward, _queries: the backward pass, re-exported for `certify.enclose.mixed`
-__all__ = ["AffineInputNetwork", "ForwardBounds", "LinearEnclosure", "_backward", "_queries",
+# backward_pass, queries: the backward pass, re-exported for `certify.enclose.mixed`
+__all__ = ["AffineInputNetwork", "ForwardBounds", "LinearEnclosure", "backward_pass", "queries",
            "forward_bounds", "jacobian_crown", "network_crown_tms", "tm_tighter", "to_tm",
            "value_crown"]

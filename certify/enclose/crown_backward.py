@@ -1,9 +1,9 @@
-"""The backward pass of the CROWN prover: per-layer relaxations (`_Layer`) and the pass itself.
+"""The backward pass of the CROWN prover: per-layer relaxations (`BackwardLayer`) and the pass.
 
 For a `direct` MLP N(z) with activation f (pre_0 = W_0 z + b_0, a_l = f(pre_l), pre_{l+1} =
 W_{l+1} a_l + b_{l+1}) the Jacobian columns follow t_0^j = W_0[:, j], Q_l^j = s_l * t_l^j with
 s_l = f'(pre_l), t_{l+1}^j = W_{l+1} Q_l^j and dN/dz_j = W_H Q_{H-1}^j. For every entry
-(i, j) and both signs, one backward pass (`_backward`) from the output to z composes
+(i, j) and both signs, one backward pass (`backward_pass`) from the output to z composes
 
 - McCormick planes for the products Q = s * t (`relax.mccormick`),
 - linear relaxations of f' (derivative path) and f (value path) (`relax.relax_slope`,
@@ -11,7 +11,7 @@ s_l = f'(pre_l), t_{l+1}^j = W_{l+1} Q_l^j and dN/dz_j = W_H Q_{H-1}^j. For ever
 - the exact linear maps W_l,
 
 picking each relaxation's lower or upper plane by the sign of its backward coefficient, and
-ends with a linear function of z that bounds the entry on the whole box (`_concretize` takes
+ends with a linear function of z that bounds the entry on the whole box (`concretize` takes
 its extremes over the box). The relaxations sit on the ranges of pre_l and t_l that
 `certify.enclose.crown.forward_bounds` computes.
 
@@ -20,7 +20,7 @@ representable) coefficients of the relaxation; what float evaluation changes is 
 by a slack added to each query: every matrix product contributes gamma_k (|Lambda| |W|) . mag(x),
 every elementwise product u |Lambda a| . mag(x), every sum of bias terms gamma_k sum|terms|,
 with mag(x) the magnitude bound of the node the coefficients multiply (from the forward
-ranges). The slack is rounded up and subtracted (`_backward`); `_concretize` rounds outward.
+ranges). The slack is rounded up and subtracted (`backward_pass`); `concretize` rounds outward.
 """
 
 from __future__ import annotations
@@ -36,13 +36,13 @@ def _mag(iv: Interval) -> torch.Tensor:
     return torch.maximum(iv.lo.abs(), iv.hi.abs())
 
 
-def _midrad_icpt(lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def midrad_icpt(lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """m, w with [lo, hi] inside [m - w, m + w] (w rounded up)."""
     m = 0.5 * (lo + hi)
     return m, up(torch.maximum(hi - m, m - lo))
 
 
-class _Layer:
+class BackwardLayer:
     """Hidden layer l: pre_l = W x + b (x = a_{l-1}, or z for l = 0), with parallel-line
     relaxations of f (value path) and f' (derivative path) on the range of pre_l, and
     the constants the backward passes need, shaped [B, 1, J, h] for broadcasting against
@@ -55,7 +55,7 @@ class _Layer:
     folded into the intercept radius (w + gamma K), so the pass needs no separate sum."""
 
     def __init__(self, pre: Interval, tan: Interval, W: torch.Tensor, b: torch.Tensor,
-                 prev: _Layer | None, zmag: torch.Tensor, act: Activation) -> None:
+                 prev: BackwardLayer | None, zmag: torch.Tensor, act: Activation) -> None:
         self.pre, self.tan, self.W, self.b, self.prev = pre, tan, W, b, prev
         self.act = act
         self.s = act.enclose_d1(pre)
@@ -65,7 +65,7 @@ class _Layer:
         e = lambda x: x[:, None, None, :]  # noqa: E731  [B, h] -> [B, 1, 1, h]
         self.a_s = self.m_s = self.w_s = None  # f' relaxation: on first use (col_consts)
         self.a_a = e(ra.lower_slope)
-        ma, wa = _midrad_icpt(ra.lower_icpt, ra.upper_icpt)
+        ma, wa = midrad_icpt(ra.lower_icpt, ra.upper_icpt)
         self.m_a, self.w_a = e(ma), e(wa)
         self.pmag = e(_mag(pre))
         self.amag = act.enclose_f(pre).mag()  # [B, h]
@@ -106,7 +106,7 @@ class _Layer:
             m = mccormick(Interval(self.s.lo.unsqueeze(-1), self.s.hi.unsqueeze(-1)), t)
             self._planes[key] = m
             f = lambda x: x.transpose(1, 2).unsqueeze(1)  # noqa: E731  [B, h, J] -> [B,1,J,h]
-            mq, wq = _midrad_icpt(m.lower_icpt, m.upper_icpt)
+            mq, wq = midrad_icpt(m.lower_icpt, m.upper_icpt)
             ss = f(m.slope_s)
             st = f(m.slope_t.expand_as(m.slope_s))
             mq, wq, tmag = f(mq), f(wq), f(_mag(t))
@@ -132,7 +132,7 @@ class _Layer:
             if not torch.equal(rs.lower_slope, rs.upper_slope):
                 raise ValueError("backward propagation needs parallel-line relaxations")
             self.a_s = rs.lower_slope[:, None, None, :]
-            ms, ws = _midrad_icpt(rs.lower_icpt, rs.upper_icpt)
+            ms, ws = midrad_icpt(rs.lower_icpt, rs.upper_icpt)
             self.m_s, self.w_s = ms[:, None, None, :], ws[:, None, None, :]
         return self.a_s, self.m_s, self.w_s
 
@@ -143,7 +143,7 @@ class _Layer:
         return self._planes[tuple(int(c) for c in cols)]
 
 
-def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
+def backward_pass(layers: list[BackwardLayer], top: int, La: torch.Tensor | None,
               LQ: torch.Tensor | None, bias: torch.Tensor, cols: torch.Tensor,
               lo: torch.Tensor, hi: torch.Tensor, top_apart: bool = False,
               lower_apart: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -220,7 +220,7 @@ def _backward(layers: list[_Layer], top: int, La: torch.Tensor | None,
     return Lz, down((S - T) - E), up((S + T) + E)
 
 
-def _concretize(Lz: torch.Tensor, cl: torch.Tensor, cu: torch.Tensor, r: torch.Tensor
+def concretize(Lz: torch.Tensor, cl: torch.Tensor, cu: torch.Tensor, r: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(min, max) over |dz| <= r of Lz . dz + cl and Lz . dz + cu, rounded outward."""
     d = Lz.shape[-1]
@@ -229,8 +229,8 @@ def _concretize(Lz: torch.Tensor, cl: torch.Tensor, cu: torch.Tensor, r: torch.T
     return down(cl - rad), up(cu + rad)
 
 
-def _queries(Wrows: torch.Tensor, J: int, B: int) -> torch.Tensor:
-    """Coefficients [B, out, J, h] for the queries (row i, column j); `_backward` bounds both
+def queries(Wrows: torch.Tensor, J: int, B: int) -> torch.Tensor:
+    """Coefficients [B, out, J, h] for the queries (row i, column j); `backward_pass` bounds both
     signs at once."""
     out, h = Wrows.shape
     return Wrows[None, :, None, :].expand(B, out, J, h)

@@ -14,8 +14,8 @@ proves the decision on its own (`decide_affine_family`):
    (`_congruence`): M (A - lvl I) M <= 0 iff A <= lvl I, and in those coordinates the
    remainder counts in proportion to the room the centre leaves in each direction, not at
    the room of the tightest one (rho(|M| rem |M|) against 1, not rho(rem) against
-   lvl - lam_max(c)). Measured on boxes the prover's tests 1-2 left (2x10 chain, n = 4):
-   48% more of them decided.
+   lvl - lam_max(c)); on the boxes tests 1-2 leave it decides many more
+   (`bench/remainder_gap.py`'s `closed_by_prover`).
 
 Rounding: M is any float matrix (a congruence by a nonsingular M preserves the decision,
 and a singular one makes the test fail, never pass); the float errors of forming M c M and
@@ -56,8 +56,8 @@ def decide_affine_family(c: torch.Tensor, rG: torch.Tensor, rem: torch.Tensor,
         left = ~decided[need]
         if bool(left.any()):
             # a congruence preserves inertia: where the likeliest-worst vertex matrix is not
-            # even proved <= lvl (the remainder aside), no M decides the box (2x10 chains:
-            # ~90% of the boxes that reach this stage at n = 6), so only the others go on
+            # even proved <= lvl (the remainder aside), no M decides the box (most of the
+            # boxes that reach this stage on the larger chains), so only the others go on
             left[left.clone()] = lam_max_at_most(
                 at_worst[left],
                 torch.full((int(left.sum()),), lvl, dtype=c.dtype, device=c.device))
@@ -108,9 +108,9 @@ def vertex_matrices(c: torch.Tensor, rG: torch.Tensor, sym: bool) -> torch.Tenso
 def likely_worst_vertex(c: torch.Tensor, rG: torch.Tensor) -> torch.Tensor:
     """The vertex v in {-1, 1}^d that maximises the first-order change of lam_max(sym(c) +
     sum_m v_m rG_m) at v = 0: v_m = sign(u^T rG_m u), u the top eigenvector of sym(c)
-    (float; a guess that orders the vertex tests, never part of a bound). Most boxes the
-    Weyl bound leaves fail at many vertices (2x10 chains: 82% of them at n = 6, half at
-    n = 4), and those need only this test. c [B, n, n], rG [B, d, n, n] -> [B, d]."""
+    (float; a guess that orders the vertex tests, never part of a bound). Many boxes the
+    Weyl bound leaves fail at many vertices, and those need only this test. c [B, n, n],
+    rG [B, d, n, n] -> [B, d]."""
     try:
         u = eigh(0.5 * (c + c.transpose(-1, -2)))[1][..., -1]  # [B, n]
     except RuntimeError:  # LAPACK did not converge: any vertex is a valid first guess

@@ -1,11 +1,11 @@
 """Linear bounds of the second hidden layer's pre-activations and tangents through the first
-layer, in closed form (issue 9: the forward pass's cost on two-layer networks).
+layer, in closed form (the forward pass's cost on two-layer networks).
 
-The backward pass (`certify.enclose.crown_backward._backward`) is general: any depth, value and
+The backward pass (`certify.enclose.crown_backward.backward_pass`) is general: any depth, value and
 derivative paths, products relaxed by McCormick planes. Through the first layer alone its
 queries have a closed form. With pre_0 = W0 z + b0 exact (real arithmetic), the first
 layer's parallel-line relaxations f(pre_0l) = A_l pre_0l + mu_l and f'(pre_0l) = a_l pre_0l +
-nu_l (|mu_l - m_al| <= w_al, |nu_l - m_sl| <= w_sl, `_Layer`'s lines) and the Jacobian
+nu_l (|mu_l - m_al| <= w_al, |nu_l - m_sl| <= w_sl, `BackwardLayer`'s lines) and the Jacobian
 column Q_0^j = f'(pre_0) * W0[:, j] (t_0 = W0 is a point: no product relaxation), over the
 box z = zc + dz, |dz| <= r:
 
@@ -14,9 +14,10 @@ box z = zc + dz, |dz| <= r:
 
 p = W0 zc + b0, G = W1 diag(A) W0, H_kj = sum_l W1_kl W0_lj a_l W0_l: the same linear functions
 the general pass composes (equal up to rounding), from a few batched products instead of a
-pass with McCormick planes of the point tangent and per-layer slack constants. Measured on
-the 2x10 four-state chain's proof boxes: the second layer's queries took 0.58 of the forward
-pass's 0.92 s per 16 k boxes (see `certify.enclose.crown._ForwardRanges`).
+pass with McCormick planes of the point tangent and per-layer slack constants (through the
+general pass, the second layer's queries had been most of the forward pass's time on
+two-layer networks: `bench/prove_suite.py`; `certify.enclose.crown.forward_bounds`'s
+`closed_form` compares the two).
 
 Rounding (each bound for the real-number quantity, the float values as computed): p is a
 float product, |p - (W0 zc + b0)| <= gamma_{d+1} (|W0| |zc| + |b0|) = e_p; the centre terms
@@ -38,7 +39,7 @@ def second_layer_ranges(first, W1: torch.Tensor, b1: torch.Tensor, cols: torch.T
                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """(pre_lo, pre_hi [B, h], t_lo, t_hi [B, h, J]): sound ranges of pre_1 and of the tangent
     columns t_1[:, :, cols] over the boxes zc +- r, from the first layer `first` (a
-    `certify.enclose.crown_backward._Layer` with no composed-layer slack) and the second
+    `certify.enclose.crown_backward.BackwardLayer` with no composed-layer slack) and the second
     layer's weights W1 [h, h1], b1 [h] (module docstring)."""
     W0, b0 = first.W.to(torch.float64), first.b.to(torch.float64)
     W1, b1 = W1.to(torch.float64), b1.to(torch.float64)

@@ -4,9 +4,9 @@ By Sylvester's law of inertia D <= 0 iff M D M^T <= 0 for every invertible M, so
 error of M costs tightness, never soundness. Q = M P and C = M P M^T are interval products
 (outward rounded). Three choices of M (`candidate_preconditioners`): M ~ L^-1 (P = L L^T, the
 generalised eigenvalue; the rate prover needs it), M = I (D itself) and M = diag(P_ii^-1/2).
-Which one gives the tightest box bounds depends on the problem (measured on issue 9's 4-state
-chain: M = I closed 54% of the boxes of radius 1/16 of the root that M = L^-1 closed 26% of),
-so the MPDI prover picks one by probing (`certify.enclose.mpdi.choose_preconditioner`).
+Which one gives the tightest box bounds depends on the problem (on the chain families M = I
+closes more boxes of a given size than M ~ L^-1, on others the reverse), so the
+MPDI prover picks one by probing (`certify.enclose.mpdi.choose_preconditioner`).
 
 Back to D (`to_lam_max_D`): D = M^-1 A M^-T, so A <= a I gives lam_max(D) <= a / sigma_min(M)^2
 for a >= 0 and <= a / ||M||_2^2 for a < 0; `pos_scale` and `neg_scale` are upper bounds of

@@ -108,9 +108,9 @@ def residual_box_upper_crown(system: System, net: GainNetwork, lo: torch.Tensor,
     g(x) = k(x, h(x)) = N(A x + a) with A = [I; C], a = [0; h(0)] (the K term vanishes), the
     composition done on the first layer with its rounding carried as a slack; per component
     the smaller of the two magnitude bounds. The forward pass keeps no Taylor models
-    (`forward_bounds(taylor=False)`): with them the bound was within 3e-12 relative (512
-    boxes at each of 4 radii on examples/vdp.ckpt and the 5x30, 3x30, 2x10 n = 2 and n = 4
-    benchmark instances), and they cost 5% of the residual proof. `interval`: the
+    (`forward_bounds(taylor=False)`): with them the bound changed only in its last bits on
+    examples/vdp.ckpt and the benchmark instances, at a cost in the residual proof.
+    `interval`: the
     `residual_box_upper` of these boxes when the caller has it (not computed again)."""
     from certify.enclose.crown import AffineInputNetwork, forward_bounds, to_tm, value_crown
 
@@ -149,10 +149,10 @@ def dk_dy_box_upper_crown(system: System, net: GainNetwork, lo: torch.Tensor, hi
     dk/dy = dN/dy + K, its norm bounded by `_tm_frobenius_upper` and by the entrywise
     smaller of the linear and interval magnitudes; the smallest per box. A structural
     network (no linear bounds here) gets `dk_dy_box_upper_taylor`. The forward pass keeps no
-    Taylor models (`forward_bounds(taylor=False)`): with them the bound was within 3e-15
-    relative (the instances of `residual_box_upper_crown`), and they cost 15% of the proof.
+    Taylor models (`forward_bounds(taylor=False)`): with them the bound changed only in its
+    last bits (the instances of `residual_box_upper_crown`), at a cost in the proof.
     `interval`: the `dk_dy_interval` of these boxes when the caller has it (the gain is then
-    not enclosed again: that was 20% of examples/vdp.ckpt's dk/dy proof)."""
+    not enclosed again: a large share of examples/vdp.ckpt's dk/dy proof, `bench/run.py`)."""
     from certify.enclose.crown import forward_bounds, jacobian_crown, to_tm
 
     if net.structure != "direct":

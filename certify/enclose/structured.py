@@ -1,4 +1,4 @@
-"""The last hidden layer's relaxation errors as a matrix, not entry by entry (issue 9).
+"""The last hidden layer's relaxation errors as a matrix, not entry by entry.
 
 With the mixed rows (`certify.enclose.mixed`), P dN/dx = (linear bounds) + C eps with C =
 P W_H [n, h] a point matrix and eps [h, n] the relaxation errors of the last layer's products
@@ -15,15 +15,16 @@ c + W as its centre is an upper model of A, which is all that upper bounds of la
 decisions lam_max <= level need (lam_max is monotone in the Loewner order).
 
 Entrywise, the same errors cost sum_k |c_ik| w_kj in entry (i, j): the signs of C are lost, and
-with P mixing the outputs every entry carries the whole sum (on the 2x10 chains the remainder
-matrix was nearly rank one, rho(rem) ~ 10 against a room of ~1). Here c_k enters through
+with P mixing the outputs every entry carries the whole sum (on the chain families the
+remainder matrix is nearly rank one and far larger than the room below the level). Here c_k
+enters through
 (c_k . x)^2, which is small in the critical directions x where C's columns cancel.
 
 a_k balances the two terms against the room the box's centre leaves below the level,
 R = level I - sym(c) (clamped positive definite):
 a_k = sqrt(s_k sum_j w_kj (R^-1)_jj / (c_k^T R^-1 c_k)) minimises the trace bound
-1/2 [a_k c_k^T R^-1 c_k + (s_k / a_k) tr(R^-1/2 diag(w_k) R^-1/2)] (measured on boxes the
-entrywise form left undecided: 2x10 chain n = 4, 50% more decided; n = 6, 2.2x).
+1/2 [a_k c_k^T R^-1 c_k + (s_k / a_k) tr(R^-1/2 diag(w_k) R^-1/2) (on boxes the entrywise
+form leaves undecided it decides many: `bench/remainder_gap.py`).
 Any a_k > 0 is sound; only tightness depends on it.
 
 Rounding: W is formed in float; its error, at most gamma_{h+4} (1/2 sum_k a_k |c_k| |c_k|^T +
@@ -42,12 +43,20 @@ from certify.enclose.top_rank import rank_loewner_upper, room_inverse
 
 
 def loewner_upper(A: TM, top: TopLayerRemainder, level: float = 0.0) -> TM:
-    """The TM (c + W, g, e + rounding) whose members bound every member of A + He{C eps}
-    from above in the Loewner order (module docstring): A [B, n, n] (coefficients [B, n, n,
-    d]), `top` the last layer's relaxation errors (C [n, h], w [B, n, h]); W is balanced
-    against the room level I - c (the level the bounds will be held to)."""
-    if top.rank is not None:  # the errors' directions are known: `certify.enclose.top_rank`
+    """An upper model of A + He{C eps} in the Loewner order: the rank-structured one
+    (`certify.enclose.top_rank.rank_loewner_upper`) where the errors' directions are known
+    (`top.rank`), else `independent_upper`."""
+    if top.rank is not None:
         return rank_loewner_upper(A, top.C, top.w, top.rank, level)
+    return independent_upper(A, top, level)
+
+
+def independent_upper(A: TM, top: TopLayerRemainder, level: float = 0.0) -> TM:
+    """The TM (c + W, g, e + rounding) whose members bound every member of A + He{C eps}
+    from above in the Loewner order, the errors |eps_kj| <= w_jk taken independent (module
+    docstring): A [B, n, n] (coefficients [B, n, n, d]), `top` the last layer's relaxation
+    errors (C [n, h], w [B, n, h]); W is balanced against the room level I - c (the level
+    the bounds will be held to)."""
     C, w = top.C.to(torch.float64), top.w.to(torch.float64)
     n, h = C.shape
     s = up(w.sum(1) * (1.0 + gamma(n + 1)))  # [B, h] >= sum_j w_jk

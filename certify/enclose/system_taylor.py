@@ -1,5 +1,5 @@
 """Taylor models of the system's Jacobians Jf and dh/dx over boxes: the mean-value form and a
-second-order form, the smaller remainder taken entry by entry (issue 9).
+second-order form, the smaller remainder taken entry by entry.
 
 For one entry q(x) = d g_i / dx_a (g = f or h) over a box with centre xc and radii r:
 
@@ -15,7 +15,7 @@ For one entry q(x) = d g_i / dx_a (g = f or h) over a box with centre xc and rad
   the mean-value form's |T_kk| r_k^2.
 
 On Van der Pol (Jf has -2 mu x1 x2 and mu (1 - x1^2)) the second-order remainder is exact for
-the quadratic entries; on the 2x10 Van der Pol instances it is most of the system part of the
+the quadratic entries, which on the Van der Pol instances carry most of the system part of the
 contraction matrix's remainder. Both forms are valid models of the same entry, so taking, per
 entry, the one with the smaller remainder is a valid model; an entry whose second-order model
 is NaN (an expression undefined on the box) keeps the mean-value one (NaN there too: never

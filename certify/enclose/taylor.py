@@ -25,7 +25,7 @@ from certify.arith.eigen import (
 from certify.arith.intervals import TINY, Interval, down, gamma, up
 from certify.arith.taylor import TM, tm_absorb, tm_add, tm_from_intervals, tm_rho
 from certify.enclose.decide import decide_affine_family, vertex_matrices
-from certify.enclose.preconditioner import Preconditioner, constant_term
+from certify.enclose.preconditioner import Preconditioner
 from certify.enclose.system_taylor import jacobian_tm
 from certify.model.gain.propagate import GainValues, NetOutput, compose, propagate
 from certify.model.gain.taylor import TaylorArithmetic
@@ -101,8 +101,9 @@ def jcl_taylor(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Ten
     return tm_add(jacobian_tm(system, "f", lo, hi, r), dkdx, r)
 
 
-def tm_congruence(pc: Preconditioner, J: TM, lam: float, r: torch.Tensor) -> TM:
-    """TM of A = He{Q J M^T} + 2 lam C (exact congruence when P = I)."""
+def tm_congruence(pc: Preconditioner, J: TM, constant: Interval, r: torch.Tensor) -> TM:
+    """TM of A = He{Q J M^T} + `constant` (exact congruence when P = I); `constant` is the
+    enclosure of M (2 lam P + Q) M^T, `certify.enclose.preconditioner.constant_term`."""
     n = J.c.shape[-1]
     if pc.identity:
         A = J
@@ -121,8 +122,7 @@ def tm_congruence(pc: Preconditioner, J: TM, lam: float, r: torch.Tensor) -> TM:
     g = 0.5 * (A.g + A.g.transpose(1, 2))
     e = 0.5 * up(A.e + A.e.transpose(1, 2))
     A = tm_absorb(c, g, up(e), r, 2)
-    lamC = constant_term(pc, lam)
-    lc, lr = lamC.midrad()
+    lc, lr = constant.midrad()
     A = tm_absorb(A.c + lc, A.g, up(A.e + lr), r, 2)
     return A
 

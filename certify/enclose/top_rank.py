@@ -1,5 +1,5 @@
 """The top layer's product errors by their rank structure, for networks with at most two
-hidden layers (issue 9).
+hidden layers.
 
 `certify.enclose.structured` bounds He{C eps} (C = R W_H [n, h], eps [h, n] the relaxation
 errors of the last hidden layer's products Q_k^j = s_k t_k^j) with |eps_kj| <= w_kj taken
@@ -29,22 +29,21 @@ and the rounding of o, |C| (rs |do| + |kappa|), joined to the remainder entry by
 a's balance each pair against the room R = level I - sym(c) (a = sqrt(v^T R^-1 v /
 c^T R^-1 c), which minimises the trace of R^-1/2 W R^-1/2); any a > 0 is sound.
 
-Measured on the 2x10 four-state chain (whole proofs, seeds 5 and 7-10): 22-38% fewer boxes
-than with the independent form alone (seed 9: 1.54 M -> 0.96 M).
+On the chain families whole proofs take markedly fewer boxes than with the independent form
+alone (`bench/prove_suite.py`, `bench/tree_size.py`).
 
 The first layer's f' relaxation errors (two hidden layers, `LowerRank`): s1_l = a_s pre_0l +
 m_s + e1_l enters the rows' Jacobian as sum_l e1_l U_l W0_l^T with U = C diag(sc) W1 (the
 backward pass's coefficient on Q_0^j = s1 W0[:, j]), so x^T (.) x <= sum_l ws1_l |U_l . x|
 |W0_l . x| <= 1/2 sum_l ws1_l (a_l (U_l . x)^2 + (W0_l . x)^2 / a_l): one more rank-one pair
 per first-layer neuron, the W0_l half joining Bw. Entry by entry (as the backward pass
-carried them before) they cost sum_l |U_il| |W0_lj| ws1_l in every entry. Measured on the
-boxes the 2x10 four-state chain's proofs send to this bound (seeds 5 and 9, 30 k boxes
-each): 24.5% -> 32.2% and 20.7% -> 25.0% decided; whole proofs (seeds 0, 1, 4, 6, 10):
-17-31% fewer boxes. The first layer's value errors (through the top layer's f' slope a_s:
-entry (i, j) carries sum_l ea_l G_l[i, j], G_l = C diag(a_s W1[:, l]) tc) stay in the pass:
-as rank-one pairs per top neuron they decided 32.9% of seed 5's boxes; as the Loewner
-majorant sum_l wa_l |sym(G_l)| (one small eigh per box and neuron) 34.7%, but whole proofs
-(seeds 1 and 10) took 6% fewer boxes and 10-20% more time.
+carried them before) they cost sum_l |U_il| |W0_lj| ws1_l in every entry; apart, more of the
+boxes the chain families send to this bound are decided and whole proofs take fewer boxes
+(`bench/remainder_gap.py`'s `decided_if_zero`, `bench/prove_suite.py`). The first layer's
+value errors (through the top layer's f' slope a_s: entry (i, j) carries sum_l ea_l
+G_l[i, j], G_l = C diag(a_s W1[:, l]) tc) stay in the pass: as rank-one pairs per top neuron
+or as the Loewner majorant sum_l wa_l |sym(G_l)| (one small eigh per box and neuron) they
+decided a few more boxes, but whole proofs took more time.
 
 Rounding: rs, rho1, beta, A, Bw and the a-weighted sums are rounded up (sums of
 non-negative terms, widened by gamma_K); W is formed in float and its error, at most
@@ -62,7 +61,7 @@ import torch
 from certify.arith.intervals import TINY, gamma, up
 from certify.arith.linalg import eigh
 from certify.arith.taylor import TM
-from certify.enclose.crown_backward import _midrad_icpt
+from certify.enclose.crown_backward import midrad_icpt
 
 
 @dataclass
@@ -105,7 +104,7 @@ def _lower_rank(layers: list, cols: torch.Tensor, C: torch.Tensor, sc: torch.Ten
     # rounding only), s1 within its relaxation +- ws1: the error is slope_s e1 + (<= wq), and
     # slope_s (t's midpoint) is W0[:, cols]; any difference is carried entry by entry
     mc = first.planes(cols)
-    wq = _midrad_icpt(mc.lower_icpt, mc.upper_icpt)[1]  # [B, h1, J]
+    wq = midrad_icpt(mc.lower_icpt, mc.upper_icpt)[1]  # [B, h1, J]
     W0 = first.W.to(torch.float64)[:, cols]  # [h1, J]
     off = up((mc.slope_s - W0[None]).abs() * ws1[:, :, None])  # [B, h1, J]: 0 in practice
     W0e = up(mc.slope_s.abs() * ws1[:, :, None])  # [B, h1, J]: |slope_s| ws1
@@ -142,7 +141,7 @@ class TopRank:
 def top_rank(layers: list, cols: torch.Tensor, C: torch.Tensor, lower: bool = False
              ) -> TopRank | None:
     """The structure for a network with one or two hidden layers (`certify.enclose.crown`'s
-    `_Layer`s, their ranges and relaxations) and C = R W_H [m, h]; None for deeper networks
+    `BackwardLayer`s, their ranges and relaxations) and C = R W_H [m, h]; None for deeper networks
     or a composed first layer (its tangent is not W0 exactly)."""
     if len(layers) > 2 or layers[0].bslack is not None:
         return None
@@ -186,7 +185,7 @@ def rank_loewner_upper(A: TM, C: torch.Tensor, w: torch.Tensor, rank: TopRank,
     sym(c). Per neuron k the bound of |eps_k . x| is the rank form (module docstring) or
     the independent one of `certify.enclose.structured` (w [B, J, h]: |eps_kj| <= w_jk),
     whichever has the smaller trace against the room (neither dominates: the rank form wins
-    on most boxes of the 2x10 chains, not on all); both are sound, so is any choice
+    on most boxes of the chain families, not on all); both are sound, so is any choice
     (`force`: "rank" or "independent" for every neuron, for the tests). With two hidden
     layers the beta terms of the rank neurons take the pair form or the coupled one
     (`_coupled_beta`), per box the one with the smaller trace (`coupled`: True or False
@@ -280,8 +279,8 @@ def _coupled_beta(rank: TopRank, use: torch.Tensor, qc: torch.Tensor, qw: torch.
     apart, sum_k |W1_kl| |W1_km| where this has |sum_k W1_kl y_k W1_km|: it keeps the
     cancellations between the top neurons. y: a few fixed-point steps towards the smallest
     trace sum_k A_k qc_k + sum_l F_l qw_l, then the best common scale (any y > 0 is sound).
-    Measured (2x10 chains, random-descent tree estimates of whole proofs): n = 6 seed 0
-    15.1 M -> 12.7 M leaves; n = 4 seeds 3, 5, 9: 2-12% fewer.
+    On the chain families the trees of whole proofs are smaller with it
+    (`bench/tree_size.py`).
 
     Rounding: A and F are rounded up from real-number bounds: rs^2 / y by two upward
     roundings; |H_lm| <= |fl(H)_lm| + gamma_{h+2} (|W1|^T diag(y) |W1|)_lm (Higham, a sum of
@@ -342,7 +341,7 @@ def _scaled_majorant(H: torch.Tensor, Herr: torch.Tensor, rho: torch.Tensor, F: 
     t_l^2 x_l^2 <= x^T diag(lam F) x (H >= 0). F (the diagonal
     dominance bound, rho_l sum_m (|H| + Herr)_lm rho_m >= sum_m |(R H R)_lm|) gives lam <= 1
     (Perron); where cancellations in H leave R H R far from its absolute value, lam is well
-    below 1 (2x10 chains: median 0.84 at n = 6, 0.9 at n = 4). H is fl(W1^T diag(y) W1),
+    below 1. H is fl(W1^T diag(y) W1),
     within Herr of the real one.
 
     lam_max(N) is bounded by the certified Cholesky test (`certify.arith.eigen.

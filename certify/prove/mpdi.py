@@ -8,6 +8,7 @@ proved; NaN/Inf anywhere leaves the box UNKNOWN; a violation is a concrete float
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -16,26 +17,28 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from certify.arith.boxes import Box, initial_grid
 from certify.arith.intervals import ROUNDING, up
+from certify.budget import OutOfTime
 from certify.enclose.mpdi import (
-    CROWN_GAIN,
     choose_preconditioner,
-    direct_mixed,
     estimate_crown_gain,
     mpdi_box_bounds,
     plain_screen_pays,
 )
+from certify.enclose.options import BoxBoundOptions, Technique, box_bound_options
 from certify.enclose.preconditioner import (
     Preconditioner,
     make_preconditioner,
     to_lam_max_D,
     with_shift,
 )
+from certify.enclose.stages import LINEAR_BOUNDS, MIXED_ROWS
 from certify.model.kernels import mpdi_lam_max, pointwise_rate
 from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import Counterexample, ProofStats, Status
-from certify.search.bnb import SETUP_SECONDS_ANYWAY, Box, OutOfTime, branch_and_bound, initial_grid
+from certify.search.bnb import SETUP_SECONDS_ANYWAY, branch_and_bound
 from certify.search.evaluation import BoxEval
 from certify.search.tree_estimate import completion_text, estimate_tree
 from certify.search.witness import is_witness, mpdi_lower
@@ -99,52 +102,56 @@ def seed_box(seeds: object | None, d: int, device: str = "cpu") -> Box | None:
     return Box(pts, pts.clone(), torch.zeros(pts.shape[0], dtype=torch.long, device=device))
 
 
-def _plain_screen(problem: Problem, lam: float, pc: Preconditioner, taylor: bool | str,
-                  crown: bool, pays: bool | None = None) -> bool:
-    """Whether the boxes meet the plain interval bound before the linear bounds: always,
-    except for the mixed-row linear bounds (M = I, a direct network), where it is probed
-    (`plain_screen_pays`, or `pays` when the caller has it; deterministic in the problem)."""
-    if crown and taylor is True and direct_mixed(problem, pc):
-        return plain_screen_pays(problem, lam, pc) if pays is None else pays
-    return True
+def mpdi_options(problem: Problem, lam: float, pc: Preconditioner,
+                 technique: Technique = Technique.TAYLOR, crown: bool = True,
+                 plain_screen: bool | None = None, deadline: float | None = None
+                 ) -> BoxBoundOptions:
+    """The box bound of the MPDI decision at rate `lam`, made once per proof: a decision at
+    the level 0 (`screen=0.0, decide=True`) under the congruence `pc`, with the choices only
+    a probe of the problem can make. Where the mixed rows apply, whether the plain interval
+    stage screens the boxes first (`plain_screen_pays`, or `plain_screen` when the caller
+    has the answer); where the linear bounds follow the Taylor models, the remainder
+    reduction that chooses their boxes (`estimate_crown_gain`). Deterministic in the
+    problem, so every worker of a distributed proof builds the same. `deadline`: a proof's
+    budget, `certify.budget.OutOfTime` past it while the probes run."""
+    rlo, rhi = root_box(problem)
+    options = box_bound_options(problem, lam, pc=pc, technique=technique, crown=crown,
+                                screen=0.0, decide=True, root_width=rhi - rlo)
+    if MIXED_ROWS.applies(options):
+        pays = plain_screen_pays(problem, lam, pc) if plain_screen is None else plain_screen
+        return dataclasses.replace(options, plain_screen=pays)
+    if LINEAR_BOUNDS.applies(options):
+        gain = estimate_crown_gain(problem.network, rlo, rhi, deadline=deadline)
+        return dataclasses.replace(options, crown_gain=gain)
+    return options
 
 
-def _mpdi_evaluator(problem: Problem, lam: float, pc: Preconditioner, taylor: bool | str = True,
-                    crown: bool = True, plain_screen: bool | None = None,
-                    deadline: float | None = None):
-    """The MPDI box evaluation (`plain_screen`: `_plain_screen`'s answer when the caller
-    already has it; `deadline`: a proof's budget, `certify.search.bnb.OutOfTime` past it while
-    the evaluation is being set up)."""
+def _mpdi_evaluator(problem: Problem, options: BoxBoundOptions):
+    """The MPDI box evaluation under `options` (`mpdi_options`): the bound converted to one
+    of lam_max(D) (NaN where not finite), the float value at each box's centre, the split
+    score and the stage counts."""
     n = problem.n
     P = problem.P_t
-    gain = CROWN_GAIN
-    rlo, rhi = root_box(problem)
-    if plain_screen is None:
-        plain_screen = _plain_screen(problem, lam, pc, taylor, crown)
-    if crown and taylor is True and not direct_mixed(problem, pc):
-        gain = estimate_crown_gain(problem.network, rlo, rhi, deadline=deadline)
+    pc = options.pc
+    lam = options.lam
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
-        # boxes the plain interval bound already proves skip the Taylor / relaxation work
-        # (where that screen closes boxes on this problem at all: `plain_screen_pays`)
-        bb = mpdi_box_bounds(problem, lo, hi, lam, pc=pc, taylor=taylor, crown=crown,
-                             screen=0.0, crown_gain=gain, root_width=rhi - rlo, decide=True,
-                             plain_screen=plain_screen)
+        bb = mpdi_box_bounds(options, lo, hi)
         ub = to_lam_max_D(bb.upper, P, pc)
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         c = 0.5 * (lo + hi)
         val = mpdi_lam_max(problem.system, problem.network, P, lam, c[:, :n], c[:, n:],
                            problem.shift_t)
-        return BoxEval(upper=ub, centre_value=val, score=bb.score)
+        return BoxEval(upper=ub, centre_value=val, score=bb.score, counts=bb.counts)
 
     return evaluate
 
 
-def _mpdi_preconditioner(problem: Problem, lam: float, taylor: bool | str,
+def _mpdi_preconditioner(problem: Problem, lam: float, technique: Technique,
                          deadline: float | None = None) -> Preconditioner:
     """The congruence for the MPDI proof: probed (`choose_preconditioner`) for the default
-    prover, M ~ L^-1 for the plain-interval and "interval" comparison provers."""
-    if taylor is True:
+    prover, M ~ L^-1 for the plain-interval and mean-value comparison provers."""
+    if technique is Technique.TAYLOR:
         return choose_preconditioner(problem, lam, deadline=deadline)
     return with_shift(make_preconditioner(problem.P_t), problem.shift_t)
 
@@ -160,17 +167,17 @@ def mpdi_box_chunk(payload: dict, lo: torch.Tensor, hi: torch.Tensor) -> BoxEval
     def build():
         base = {k: payload[k] for k in PROBLEM_KEYS}
         problem = problem_from_payload(base)
-        return _mpdi_evaluator(problem, payload["prove_lam"],
-                               _mpdi_preconditioner(problem, payload["prove_lam"],
-                                                    payload["taylor"]), payload["taylor"],
-                               payload["crown"])
+        lam, technique = payload["prove_lam"], Technique(payload["technique"])
+        pc = _mpdi_preconditioner(problem, lam, technique)
+        return _mpdi_evaluator(problem, mpdi_options(problem, lam, pc, technique,
+                                                     payload["crown"]))
 
     evaluate = worker_cache("mpdi-boxes:" + payload["key"], build)
     with torch_threads(1):
         return evaluate(lo, hi)
 
 
-def _mpdi_remote(problem: Problem, lam: float, taylor: bool | str, crown: bool,
+def _mpdi_remote(problem: Problem, lam: float, technique: Technique, crown: bool,
                  executor: object) -> tuple | None:
     """(chunk_fn, payload) for an executor whose work runs in other processes (a Dask cluster,
     even of one worker), else None (evaluate in process). A problem on a GPU is bounded in
@@ -183,7 +190,7 @@ def _mpdi_remote(problem: Problem, lam: float, taylor: bool | str, crown: bool,
     from certify.search.distributed.payload import problem_payload
 
     payload = problem_payload(problem)
-    payload.update(prove_lam=float(lam), taylor=taylor, crown=bool(crown))
+    payload.update(prove_lam=float(lam), technique=technique.value, crown=bool(crown))
     payload["key"] = payload_key(payload)
     return mpdi_box_chunk, payload
 
@@ -200,25 +207,26 @@ class DecisionSetup:
     first_round: int
 
 
-def mpdi_decision(problem: Problem, lam: float, taylor: bool | str = True, crown: bool = True,
-                  batch: int = 1024, deadline: float | None = None) -> DecisionSetup:
+def mpdi_decision(problem: Problem, lam: float, technique: Technique = Technique.TAYLOR,
+                  crown: bool = True, batch: int = 1024, deadline: float | None = None
+                  ) -> DecisionSetup:
     """The `DecisionSetup` of `prove_mpdi` at rate `lam` (also used by bench/tree_size.py,
     which follows the same tree). `deadline` (a `time.perf_counter()` value): the probes
     that choose the bounds read the clock between their pieces and raise
-    `certify.search.bnb.OutOfTime` once it has passed (they choose only, so the setup does not
+    `certify.budget.OutOfTime` once it has passed (they choose only, so the setup does not
     depend on it otherwise)."""
-    pc = _mpdi_preconditioner(problem, lam, taylor, deadline)
+    pc = _mpdi_preconditioner(problem, lam, technique, deadline)
     lo, hi = root_box(problem)
     # where the plain bound probe closes part of the root split into 1024 boxes (Van der Pol
     # instances, 55-79%), coarser boxes close too: a coarse first round saves refining them
     # (2x10 Van der Pol, seeds 0-9: 1391 -> 873 boxes, median; vdp_certified: 3012 -> 2020);
     # where it closes nothing, every region needs that depth and the full first round saves
     # the coarse levels (3x30 Van der Pol: 4472 boxes against 4780 from a quarter-size one)
-    coarse = crown and taylor is True and plain_screen_pays(problem, lam, pc,
-                                                            deadline=deadline)
-    plain_screen = _plain_screen(problem, lam, pc, taylor, crown, pays=coarse)
-    return DecisionSetup(_mpdi_evaluator(problem, lam, pc, taylor, crown, plain_screen,
-                                         deadline), lo, hi,
+    coarse = (crown and technique is Technique.TAYLOR
+              and plain_screen_pays(problem, lam, pc, deadline=deadline))
+    options = mpdi_options(problem, lam, pc, technique, crown, plain_screen=coarse,
+                           deadline=deadline)
+    return DecisionSetup(_mpdi_evaluator(problem, options), lo, hi,
                          batch // COARSE_START if coarse else batch)
 
 
@@ -255,8 +263,9 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
     started = time.perf_counter()
     progress = progress or NullProgress()
     lam = float(problem.lam if lam is None else lam)
+    technique = Technique.of(taylor)
     try:
-        setup = mpdi_decision(problem, lam, taylor, crown, batch,
+        setup = mpdi_decision(problem, lam, technique, crown, batch,
                               deadline=started + max(seconds, SETUP_SECONDS_ANYWAY))
     except OutOfTime:
         return _spent_in_setup(problem, seconds, max_boxes, time.perf_counter() - started)
@@ -269,7 +278,7 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
         progress=progress, task=task,
         seeds=seed_box(seeds, lo.shape[0], problem.device), keep_leaves=keep_leaves,
         executor=executor,
-        remote=_mpdi_remote(problem, lam, taylor, crown, executor), started=started,
+        remote=_mpdi_remote(problem, lam, technique, crown, executor), started=started,
         box_seconds=box_seconds)
     cex = None
     if out.best_point is not None:
@@ -364,6 +373,8 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
                                             budget_exhausted=True, rounding=ROUNDING),
                            worst=None)
 
+    options = box_bound_options(problem, 0.0, pc=pc, crown_gain=gain, root_width=hi - lo)
+
     def evaluate(blo: torch.Tensor, bhi: torch.Tensor) -> BoxEval:
         c = 0.5 * (blo + bhi)
         val = -2.0 * pointwise_rate(problem.system, problem.network, P, c[:, :n], c[:, n:])
@@ -372,12 +383,11 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
         lv = level.value()  # phi-level -> mu-level (mu / c_min or mu / c_max <= lv)
         screen = None if not math.isfinite(lv) else (lv * pc.c_min if lv >= 0
                                                       else lv * pc.c_max)
-        bb = mpdi_box_bounds(problem, blo, bhi, 0.0, pc=pc, screen=screen, crown_gain=gain,
-                             root_width=hi - lo)
+        bb = mpdi_box_bounds(dataclasses.replace(options, screen=screen), blo, bhi)
         mu = bb.upper
         ub = torch.where(mu >= 0, up(mu / pc.c_min), up(mu / pc.c_max))
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
-        return BoxEval(upper=ub, centre_value=val, score=bb.score)
+        return BoxEval(upper=ub, centre_value=val, score=bb.score, counts=bb.counts)
 
     out = branch_and_bound(lo, hi, evaluate, threshold=None, tol=tol, rel_tol=rel_tol,
                            seconds=seconds, max_boxes=max_boxes, batch=batch,

@@ -56,31 +56,13 @@ from typing import Any
 
 import torch
 
+from certify.arith.boxes import Box, initial_grid, split
 from certify.arith.intervals import ROUNDING
 from certify.progress import NullProgress, Progress
 from certify.results import ProofStats
-from certify.search.evaluation import BoxEval, join
+from certify.search.evaluation import BoxEval, add_counts, join
 from certify.search.frontier import Frontier
 from certify.search.rounds import RoundPipeline
-
-
-@dataclass
-class Box:
-    """A batch of boxes: lo, hi [batch, d] (float64) and their bisection depth [batch]."""
-
-    lo: torch.Tensor
-    hi: torch.Tensor
-    depth: torch.Tensor
-
-    @property
-    def centre(self) -> torch.Tensor:
-        return 0.5 * (self.lo + self.hi)
-
-    def volume(self) -> torch.Tensor:
-        return (self.hi - self.lo).prod(-1)
-
-    def __len__(self) -> int:
-        return int(self.lo.shape[0])
 
 
 @dataclass
@@ -95,29 +77,6 @@ class BnBOutcome:
     stats: ProofStats
     leaves: dict[str, list] = field(default_factory=dict)  # projected leaves for the report
     stuck: int = 0  # boxes set aside as UNKNOWN (NaN or max depth)
-
-
-def initial_grid(lo: torch.Tensor, hi: torch.Tensor, target: int) -> Box:
-    """Split the root box [d] into about `target` equal boxes (more cuts on wider sides)."""
-    d = lo.shape[0]
-    width = (hi - lo).double()
-    sides = width.cpu()  # the cut counts are chosen on the CPU
-    cuts = torch.ones(d, dtype=torch.long, device="cpu")
-    while int(cuts.prod()) * 2 <= max(target, 1):
-        i = int(torch.argmax(sides / cuts))
-        cuts[i] *= 2
-    axes = [torch.linspace(0.0, 1.0, int(c) + 1, dtype=torch.float64, device=lo.device)
-            for c in cuts]
-    los = torch.cartesian_prod(*[a[:-1] for a in axes]).reshape(-1, d)
-    his = torch.cartesian_prod(*[a[1:] for a in axes]).reshape(-1, d)
-    blo = lo + los * width
-    bhi = lo + his * width
-    # exact shared faces and the exact root faces
-    blo = torch.where(los == 0, lo.expand_as(blo), blo)
-    bhi = torch.where(his == 1, hi.expand_as(bhi), bhi)
-    depth = torch.full((blo.shape[0],), int(torch.log2(cuts.double()).sum()), dtype=torch.long,
-                       device=lo.device)
-    return Box(blo, bhi, depth)
 
 
 #: rounds in flight before the oldest is merged (1: synchronous rounds). 2 keeps the next
@@ -139,31 +98,6 @@ def split_dimensions(lo: torch.Tensor, hi: torch.Tensor, score: torch.Tensor | N
         norm = ws.amax(-1, keepdim=True)
         s = torch.where(norm > 0, ws / norm.clamp_min(1e-300) + 1e-3 * widths, widths)
     return torch.argmax(s, -1)
-
-
-def split(box: Box, dims: torch.Tensor) -> Box:
-    """Bisect each box along dims [N]; the two halves share the (float) midpoint exactly."""
-    N = len(box)
-    ar = torch.arange(N, device=box.lo.device)
-    mid = 0.5 * (box.lo[ar, dims] + box.hi[ar, dims])
-    lo1, hi1 = box.lo.clone(), box.hi.clone()
-    lo2, hi2 = box.lo.clone(), box.hi.clone()
-    hi1[ar, dims] = mid
-    lo2[ar, dims] = mid
-    depth = box.depth + 1
-    return Box(torch.cat([lo1, lo2]), torch.cat([hi1, hi2]), torch.cat([depth, depth]))
-
-
-class OutOfTime(Exception):
-    """A proof's set-up (before its first round) ran past the deadline of its budget: the
-    proof stops there, UNKNOWN (raised by the set-up steps that read the clock, e.g.
-    `certify.enclose.mpdi.plain_screen_pays`)."""
-
-
-def check_clock(deadline: float | None) -> None:
-    """Raise `OutOfTime` when `deadline` (a `time.perf_counter()` value) has passed."""
-    if deadline is not None and time.perf_counter() > deadline:
-        raise OutOfTime
 
 
 #: a round predicted to take at most this many seconds is evaluated in one call whatever the
@@ -277,6 +211,313 @@ class RoundClock:
         return join(parts)
 
 
+@dataclass(frozen=True)
+class ClosingRule:
+    """When a box closes and when a run stops for its bounds (`branch_and_bound`'s
+    docstring): decision mode with a `threshold`, else maximisation with the tolerances
+    `tol` and `rel_tol` (relaxed to `coarse_after[1]` once `coarse_after[0]` boxes were
+    evaluated); `give_up = (N, level)` and `stop_on_violation` say when to stop early."""
+
+    threshold: float | None = None
+    tol: float = 0.0
+    rel_tol: float = 0.0
+    coarse_after: tuple[int, float] | None = None
+    give_up: tuple[int, float] | None = None
+    stop_on_violation: bool = True
+
+    @property
+    def decision(self) -> bool:
+        return self.threshold is not None
+
+    def level(self, best: float, processed: int) -> float:
+        """Boxes whose bound is at most this close: the threshold, or (maximisation, or a
+        tolerance given) the best value found plus the tolerance in force after `processed`
+        boxes, whichever is higher."""
+        lvl = -math.inf
+        if self.threshold is not None:
+            lvl = self.threshold
+        rt = self.rel_tol
+        if self.coarse_after is not None and processed >= self.coarse_after[0]:
+            rt = max(self.rel_tol, self.coarse_after[1])
+        if self.threshold is None or self.tol > 0 or rt > 0:
+            if math.isfinite(best):
+                lvl = max(lvl, best + max(self.tol, rt * abs(best)))
+        return lvl
+
+
+class Leaves:
+    """The leaves of a run projected onto two coordinates `project` (for the report's
+    figure): lo, hi [k, 2], status (0 proved or closed, 1 violated, 2 unknown) and area;
+    beyond 20 `keep` the smallest closed ones are pruned to 4 `keep` (unknown and violated
+    leaves first), so memory stays bounded however long the run."""
+
+    NAMES = {0: "proved", 1: "violated", 2: "unknown"}
+
+    def __init__(self, project: tuple[int, int] | None, d: int, keep: int) -> None:
+        self.px = list(project) if project is not None and d >= 2 else None
+        self.keep = keep
+        self.lo: list[torch.Tensor] = []
+        self.hi: list[torch.Tensor] = []
+        self.status: list[torch.Tensor] = []
+        self.area: list[torch.Tensor] = []
+
+    def record(self, lo: torch.Tensor, hi: torch.Tensor, status: int) -> None:
+        if self.px is None or len(lo) == 0:
+            return
+        lo2, hi2 = lo[:, self.px], hi[:, self.px]
+        self.lo.append(lo2)
+        self.hi.append(hi2)
+        self.status.append(torch.full((len(lo),), status, dtype=torch.int8, device=lo.device))
+        self.area.append((hi2 - lo2).prod(-1))
+        if sum(len(a) for a in self.area) > 20 * max(self.keep, 1):
+            self.compact(self.keep * 4)
+
+    def compact(self, cap: int) -> None:
+        """Keep the `cap` leaves of largest priority: unknown and violated, then by area."""
+        lo_all, hi_all = torch.cat(self.lo), torch.cat(self.hi)
+        st_all, ar_all = torch.cat(self.status), torch.cat(self.area)
+        pri = ar_all + (st_all > 0).double() * 1e300
+        keep = torch.topk(pri, min(cap, len(pri))).indices
+        self.lo[:] = [lo_all[keep]]
+        self.hi[:] = [hi_all[keep]]
+        self.status[:] = [st_all[keep]]
+        self.area[:] = [ar_all[keep]]
+
+    def result(self) -> dict[str, list]:
+        """The kept leaves (at most `keep`) as lists: {"lo", "hi", "status"}."""
+        if not self.lo:
+            return {"lo": [], "hi": [], "status": []}
+        self.compact(self.keep)
+        return {"lo": self.lo[0].tolist(), "hi": self.hi[0].tolist(),
+                "status": [self.NAMES[int(v)] for v in self.status[0]]}
+
+
+class BranchAndBound:
+    """One run of branch and bound (module docstring; the arguments are `branch_and_bound`'s).
+
+    Its state, all named here and changed only by the methods below:
+    `frontier` (the open boxes), `in_flight` (the rounds dispatched and not merged, oldest
+    first, each with its parents' bounds), `best` and `best_point` (the largest centre value
+    and where), `closed_vol` and `closed_max` (volume fraction and largest bound of the
+    closed boxes), `stuck` and `stuck_max` (boxes set aside at the depth limit),
+    `processed` (boxes evaluated), `max_depth_seen`, `violated`, `cut_short` (a dispatched
+    box was not evaluated in time), `scanned_level` (the frontier holds no box that closes at
+    this level), `give_up` (None once checked), `stages` (the bound's stage counts, summed
+    over merged rounds), `history` and `leaves`.
+
+    `run()` is the loop: merge what the schedule says (`_merge_due`), report, stop
+    (`_stop`), else take a batch, split and dispatch it (`_next_round`); then merge what is
+    in flight and form the outcome (`_outcome`)."""
+
+    def __init__(self, root_lo: torch.Tensor, root_hi: torch.Tensor,
+                 evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], rule: ClosingRule,
+                 *, deadline: float, max_boxes: int, batch: int, first_round: int | None,
+                 max_depth: int, lag: int, progress: Progress, task: str, leaves: Leaves,
+                 executor: Any = None, remote: tuple[Callable[..., BoxEval], Any] | None = None,
+                 box_seconds: float | None = None, t0: float | None = None) -> None:
+        self.t0 = time.perf_counter() if t0 is None else t0
+        self.rule = rule
+        self.evaluate = evaluate
+        self.deadline = deadline
+        self.max_boxes, self.max_depth, self.lag = max_boxes, max_depth, lag
+        self.progress, self.task = progress, task
+        self.root_lo = root_lo.to(torch.float64)
+        self.root_hi = root_hi.to(torch.float64)
+        self.d = self.root_lo.shape[0]
+        self.scale = (self.root_hi - self.root_lo).clamp_min(1e-300)
+        self.root_vol = float(self.scale.prod())
+        self.batch = batch
+        self.first_round = (batch if first_round is None else max(1, min(first_round, batch)))
+
+        self.frontier = Frontier(self.d, device=self.root_lo.device)
+        self.clock = RoundClock(evaluate, deadline, box_seconds)
+        self.rounds = RoundPipeline(self.clock, executor, remote)
+        self.in_flight: deque[tuple[Box, torch.Tensor]] = deque()
+        self.best = -math.inf
+        self.best_point: torch.Tensor | None = None
+        self.closed_max = -math.inf
+        self.closed_vol = 0.0
+        self.processed = 0
+        self.max_depth_seen = 0
+        self.stuck = 0
+        self.stuck_max = -math.inf
+        self.violated = False
+        self.cut_short = False
+        self.scanned_level = -math.inf
+        self.give_up = rule.give_up
+        #: an executor's first round is waited for until at least this time (set when the
+        #: run starts: SETUP_SECONDS_ANYWAY later, as RoundClock evaluates a cheap first
+        #: round in this process whatever the time left); None once it was merged
+        self.first_wait: float | None = None
+        self.stages: dict[str, dict[str, int]] = {}
+        self.history: list[list[float]] = [[0.0, 0.0]]
+        self.last_report = self.t0
+        self.leaves = leaves
+
+    # ---- the run
+    def run(self, seeds: Box | None = None) -> BnBOutcome:
+        self.progress.start(self.task, total=1.0)
+        if seeds is not None and len(seeds) > 0:
+            self._evaluate_seeds(seeds)
+        self.first_wait = time.perf_counter() + SETUP_SECONDS_ANYWAY
+        first = initial_grid(self.root_lo, self.root_hi, self.first_round)
+        self._dispatch(first, torch.full((len(first),), math.nan, dtype=torch.float64,
+                                         device=self.root_lo.device))  # the root: no bound
+        budget_hit = False
+        try:
+            while True:
+                self._merge_due()
+                now = time.perf_counter()
+                if now - self.last_report > 0.25:
+                    self._report(now)
+                stop = self._stop(now)
+                if stop is not None:
+                    budget_hit = stop == "budget"
+                    break
+                self._next_round()
+            while self.in_flight:  # stopped: merge what was dispatched (the bound covers it)
+                self._merge()
+        finally:
+            self.rounds.cancel()
+        return self._outcome(budget_hit)
+
+    def _evaluate_seeds(self, seeds: Box) -> None:
+        """Falsification points first (degenerate boxes give exact centre values)."""
+        ev = self.evaluate(seeds.lo, seeds.hi)
+        self._update_best(ev, seeds)
+        if self._violation():
+            self.violated = True
+
+    def _merge_due(self) -> None:
+        """Merge the oldest round while `lag` rounds are in flight, while the frontier cannot
+        fill a batch, and (to stop) after a violation: a function of the merged results
+        only, so every executor runs the same schedule."""
+        while self.in_flight and (len(self.in_flight) >= self.lag
+                                  or len(self.frontier) < self.batch or self.violated):
+            self._merge()
+
+    def _report(self, now: float) -> None:
+        self.history.append([now - self.t0, self.closed_vol])
+        self.progress.update(self.task, 0.0, proved=self.closed_vol, boxes=self.processed)
+        self.last_report = now
+
+    def _stop(self, now: float) -> str | None:
+        """"done" (nothing open, or a violation), "budget" (time, boxes, a round cut short,
+        or `give_up`), else None."""
+        if len(self.frontier) == 0 or self.violated:
+            return "done"
+        if (now > self.deadline or self.cut_short or self.clock.expired
+                or self.processed >= self.max_boxes):
+            return "budget"
+        if self.give_up is not None and self.processed >= self.give_up[0]:
+            if max(self.closed_max, self.frontier.open_max(), self.stuck_max) > self.give_up[1]:
+                return "budget"
+            self.give_up = None  # checked once
+        return None
+
+    def _next_round(self) -> None:
+        """The boxes to refine: the worst ones; in decision mode half of the batch is the
+        boxes nearest to closing instead, so that a budgeted run closes regions early while
+        the worst boxes (counterexamples) are still refined. Bisected and dispatched."""
+        lo, hi, depth, wscore, ub = self.frontier.take(self.batch, self.rule.decision,
+                                                       with_upper=True)
+        kids = split(Box(lo, hi, depth), split_dimensions(lo, hi, wscore, self.scale))
+        self.max_depth_seen = max(self.max_depth_seen, int(kids.depth.max()))
+        self._dispatch(kids, torch.cat([ub, ub]))  # split() puts the first halves first
+
+    def _dispatch(self, box: Box, parent_upper: torch.Tensor) -> None:
+        self.rounds.dispatch(box.lo, box.hi)
+        self.in_flight.append((box, parent_upper))
+        self.processed += len(box)
+
+    def _merge(self) -> None:
+        """The oldest round in flight: best point, violation, then its boxes closed, set
+        aside (too deep) or added to the frontier, in order. A box its round did not
+        evaluate in time keeps its parent's bound and is not counted as processed."""
+        box, parent_upper = self.in_flight.popleft()
+        wait = self.deadline
+        if self.first_wait is not None:
+            wait, self.first_wait = max(self.deadline, self.first_wait), None
+        ev = self.rounds.collect(wait)
+        if ev is None:  # an executor's round not back by the deadline (cancelled)
+            ev = unevaluated(len(box), self.d, self.root_lo.device)
+        add_counts(self.stages, ev.counts)
+        if ev.done is not None and not bool(ev.done.all()):
+            skipped = ~ev.done
+            self.processed -= int(skipped.sum())
+            self.cut_short = True
+            ev = BoxEval(upper=torch.where(skipped, parent_upper, ev.upper),
+                         centre_value=ev.centre_value, score=ev.score)
+        self._update_best(ev, box)
+        if self._violation():
+            self.violated = True
+        lvl = self.rule.level(self.best, self.processed)
+        if lvl > self.scanned_level:  # the level rose (maximisation): open boxes may close
+            shut = self.frontier.close(lvl)
+            if shut is not None:
+                self._close(*shut)
+            self.scanned_level = lvl
+        ub = ev.upper
+        shut = (ub <= lvl) & (ub < math.inf)  # NaN compares False: stays open
+        self._close(box.lo[shut], box.hi[shut], ub[shut])
+        deep = ~shut & (box.depth >= self.max_depth)
+        if bool(deep.any()):  # cannot be split further: set aside as UNKNOWN
+            self.stuck += int(deep.sum())
+            self.stuck_max = max(self.stuck_max,
+                                 float(torch.nan_to_num(ub[deep], nan=math.inf).max()))
+            self.leaves.record(box.lo[deep], box.hi[deep], 2)
+        keep = ~shut & ~deep
+        self.frontier.add(box.lo[keep], box.hi[keep], box.depth[keep], ub[keep],
+                          ev.score[keep] if ev.score is not None else None)
+
+    def _violation(self) -> bool:
+        """A centre value above the threshold, in a run that stops on one."""
+        return (self.rule.threshold is not None and self.best > self.rule.threshold
+                and self.rule.stop_on_violation)
+
+    def _update_best(self, ev: BoxEval, box: Box) -> None:
+        cv = torch.nan_to_num(ev.centre_value, nan=-math.inf)
+        if len(cv) == 0:
+            return
+        i = int(torch.argmax(cv))
+        if float(cv[i]) > self.best:
+            self.best = float(cv[i])
+            self.best_point = box.centre[i].clone()
+
+    def _close(self, lo: torch.Tensor, hi: torch.Tensor, ub: torch.Tensor) -> None:
+        if len(lo):
+            self.closed_vol += float((hi - lo).prod(-1).sum()) / self.root_vol
+            self.closed_max = max(self.closed_max, float(ub.max()))
+            self.leaves.record(lo, hi, 0)
+
+    def _outcome(self, budget_hit: bool) -> BnBOutcome:
+        budget_exhausted = budget_hit and len(self.frontier) > 0
+        elapsed = time.perf_counter() - self.t0
+        self.history.append([elapsed, self.closed_vol])
+        upper = max(self.closed_max, self.frontier.open_max(), self.stuck_max)
+        complete = len(self.frontier) == 0 and self.stuck == 0 and not self.violated
+        if len(self.frontier):
+            self.leaves.record(*self.frontier.boxes(), 2)
+        if self.violated and self.best_point is not None:
+            self.leaves.record(self.best_point[None], self.best_point[None], 1)
+        stats = ProofStats(
+            boxes_processed=self.processed,
+            boxes_per_second=self.processed / max(elapsed, 1e-9),
+            seconds=elapsed,
+            proved_volume_fraction=min(self.closed_vol, 1.0),
+            max_depth=self.max_depth_seen,
+            budget_exhausted=budget_exhausted,
+            rounding=ROUNDING,
+            volume_history=_thin(self.history, 200),
+            stages=self.stages,
+        )
+        self.progress.finish(self.task, f"{self.processed} boxes, {self.closed_vol:.4f} of the "
+                             "volume closed")
+        return BnBOutcome(upper=upper, lower=self.best, best_point=self.best_point,
+                          violated=self.violated, complete=complete, stats=stats,
+                          leaves=self.leaves.result(), stuck=self.stuck)
+
+
 def branch_and_bound(
     root_lo: torch.Tensor,
     root_hi: torch.Tensor,
@@ -304,7 +545,8 @@ def branch_and_bound(
     started: float | None = None,
     box_seconds: float | None = None,
 ) -> BnBOutcome:
-    """Sound upper bound of max f over [root_lo, root_hi] [d], refining the worst boxes first.
+    """Sound upper bound of max f over [root_lo, root_hi] [d], refining the worst boxes first
+    (one `BranchAndBound` run).
 
     Decision mode (`threshold` given): boxes with upper <= threshold close as proved; a
     centre value > threshold is a violation (stops when `stop_on_violation`). Maximisation
@@ -324,218 +566,23 @@ def branch_and_bound(
     `first_round`: the root is first split into about that many equal boxes
     (default and at most `batch`). `executor` / `remote`: where each round's children are
     evaluated; `lag`: rounds in flight before the oldest is merged (module docstring). The
-    outcome depends on `lag` and the budgets, not on the executor.
+    outcome depends on `lag` and the budgets, not on the executor. `keep_leaves` and
+    `project`: the leaves kept for the report (`Leaves`). The evaluations' stage counts
+    (`BoxEval.counts`) are summed over the merged rounds into `stats.stages`.
     """
-    progress = progress or NullProgress()
     t0 = time.perf_counter()
     deadline = (t0 if started is None else started) + seconds
     if remote is not None and executor is not None:
         from certify.search.distributed.executor import round_batch
 
         batch = round_batch(executor, batch)  # rounds sized to the workers
-    root_lo = root_lo.to(torch.float64)
-    root_hi = root_hi.to(torch.float64)
-    d = root_lo.shape[0]
-    scale = (root_hi - root_lo).clamp_min(1e-300)
-    root_vol = float(scale.prod())
-    progress.start(task, total=1.0)
-
-    best = -math.inf
-    best_point: torch.Tensor | None = None
-    closed_max = -math.inf
-    closed_vol = 0.0
-    processed = 0
-    max_seen_depth = 0
-    history: list[list[float]] = [[0.0, 0.0]]
-    violated = False
-    stuck_count = 0
-    stuck_max = -math.inf
-    leaves_lo: list[torch.Tensor] = []
-    leaves_hi: list[torch.Tensor] = []
-    leaves_st: list[torch.Tensor] = []  # 0 proved/closed, 1 violated, 2 unknown
-    leaves_area: list[torch.Tensor] = []
-    px = list(project) if project is not None and d >= 2 else None
-
-    def record(lo: torch.Tensor, hi: torch.Tensor, status: int) -> None:
-        if px is None or len(lo) == 0:
-            return
-        lo2, hi2 = lo[:, px], hi[:, px]
-        leaves_lo.append(lo2)
-        leaves_hi.append(hi2)
-        leaves_st.append(torch.full((len(lo),), status, dtype=torch.int8, device=lo.device))
-        leaves_area.append((hi2 - lo2).prod(-1))
-        # keep memory bounded: prune the smallest proved leaves beyond 20x the cap
-        if sum(len(a) for a in leaves_area) > 20 * max(keep_leaves, 1):
-            _compact(keep_leaves * 4)
-
-    def _compact(cap: int) -> None:
-        lo_all, hi_all = torch.cat(leaves_lo), torch.cat(leaves_hi)
-        st_all, ar_all = torch.cat(leaves_st), torch.cat(leaves_area)
-        pri = ar_all + (st_all > 0).double() * 1e300
-        keep = torch.topk(pri, min(cap, len(pri))).indices
-        leaves_lo[:] = [lo_all[keep]]
-        leaves_hi[:] = [hi_all[keep]]
-        leaves_st[:] = [st_all[keep]]
-        leaves_area[:] = [ar_all[keep]]
-
-    def update_best(ev: BoxEval, box: Box) -> None:
-        nonlocal best, best_point
-        cv = torch.nan_to_num(ev.centre_value, nan=-math.inf)
-        if len(cv) == 0:
-            return
-        i = int(torch.argmax(cv))
-        if float(cv[i]) > best:
-            best = float(cv[i])
-            best_point = box.centre[i].clone()
-
-    def closing_level() -> float:
-        lvl = -math.inf
-        if threshold is not None:
-            lvl = threshold
-        rt = rel_tol
-        if coarse_after is not None and processed >= coarse_after[0]:
-            rt = max(rel_tol, coarse_after[1])
-        if threshold is None or tol > 0 or rt > 0:
-            if math.isfinite(best):
-                lvl = max(lvl, best + max(tol, rt * abs(best)))
-        return lvl
-
-    def close(lo: torch.Tensor, hi: torch.Tensor, ub: torch.Tensor) -> None:
-        nonlocal closed_vol, closed_max
-        if len(lo):
-            closed_vol += float((hi - lo).prod(-1).sum()) / root_vol
-            closed_max = max(closed_max, float(ub.max()))
-            record(lo, hi, 0)
-
-    # seeds: falsification points first (degenerate boxes give exact centre values)
-    if seeds is not None and len(seeds) > 0:
-        ev = evaluate(seeds.lo, seeds.hi)
-        update_best(ev, seeds)
-        if threshold is not None and best > threshold and stop_on_violation:
-            violated = True
-
-    frontier = Frontier(d, device=root_lo.device)
-    clock = RoundClock(evaluate, deadline, box_seconds)
-    rounds = RoundPipeline(clock, executor, remote)
-    # the boxes of each round in flight, oldest first, with their parents' bounds
-    in_flight: deque[tuple[Box, torch.Tensor]] = deque()
-    scanned_level = -math.inf  # the frontier holds no box closed at this level
-    cut_short = False  # some dispatched box was not evaluated in time
-    # an executor's first round is waited for at least SETUP_SECONDS_ANYWAY (as RoundClock
-    # evaluates a cheap first round in this process whatever the time left)
-    first_wait = [time.perf_counter() + SETUP_SECONDS_ANYWAY]
-
-    def dispatch(box: Box, parent_upper: torch.Tensor) -> None:
-        nonlocal processed
-        rounds.dispatch(box.lo, box.hi)
-        in_flight.append((box, parent_upper))
-        processed += len(box)
-
-    def merge() -> None:
-        """The oldest round in flight: best point, violation, then its boxes closed, set
-        aside (too deep) or added to the frontier, in order. A box its round did not
-        evaluate in time keeps its parent's bound and is not counted as processed."""
-        nonlocal violated, scanned_level, stuck_count, stuck_max, processed, cut_short
-        box, parent_upper = in_flight.popleft()
-        ev = rounds.collect(max(deadline, first_wait.pop()) if first_wait else deadline)
-        if ev is None:  # an executor's round not back by the deadline (cancelled)
-            ev = unevaluated(len(box), d, root_lo.device)
-        if ev.done is not None and not bool(ev.done.all()):
-            skipped = ~ev.done
-            processed -= int(skipped.sum())
-            cut_short = True
-            ev = BoxEval(upper=torch.where(skipped, parent_upper, ev.upper),
-                         centre_value=ev.centre_value, score=ev.score)
-        update_best(ev, box)
-        if threshold is not None and best > threshold and stop_on_violation:
-            violated = True
-        lvl = closing_level()
-        if lvl > scanned_level:  # the level rose (maximisation): open boxes may close now
-            shut = frontier.close(lvl)
-            if shut is not None:
-                close(*shut)
-            scanned_level = lvl
-        ub = ev.upper
-        shut = (ub <= lvl) & (ub < math.inf)  # NaN compares False: stays open
-        close(box.lo[shut], box.hi[shut], ub[shut])
-        deep = ~shut & (box.depth >= max_depth)
-        if bool(deep.any()):  # cannot be split further: set aside as UNKNOWN
-            stuck_count += int(deep.sum())
-            stuck_max = max(stuck_max, float(torch.nan_to_num(ub[deep], nan=math.inf).max()))
-            record(box.lo[deep], box.hi[deep], 2)
-        keep = ~shut & ~deep
-        frontier.add(box.lo[keep], box.hi[keep], box.depth[keep], ub[keep],
-                     ev.score[keep] if ev.score is not None else None)
-
-    first = initial_grid(root_lo, root_hi, batch if first_round is None
-                         else max(1, min(first_round, batch)))
-    dispatch(first, torch.full((len(first),), math.nan, dtype=torch.float64,
-                               device=root_lo.device))  # the root has no bound
-    budget_hit = False
-    last_report = t0
-    try:
-        while True:
-            # merge the oldest round while `lag` rounds are in flight, while the frontier
-            # cannot fill a batch, and (to stop) after a violation: a function of the
-            # merged results only, so every executor runs the same schedule
-            while in_flight and (len(in_flight) >= lag or len(frontier) < batch or violated):
-                merge()
-            now = time.perf_counter()
-            if now - last_report > 0.25:
-                history.append([now - t0, closed_vol])
-                progress.update(task, 0.0, proved=closed_vol, boxes=processed)
-                last_report = now
-            if len(frontier) == 0 or violated:
-                break
-            if now > deadline or cut_short or clock.expired or processed >= max_boxes:
-                budget_hit = True
-                break
-            if give_up is not None and processed >= give_up[0]:
-                if max(closed_max, frontier.open_max(), stuck_max) > give_up[1]:
-                    budget_hit = True
-                    break
-                give_up = None  # checked once
-            # the boxes to refine: the worst ones; in decision mode half of the batch is the
-            # boxes nearest to closing instead, so that a budgeted run closes regions early
-            # while the worst boxes (counterexamples) are still refined
-            lo, hi, depth, wscore, ub = frontier.take(batch, threshold is not None,
-                                                      with_upper=True)
-            kids = split(Box(lo, hi, depth), split_dimensions(lo, hi, wscore, scale))
-            max_seen_depth = max(max_seen_depth, int(kids.depth.max()))
-            dispatch(kids, torch.cat([ub, ub]))  # split() puts the first halves first
-        while in_flight:  # stopped: merge what was dispatched (the bound covers it all)
-            merge()
-    finally:
-        rounds.cancel()
-    budget_exhausted = budget_hit and len(frontier) > 0
-
-    elapsed = time.perf_counter() - t0
-    history.append([elapsed, closed_vol])
-    upper = max(closed_max, frontier.open_max(), stuck_max)
-    complete = len(frontier) == 0 and stuck_count == 0 and not violated
-    if len(frontier):
-        record(*frontier.boxes(), 2)
-    if violated and best_point is not None:
-        record(best_point[None], best_point[None], 1)
-    leaves: dict[str, list] = {"lo": [], "hi": [], "status": []}
-    if leaves_lo:
-        _compact(keep_leaves)
-        names = {0: "proved", 1: "violated", 2: "unknown"}
-        leaves = {"lo": leaves_lo[0].tolist(), "hi": leaves_hi[0].tolist(),
-                  "status": [names[int(v)] for v in leaves_st[0]]}
-    stats = ProofStats(
-        boxes_processed=processed,
-        boxes_per_second=processed / max(elapsed, 1e-9),
-        seconds=elapsed,
-        proved_volume_fraction=min(closed_vol, 1.0),
-        max_depth=max_seen_depth,
-        budget_exhausted=budget_exhausted,
-        rounding=ROUNDING,
-        volume_history=_thin(history, 200),
-    )
-    progress.finish(task, f"{processed} boxes, {closed_vol:.4f} of the volume closed")
-    return BnBOutcome(upper=upper, lower=best, best_point=best_point, violated=violated,
-                      complete=complete, stats=stats, leaves=leaves, stuck=stuck_count)
+    rule = ClosingRule(threshold, tol, rel_tol, coarse_after, give_up, stop_on_violation)
+    run = BranchAndBound(root_lo, root_hi, evaluate, rule, deadline=deadline,
+                         max_boxes=max_boxes, batch=batch, first_round=first_round,
+                         max_depth=max_depth, lag=lag, progress=progress or NullProgress(),
+                         task=task, leaves=Leaves(project, root_lo.shape[0], keep_leaves),
+                         executor=executor, remote=remote, box_seconds=box_seconds, t0=t0)
+    return run.run(seeds)
 
 
 def _thin(history: list[list[float]], cap: int) -> list[list[float]]:

@@ -3,7 +3,8 @@
 `BoxEval` is the contract between the branch-and-bound driver (`certify.search.bnb`), the
 rounds in flight (`certify.search.rounds`) and every bound that evaluates boxes (the MPDI and
 side proofs in `certify.prove`): per box a sound upper bound, a float value at the centre,
-an optional split score and which boxes were evaluated at all.
+an optional split score, which boxes were evaluated at all and the statistics of the
+bound's stages.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["BoxEval", "join"]
+__all__ = ["BoxEval", "add_counts", "join"]
 
 
 @dataclass
@@ -25,7 +26,19 @@ class BoxEval:
     #: [N] bool: which boxes were evaluated (None: all). A box not evaluated (its round ran
     #: out of time, `RoundClock`) has upper and centre_value NaN and score 0
     done: torch.Tensor | None = None
+    #: statistics of the bound's stages over these boxes, name -> {count name -> int}
+    #: (`certify.enclose.mpdi.BoxBounds.counts`; None: the bound has no stages)
+    counts: dict[str, dict[str, int]] | None = None
 
+
+def add_counts(total: dict[str, dict[str, int]], more: dict[str, dict[str, int]] | None
+               ) -> dict[str, dict[str, int]]:
+    """`total` with `more`'s counts added, name by name (in place; also returned)."""
+    for name, cs in (more or {}).items():
+        into = total.setdefault(name, {})
+        for k, v in cs.items():
+            into[k] = into.get(k, 0) + int(v)
+    return total
 
 
 def join(parts: list[BoxEval]) -> BoxEval:
@@ -44,6 +57,11 @@ def join(parts: list[BoxEval]) -> BoxEval:
         score = torch.cat([p.score if p.score is not None
                            else torch.zeros(len(p.upper), d, dtype=torch.float64,
                                             device=p.upper.device) for p in parts])
+    counts = None
+    if any(p.counts is not None for p in parts):
+        counts = {}
+        for p in parts:
+            add_counts(counts, p.counts)
     return BoxEval(upper=torch.cat([p.upper for p in parts]),
                    centre_value=torch.cat([p.centre_value for p in parts]), score=score,
-                   done=done)
+                   done=done, counts=counts)

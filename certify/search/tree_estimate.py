@@ -31,7 +31,8 @@ from dataclasses import dataclass
 
 import torch
 
-from certify.search.bnb import Box, initial_grid, split, split_dimensions
+from certify.arith.boxes import Box, initial_grid, split
+from certify.search.bnb import split_dimensions
 from certify.search.evaluation import BoxEval
 
 

@@ -1,13 +1,11 @@
-"""How a box that did not close is split: a score per dimension, by one of three rules
-(issue 9). Only the choice of split depends on it, never soundness.
+"""How a box that did not close is split: a score per dimension, by one of three rules.
+Only the choice of split depends on it, never soundness.
 
-Measured against the best of all d bisections (children closed per split, boxes of radius
-1/16 of the root): on the 2x10 4-state chain "sensitivity" 1.02, "taylor" 0.93, "widest" 0.81
-(best 1.08); on the 2x10 Van der Pol instance, on boxes with some sides already halved,
-"widest" 1.61, "taylor" 0.75, "sensitivity" 0.65 (best 1.66). In whole proofs the rule
-changed the box count by under 3% on both (n=4: 402k "sensitivity" vs 400k "taylor"; n=2:
-1828 "widest" vs 1870), and probing for the rule per problem cost more than it saved, so
-the prover uses the default; the others stay selectable (`mpdi_box_bounds(split_rule=...)`).
+Against the best of all d bisections each rule wins on some families and loses on others,
+but in whole proofs the rule changed the box count only a little (`bench/prove_suite.py`),
+and probing for the rule per problem cost more than it saved, so the prover uses the
+default, "sensitivity"; the others stay selectable
+(`certify.enclose.options.box_bound_options(split_rule=...)`).
 """
 
 from __future__ import annotations
