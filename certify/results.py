@@ -117,6 +117,8 @@ class ResidualResult:
     structural: bool = False  # zero by construction of the architecture
     worst: list[float] | None = None
     seconds: float = 0.0
+    #: sound upper bound of sup_X ||P^(1/2) k(x, h(x))|| (None: not established)
+    upper_P: float | None = None
 
 
 @dataclass
@@ -138,6 +140,12 @@ class LipschitzResult:
     seconds: float = 0.0
     # the same constants for P^(1/2) k (the sharper ISS variant)
     lipsdp_P: float | None = None
+    #: L_P: a sound bound on the Lipschitz constant of P^(1/2) k in y, the smaller of the
+    #: metric-weighted LipSDP (global) and the local branch and bound of ||P^(1/2) dk/dy||
+    L_P: float | None = None
+    L_P_which: str = ""  # "lipsdp" | "local" | "" (not established)
+    #: the local sup over X x Y of ||P^(1/2) dk/dy||_2 (None: not run or not closed)
+    local_upper_P: float | None = None
 
 
 @dataclass
@@ -207,6 +215,43 @@ class BoundsResult:
     box_half_diagonal: float | None = None
     #: the best proved ultimate bound exceeds `box_half_diagonal`: valid but vacuous
     vacuous: bool = False
+    #: the joint dissipation bound (`certify.checks.dissipation`): V' <= -alpha V + mu |v|^2
+    dissipation: BoundResult | None = None
+    #: the headline, from the applicable bound with the smallest ultimate value (`best`):
+    #: ||e(t)|| <= `headline` for every t >= `settle_time` from any start with x, xhat in X,
+    #: and |e_i(t)| <= `per_component`[i] * `headline` / `ultimate` likewise
+    best: str = ""
+    ultimate: float | None = None  # the limit of the best bound as t -> infinity
+    headline: float | None = None  # ultimate * HEADLINE_MARGIN: reached at settle_time
+    settle_time: float | None = None
+    per_component: list[float] | None = None  # ultimate bounds on |e_i|, i = 1..n
+
+    def bounds(self) -> list[BoundResult]:
+        """Every bound computed, applicable or not, in a fixed order."""
+        return [b for b in (self.theorem3, self.iss, self.iss_metric, self.dissipation)
+                if b is not None]
+
+
+@dataclass
+class DissipationResult:
+    """The joint dissipation certificate: with V = e^T P e, the proved inequality
+    V' <= -alpha V + mu ||v||^2 (+ mu_residual eps_bar^2 for a direct gain), so that
+    V -> at most (mu vbar^2 + mu_residual eps_bar^2) / alpha.
+
+    `vertices` counts the vertices of the enclosure of dk/dy over X x Y for which the
+    inequality was proved; `candidates` records each (alpha, mu) tried, with the sampled
+    bound it aimed at and the prover's verdict (dicts with keys alpha, mu, bound, status)."""
+
+    status: Status
+    message: str
+    alpha: float | None = None
+    mu: float | None = None
+    mu_residual: float | None = None
+    eps_bar: float | None = None
+    vertices: int = 0
+    candidates: list[dict] = field(default_factory=list)
+    boxes: int = 0
+    seconds: float = 0.0
 
 
 @dataclass

@@ -33,10 +33,13 @@ from certify.checks.base import Check, Context
 from certify.errors import SettingsError
 from certify.model.problem import Problem
 from certify.presentation import Presentation, Quantity
-from certify.results import BoundResult, BoundsResult, Status
+from certify.results import BoundResult, BoundsResult, DissipationResult, Status
 
 #: Names accepted by `bound_curve`.
-BOUND_NAMES = ("theorem3", "iss", "iss_metric")
+BOUND_NAMES = ("theorem3", "iss", "iss_metric", "dissipation")
+#: The headline bound is the best ultimate bound times this margin, reached at `settle_time`
+#: from the worst start in X (the bound approaches its ultimate value only as t -> infinity).
+HEADLINE_MARGIN = 1.1
 
 # Relative outward nudge on every computed constant: the formulas are a handful of float64
 # operations (relative error a few ulp); 1e-12 covers them with a wide margin.
@@ -162,9 +165,113 @@ def validity_conditions(problem: Problem, *, vbar: float, L_is_local: bool,
     return cond
 
 
+def _dissipation_bound(d: DissipationResult | None, vbar: float, lam_min: float
+                       ) -> BoundResult | None:
+    """The bound of a proved dissipation inequality V' <= -alpha V + mu ||v||^2
+    (+ mu_r eps_bar^2): V(t) <= e^(-alpha t) V(0) + (1 - e^(-alpha t)) V_inf with
+    V_inf = (mu vbar^2 + mu_r eps_bar^2) / alpha, and ||e|| <= sqrt(V / lam_min(P))."""
+    if d is None:
+        return None
+    formula = ("||e(t)|| <= sqrt((e^(-alpha t) W0^2 + (1 - e^(-alpha t)) (mu vbar^2 + mu_r "
+               "eps_bar^2)/alpha) / lam_min(P)), W0 = ||P^(1/2) e0|| (joint dissipation "
+               "certificate in [e; v])")
+    if d.status != Status.PROVED or d.alpha is None or d.mu is None:
+        return _not_applicable("dissipation", formula, f"not proved ({d.message})")
+    if not lam_min > 0:
+        return _not_applicable("dissipation", formula, "P is not numerically positive definite")
+    noise = _up(_up(d.mu * vbar) * vbar)
+    if d.mu_residual:
+        eps = d.eps_bar if d.eps_bar is not None else math.inf
+        noise = _up(noise + _up(_up(d.mu_residual * eps) * eps))
+    s = math.sqrt(lam_min) * (1.0 - _NUDGE)
+    w_inf = _up(math.sqrt(_up(noise / (d.alpha * (1.0 - _NUDGE)))))
+    return BoundResult(
+        name="dissipation", applicable=math.isfinite(w_inf),
+        reason=(f"proved V' <= -{d.alpha:.6g} V + {d.mu:.6g} ||v||^2"
+                + (f" + {d.mu_residual:.6g} eps_bar^2" if d.mu_residual else "")
+                + " over X x Y (valid while y + v stays in Y)"),
+        rate=float(d.alpha), gain=_up(1.0 / s), bias=_up(w_inf / s),
+        bias_per_unit_noise=_up(math.sqrt(_up(d.mu / d.alpha)) / s), formula=formula)
+
+
+def inverse_diagonal_upper(P: np.ndarray) -> np.ndarray:
+    """Sound upper bounds on the diagonal of P^-1 [n] (P symmetric positive definite).
+
+    With X ~ P^-1 from a solve and R = P X - I evaluated with an error bound, P^-1 = X -
+    P^-1 R, so (P^-1)_ii <= X_ii + ||R e_i|| / lam_min(P) (rounded up, lam_min rounded down
+    by `metric_constants`)."""
+    P = np.asarray(P, dtype=np.float64)
+    n = P.shape[0]
+    lam_min = metric_constants(P)[0]
+    if not lam_min > 0:
+        return np.full(n, np.inf)
+    X = np.linalg.solve(P, np.eye(n))
+    R = P @ X - np.eye(n)
+    eps = np.finfo(np.float64).eps
+    err = (n + 2) * eps * (np.abs(P) @ np.abs(X) + 1.0)  # |fl(R) - R| elementwise, widened
+    col = np.sqrt(((np.abs(R) + err) ** 2).sum(0)) * (1 + 4 * eps)
+    return np.array([_up(_up(X[i, i]) + _up(col[i] / lam_min)) for i in range(n)])
+
+
+def worst_start(bound: BoundResult, P: np.ndarray, X: np.ndarray) -> float:
+    """The largest start value of `bound` over starts with x and xhat in the box X [n, 2]:
+    e0 in [-w, w] (w the widths), so ||e0|| <= ||w|| and max e0^T P e0 is attained at a
+    vertex of that box (a convex function; 2^(n-1) sign patterns, n <= 16)."""
+    w = np.asarray(X, dtype=np.float64)[:, 1] - np.asarray(X, dtype=np.float64)[:, 0]
+    if bound.name == "theorem3":
+        return _up(float(np.linalg.norm(w)))
+    n = w.shape[0]
+    if n > 16:
+        return _up(float(np.linalg.norm(w)) * math.sqrt(metric_constants(P)[1] ** 2))
+    signs = np.array([[1.0] + [1.0 - 2.0 * ((k >> j) & 1) for j in range(n - 1)]
+                      for k in range(2 ** (n - 1))])
+    v = signs * w
+    quad = np.einsum("ki,ij,kj->k", v, np.asarray(P, dtype=np.float64), v)
+    return _up(math.sqrt(_up(float(quad.max()))))
+
+
+def settle_time(bounds: BoundsResult, which: str, start: float, level: float) -> float:
+    """The first time t >= 0 after which `bound_curve(bounds, which, start, t)` <= `level`
+    (the curves decrease monotonically towards the ultimate value, so one crossing), found
+    by bisection to a relative 1e-6 and rounded up; 0 when it starts below."""
+    def at(t: float) -> float:
+        return float(bound_curve(bounds, which, start, np.array([t]))[0])
+    if at(0.0) <= level:
+        return 0.0
+    hi = 1.0
+    while at(hi) > level:
+        hi *= 2.0
+        if hi > 1e12:
+            return math.inf
+    lo = 0.0
+    while hi - lo > 1e-6 * hi:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if at(mid) > level else (lo, mid)
+    return hi
+
+
+def _headline(r: BoundsResult, P: np.ndarray, X: np.ndarray) -> None:
+    """Fill `best`, `ultimate`, `headline`, `settle_time` and `per_component` of `r` from its
+    applicable bound with the smallest ultimate value (in place)."""
+    applicable = [b for b in r.bounds() if b.applicable and b.bias is not None]
+    if not applicable:
+        return
+    best = min(applicable, key=lambda b: float(b.bias))  # type: ignore[arg-type]
+    r.best, r.ultimate = best.name, float(best.bias)  # type: ignore[arg-type]
+    r.headline = _up(HEADLINE_MARGIN * r.ultimate)
+    r.settle_time = settle_time(r, best.name, worst_start(best, P, X), r.headline)
+    if best.name == "theorem3":
+        r.per_component = [r.ultimate] * P.shape[0]
+    else:  # |e_i| <= W sqrt((P^-1)_ii), W <= bias sqrt(lam_min) <= bias / gain
+        w_inf = _up(r.ultimate / float(best.gain) * (1 + _NUDGE))  # type: ignore[arg-type]
+        r.per_component = [min(r.ultimate, _up(w_inf * math.sqrt(d)))
+                           for d in inverse_diagonal_upper(P)]
+
+
 def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | None,
                  L: float | None, vbar: float, eps_bar_P: float | None = None,
-                 L_P: float | None = None, L_is_local: bool = False) -> BoundsResult:
+                 L_P: float | None = None, L_is_local: bool = False,
+                 dissipation: DissipationResult | None = None) -> BoundsResult:
     """Theorem 3 (as stated), the ISS bound and its metric variant at noise level `vbar`.
 
     All inputs must be sound: `lam_cert` a proved lower bound on the rate (metric
@@ -243,33 +350,36 @@ def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | N
     if iss.applicable:
         c = sqrtP_norm * (eps + Lf * vbar)  # type: ignore[operator]
     validity = validity_conditions(problem, vbar=vbar, L_is_local=L_is_local, c=c, lam=lam)
+    joint = _dissipation_bound(dissipation, vbar, lam_min)
 
     half_diagonal = box_half_diagonal(problem)
-    vacuous = False
-    if iss.applicable:
-        assert lam is not None
-        applicable = [b for b in (theorem3, iss, iss_metric) if b.applicable]
-        best = min(applicable, key=lambda b: float(b.bias or 0.0))
+    r = BoundsResult(status=Status.SKIPPED, message="", vbar=vbar, lam_cert=lam, eps_bar=eps,
+                     L=Lf, theorem3=theorem3, iss=iss, iss_metric=iss_metric,
+                     validity=validity, kappa_P=kappa, L_is_local=bool(L_is_local),
+                     box_half_diagonal=half_diagonal, dissipation=joint)
+    applicable = [b for b in r.bounds() if b.applicable]
+    if applicable:
+        _headline(r, P, np.asarray(problem.system.X, dtype=np.float64))
+        assert r.ultimate is not None and r.headline is not None
+        r.vacuous = r.ultimate > half_diagonal
         t3 = (f"applicable, ultimate bound {theorem3.bias:.4g}" if theorem3.applicable
               else f"not applicable ({theorem3.reason})")
-        vacuous = float(best.bias or 0.0) > half_diagonal
-        size = (f"; valid but vacuous: larger than the box, whose half-diagonal is "
-                f"{half_diagonal:.4g}" if vacuous else "")
-        status = Status.PROVED
-        msg = (f"error bound proved at vbar = {vbar:g}: the error contracts at rate "
-               f"2 lam_cert = {2 * lam:.4g} in the P-norm; ultimate bound on ||e|| "
-               f"{best.bias:.4g} ({best.name}{size}); Theorem 3 as stated: {t3}. Valid only "
-               "under conditions (a)-(d).")
-    elif no_rate and not [r for r in invalid if not r.startswith("lam_cert")]:
-        status = Status.NOT_APPLICABLE
-        msg = "no error bound exists: " + "; ".join(common)
+        size = (f"valid but vacuous: larger than the box, whose half-diagonal is "
+                f"{half_diagonal:.4g}"
+                if r.vacuous else f"useful: the box's half-diagonal is {half_diagonal:.4g}")
+        parts = ", ".join(f"{b.name} {b.bias:.4g}" for b in applicable)
+        r.status = Status.PROVED
+        r.message = (f"||e|| <= {r.headline:.4g} for noise <= {vbar:g} after t >= "
+                     f"{r.settle_time:.3g} s ({size}); ultimate bounds: {parts}; per "
+                     f"component |e_i| <= " + ", ".join(f"{v:.3g}" for v in r.per_component or [])
+                     + f"; Theorem 3 as stated: {t3}. Valid only under conditions (a)-(d).")
+    elif no_rate and not [x for x in invalid if not x.startswith("lam_cert")]:
+        r.status = Status.NOT_APPLICABLE
+        r.message = "no error bound exists: " + "; ".join(common)
     else:
-        status = Status.UNKNOWN if invalid else Status.SKIPPED
-        msg = "no error bound: " + "; ".join(common)
-    return BoundsResult(status=status, message=msg, vbar=vbar, lam_cert=lam, eps_bar=eps, L=Lf,
-                        theorem3=theorem3, iss=iss, iss_metric=iss_metric, validity=validity,
-                        kappa_P=kappa, L_is_local=bool(L_is_local),
-                        box_half_diagonal=half_diagonal, vacuous=vacuous)
+        r.status = Status.UNKNOWN if invalid else Status.SKIPPED
+        r.message = "no error bound: " + "; ".join(common)
+    return r
 
 
 def box_half_diagonal(problem: Problem) -> float:
@@ -311,6 +421,9 @@ def bound_curve(bounds: BoundsResult, which: str, start: float | np.ndarray,
     s_ = s[..., None] if s.ndim else s
     if which == "theorem3":
         return b.gain * s_ * decay + b.bias  # type: ignore[operator]
+    if which == "dissipation":  # V(t) <= e^(-alpha t) V0 + (1 - e^(-alpha t)) V_inf
+        w_inf = b.bias / b.gain  # type: ignore[operator]
+        return b.gain * np.sqrt(s_ * s_ * decay + (1.0 - decay) * w_inf * w_inf)  # type: ignore
     return b.gain * s_ * decay + (1.0 - decay) * b.bias  # type: ignore[operator]
 
 
@@ -349,23 +462,28 @@ class BoundsCheck(Check):
     title = "Error bounds (Theorem 3, ISS)"
     result_type = BoundsResult
     reads = ("noise",)
-    uses = ("rate", "residual", "lipschitz")
+    uses = ("rate", "residual", "lipschitz", "dissipation")
 
     def run(self, context: Context) -> BoundsResult:
-        rate, res, lip = (context.result(n) for n in ("rate", "residual", "lipschitz"))
+        rate, res, lip, joint = (context.result(n) for n in
+                                 ("rate", "residual", "lipschitz", "dissipation"))
         lam_cert = None
         if rate is not None:  # a witnessed rate <= 0 (VIOLATED) rules a bound out; else proof
             violated = rate.status == Status.VIOLATED and rate.sampled_upper <= 0
             lam_cert = rate.sampled_upper if violated else rate.proved_lower
             if not violated and lam_cert is not None and lam_cert <= 0:
                 lam_cert = None  # a proved lower bound <= 0 is no rate, but not "none exists"
-        # sup ||P^(1/2) k(x, h(x))|| is known exactly only when k vanishes there by design
-        eps_bar_P = 0.0 if res is not None and res.structural else None
+        eps_bar_P = None
+        if res is not None:  # sup ||P^(1/2) k(x, h(x))||: 0 by design for structural gains
+            eps_bar_P = 0.0 if res.structural else res.upper_P
+        L_P = lip.L_P if lip is not None else None
+        # condition (d) (y + v in Y) is needed by every bound built on a local constant
+        local = lip is not None and (lip.which == "local" or lip.L_P_which == "local")
         return check_bounds(
             context.problem, lam_cert=lam_cert, eps_bar=res.upper if res is not None else None,
             L=lip.value if lip is not None else None, vbar=context.settings.noise,
-            eps_bar_P=eps_bar_P, L_P=lip.lipsdp_P if lip is not None else None,
-            L_is_local=bool(lip is not None and lip.which == "local"))
+            eps_bar_P=eps_bar_P, L_P=L_P, L_is_local=bool(local),
+            dissipation=joint)
 
     def present(self, r: BoundsResult, certificate: Any) -> Presentation:
         numbers = [Quantity("vbar", r.vbar, sig=6), Quantity("lam_cert", r.lam_cert, sig=6),
