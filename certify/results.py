@@ -317,6 +317,7 @@ RESULT_TYPES: dict[str, type] = {
     "lipschitz": LipschitzResult,
     "necessary": NecessaryResult,
     "metric": MetricResult,
+    "dissipation": DissipationResult,
     "bounds": BoundsResult,
     "simulation": SimulationResult,
 }

@@ -17,7 +17,8 @@ from certify.errors import SettingsError
 
 #: the checks `verify()` runs (each is `CHECK` in certify/checks/<name>.py), in this order
 #: unless one needs another's result (see certify.checks.registry)
-CHECK_NAMES = ("necessary", "mpdi", "rate", "residual", "lipschitz", "bounds", "simulation")
+CHECK_NAMES = ("necessary", "mpdi", "rate", "residual", "lipschitz", "dissipation", "bounds",
+               "simulation")
 #: the check that is the certificate: always run, always required, whatever the policy says
 #: (a policy may add checks beside it, never drop it; see `validate`)
 CERTIFICATE_CHECK = "mpdi"
@@ -40,6 +41,7 @@ class VerifySettings:
     rate_seconds: float = 20.0  # budget for the proved lam_cert (branch and bound, then decisions)
     residual_seconds: float = 10.0
     lipschitz_seconds: float = 10.0
+    dissipation_seconds: float = 60.0  # budget of the joint dissipation certificate (all proofs)
     noise: float = 0.15  # vbar: bound on ||v(t)||_2 of the measurement noise
     sim_time: float = 10.0
     sim_dt: float = 2e-3
@@ -62,7 +64,7 @@ _INT_MIN = {
     "max_boxes": 1, "sim_initial_conditions": 1, "seed": 0, "workers": 1,
 }
 _POS_FLOAT = {"proof_seconds", "rate_seconds", "residual_seconds", "lipschitz_seconds",
-              "sim_time", "sim_dt"}
+              "dissipation_seconds", "sim_time", "sim_dt"}
 _NONNEG_FLOAT = {"noise"}
 
 

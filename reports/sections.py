@@ -77,7 +77,7 @@ def _estimate_rows(p) -> list[tuple[str, str]]:
     rel = to_float(getattr(p, "estimate_rel_stderr", None))
     spread = f" (\u00b1{100 * rel:.0f} %)" if rel is not None and rel == rel else ""
     rows = [("Boxes a complete proof needs (estimate)", f"{boxes:.3g}{spread}")]
-    more = p.seconds_to_finish() if hasattr(p, "seconds_to_finish") else None
+    more = p.seconds_to_finish()
     if more:
         rows.append(("Time it needs at this speed (estimate)", fmt_seconds(more)))
     return rows

@@ -14,6 +14,7 @@ import torch
 
 from certify.certificate import Certificate
 from certify.checks.bounds import check_bounds
+from certify.checks.dissipation import check_dissipation
 from certify.checks.lipschitz import check_lipschitz
 from certify.checks.mpdi import check_mpdi
 from certify.checks.necessary import check_necessary
@@ -39,7 +40,7 @@ from .conftest import random_network
 
 SETTINGS = VerifySettings(grid_points=4000, adversarial_starts=6, adversarial_steps=20,
                           proof_seconds=5, rate_seconds=3, residual_seconds=3,
-                          lipschitz_seconds=3, sim_time=0.5, sim_dt=0.01,
+                          lipschitz_seconds=3, dissipation_seconds=5, sim_time=0.5, sim_dt=0.01,
                           sim_initial_conditions=2)
 
 
@@ -62,8 +63,11 @@ def _run_all(problem):
     }
     out["rate"] = check_rate(problem, s, mpdi=out["mpdi"])
     lam_cert = out["rate"].proved_lower
+    out["dissipation"] = check_dissipation(problem, s, mpdi=out["mpdi"],
+                                           residual=out["residual"])
     out["bounds"] = check_bounds(problem, lam_cert=lam_cert, eps_bar=out["residual"].upper,
-                                 L=out["lipschitz"].value, vbar=s.noise)
+                                 L=out["lipschitz"].value, vbar=s.noise,
+                                 dissipation=out["dissipation"])
     out["simulation"] = check_simulation(problem, out["bounds"], s, certified=False)
     return out
 

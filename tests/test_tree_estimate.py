@@ -11,7 +11,7 @@ import torch
 
 from bench.instances import InstanceSpec, make_instance
 from certify.prove.mpdi import mpdi_decision, prove_mpdi
-from certify.results import Status
+from certify.results import ProofStats, Status
 from certify.search.bnb import branch_and_bound
 from certify.search.tree_estimate import leaf_depths, summarize
 
@@ -106,11 +106,11 @@ def test_the_report_shows_the_estimate_only_for_an_unfinished_proof() -> None:
     from reports.content import fmt_seconds
     from reports.sections import _estimate_rows
 
-    done = SimpleNamespace(estimated_boxes=None, estimate_rel_stderr=None,
-                           boxes_per_second=1000.0, boxes_processed=500)
+    done = ProofStats(estimated_boxes=None, estimate_rel_stderr=None,
+                      boxes_per_second=1000.0, boxes_processed=500)
     assert _estimate_rows(done) == []
-    cut = SimpleNamespace(estimated_boxes=4500.0, estimate_rel_stderr=0.1,
-                          boxes_per_second=1000.0, boxes_processed=500)
+    cut = ProofStats(estimated_boxes=4500.0, estimate_rel_stderr=0.1,
+                     boxes_per_second=1000.0, boxes_processed=500)
     rows = dict(_estimate_rows(cut))
     assert rows["Boxes a complete proof needs (estimate)"].startswith("4.5e+03")
     assert rows["Time it needs at this speed (estimate)"] == fmt_seconds(4.0)  # 4000 at 1000/s

@@ -27,6 +27,7 @@ from certify.model.network import GainNetwork
 from certify.model.problem import Problem
 from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
+from certify.prove.weighted import weighting
 from certify.results import LipschitzResult, Status
 from certify.search.falsify import maximize_over_box
 from certify.search.witness import dk_dy_norm_lower
@@ -48,12 +49,6 @@ def mlp_in_y(net: GainNetwork, n: int) -> tuple[list[np.ndarray], np.ndarray]:
     if len(Ws) == 1:
         return [], Ws[0][:, n:]
     return [Ws[0][:, n:], *Ws[1:-1]], Ws[-1]
-
-
-def sqrtm_psd(P: np.ndarray) -> np.ndarray:
-    """Symmetric square root of a positive definite matrix."""
-    w, V = np.linalg.eigh(0.5 * (P + P.T))
-    return (V * np.sqrt(np.maximum(w, 0.0))) @ V.T
 
 
 def naive_bound(net: GainNetwork, n: int, out: np.ndarray | None = None) -> float:
@@ -134,17 +129,14 @@ def sampled_lower(problem: Problem, points: int = 20_000, starts: int = 16, step
     return (sound if math.isfinite(sound) else float("nan")), out.best_point.tolist()
 
 
-def lipsdp_for(problem: Problem, metric_weighted: bool = False,
-               method: str = "ipm") -> sdp.SdpResult | None:
-    """Verified LipSDP for k (or P^(1/2) k) in y; None for the structural architecture."""
+def lipsdp_for(problem: Problem, method: str = "ipm") -> sdp.SdpResult | None:
+    """Verified LipSDP for k in y; None for the structural architecture (for P^(1/2) k: the
+    weighted problem of `certify.prove.weighted`)."""
     net = problem.network
     if net.structure != "direct":
         return None
     Ws, Wo = mlp_in_y(net, problem.n)
     K = net.K.detach().to(_F64).numpy()
-    if metric_weighted:
-        R = sqrtm_psd(np.asarray(problem.P, dtype=np.float64))
-        Wo, K = R @ Wo, R @ K
     if not Ws:  # no hidden layer: k is affine in y, L = ||W0y + K||_2 exactly
         L = float(np.linalg.norm(Wo + K, 2)) * _ROUND_UP
         return sdp.SdpResult(Status.PROVED, "affine in y: exact", L, solver="closed-form",
@@ -155,7 +147,8 @@ def lipsdp_for(problem: Problem, metric_weighted: bool = False,
 def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
                     progress: Progress = _NULL_PROGRESS, local_upper: float | None = None,
                     sample_points: int = 20_000,
-                    local: Callable[[], float | None] | None = None) -> LipschitzResult:
+                    local: Callable[[], float | None] | None = None,
+                    local_P: Callable[[], float | None] | None = None) -> LipschitzResult:
     """LipSDP (verified), naive, sampled lower bound and the caller's local bound.
 
     `value` is the smallest sound bound and `which` names it ("lipsdp", "naive" - both
@@ -166,12 +159,17 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
     `LOCAL_ROOM` above the sampled lower bound (else the local bound could lower L by less
     than that: for k affine in y the global bound is exact, and a local proof by entry
     magnitudes, exact only for p = 1, would spend its whole budget without closing).
+    `L_P`: the same constant for P^(1/2) k, the smaller of the metric-weighted LipSDP and
+    `local_P()` (the caller's local bound of sup ||P^(1/2) dk/dy||), both through
+    `certify.prove.weighted` (sound for the float square root of P); L_P = L when P = I.
     """
     t0 = time.perf_counter()
     settings = settings or VerifySettings()
     task = "lipschitz"
     progress.start(task, total=3)
     structural = problem.network.structure != "direct"
+    identity_metric = bool(np.array_equal(problem.P, np.eye(problem.n)))
+    weighted = None if identity_metric else weighting(problem)
     solver: dict = {}
     res = lipsdp_for(problem)
     progress.update(task)
@@ -184,11 +182,11 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
         eig = res.check_max_eig
         if res.status is Status.PROVED and res.value is not None and math.isfinite(res.value):
             lipsdp, verified = res.value, True
-        if not np.allclose(problem.P, np.eye(problem.n)):
-            resP = lipsdp_for(problem, metric_weighted=True)
+        if not identity_metric:
+            resP = lipsdp_for(weighted.problem)
             solver["metric_weighted"] = resP.stats() if resP is not None else None
             if resP is not None and resP.status is Status.PROVED:
-                lipsdp_P = resP.value
+                lipsdp_P = weighted.bound(resP.value, weighted.dy_error)
         else:
             lipsdp_P = lipsdp
     if structural:
@@ -218,6 +216,14 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
     value, which = (min(cands) if cands else (None, ""))
     if structural and value is not None:
         which = "local"
+    # L_P: the same constant for P^(1/2) k (equal to L when P = I)
+    if identity_metric:
+        L_P, L_P_which, local_upper_P = value, ("local" if which == "local" else "global"), None
+    else:
+        local_upper_P = local_P() if local_P is not None else None
+        cands_P = [(v, w) for v, w in ((lipsdp_P, "global"), (local_upper_P, "local"))
+                   if v is not None and math.isfinite(v)]
+        L_P, L_P_which = min(cands_P) if cands_P else (None, "")
     seconds = time.perf_counter() - t0
     parts = [f"sampled >= {sampled:.6g}"]
     if lipsdp is not None:
@@ -230,6 +236,8 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
     parts.append(f"naive {naive_f:.6g}" + (" (local, over X x Y)" if structural else ""))
     if local_upper is not None:
         parts.append(f"interval prover {local_upper:.6g} (local)")
+    if L_P is not None and not identity_metric:
+        parts.append(f"L_P (P^(1/2) k) <= {L_P:.6g} ({L_P_which})")
     elif local_skipped:
         parts.append(f"local proof not run (the global bound is within {LOCAL_ROOM:g} of the "
                      "sampled value)")
@@ -251,7 +259,7 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
         status=status, message=msg, lipsdp=lipsdp, lipsdp_raw=lipsdp_raw,
         lipsdp_verified=verified, lipsdp_lmi_max_eig=eig, naive=naive_f, sampled=sampled,
         local_upper=local_upper, value=value, which=which, solver=solver, seconds=seconds,
-        lipsdp_P=lipsdp_P,
+        lipsdp_P=lipsdp_P, L_P=L_P, L_P_which=L_P_which, local_upper_P=local_upper_P,
     )
 
 
@@ -276,7 +284,15 @@ class LipschitzCheck(Check):
                                seconds=s.lipschitz_seconds, max_boxes=s.max_boxes,
                                rel_tol=LOCAL_ROOM)
 
-        return check_lipschitz(context.problem, s, progress=context.progress, local=local)
+        def local_P() -> float | None:
+            w = weighting(context.problem)
+            upper = bound_dk_dy(on_settings_device(w.problem, s),
+                                seconds=s.lipschitz_seconds, max_boxes=s.max_boxes,
+                                rel_tol=LOCAL_ROOM)
+            return w.bound(upper, w.dy_error)
+
+        return check_lipschitz(context.problem, s, progress=context.progress, local=local,
+                               local_P=local_P)
 
     def present(self, r: LipschitzResult, certificate: Any) -> Presentation:
         s = certificate.settings or {}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
+import numpy as np
 import torch
 
 from certify.checks.base import Check, Context
@@ -12,6 +13,7 @@ from certify.model.kernels import gain_terms
 from certify.model.problem import Problem
 from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
+from certify.prove.weighted import weighting
 from certify.results import ResidualResult, Status
 from certify.search.falsify import maximize_over_box
 from certify.search.witness import residual_lower
@@ -34,7 +36,7 @@ def check_residual(problem: Problem, settings: VerifySettings, *,
         return ResidualResult(Status.PROVED, "eps_bar = 0 exactly: the architecture "
                               "k = G(xhat, y)(y - h(xhat)) satisfies the boundary condition by "
                               "construction", 0.0, 0.0, structural=True,
-                              seconds=time.perf_counter() - t0)
+                              seconds=time.perf_counter() - t0, upper_P=0.0)
     X = problem.system.X
     search = maximize_over_box(lambda x: residual_norm(problem, x), X[:, 0], X[:, 1],
                                grid_points=max(1000, settings.grid_points // 10),
@@ -59,8 +61,19 @@ def check_residual(problem: Problem, settings: VerifySettings, *,
         return ResidualResult(Status.UNKNOWN, f"eps_bar >= {sampled:.4g} (sampled); no sound "
                               f"upper bound within residual_seconds={settings.residual_seconds:g}",
                               sampled, None, worst=worst, seconds=time.perf_counter() - t0)
-    return ResidualResult(Status.PROVED, f"eps_bar in [{sampled:.4g}, {upper:.4g}]", sampled,
-                          float(upper), worst=worst, seconds=time.perf_counter() - t0)
+    upper_P = None
+    if not np.array_equal(problem.P, np.eye(problem.n)):  # eps_bar_P, for the error bounds
+        w = weighting(problem)
+        weighted, _, _ = bound_residual(on_settings_device(w.problem, settings),
+                                        seconds=settings.residual_seconds,
+                                        max_boxes=settings.max_boxes, seeds=[worst])
+        upper_P = w.bound(weighted, w.value_error)
+    else:
+        upper_P = float(upper)
+    where = "" if upper_P is None else f"; ||P^(1/2) k(x, h(x))|| <= {upper_P:.4g}"
+    return ResidualResult(Status.PROVED, f"eps_bar in [{sampled:.4g}, {upper:.4g}]{where}",
+                          sampled, float(upper), worst=worst, seconds=time.perf_counter() - t0,
+                          upper_P=upper_P)
 
 
 # ----------------------------------------------------------------------------- check protocol

@@ -1,0 +1,88 @@
+"""The joint dissipation certificate V' <= -alpha V + mu ||v||^2 (`certify.prove.dissipation`).
+
+It bounds the estimation error under bounded measurement noise without the Cauchy-Schwarz
+step of the ISS bound: the noise's effect is proved together with the contraction, by the
+same branch and bound as the MPDI, for the vertices of an enclosure of dk/dy. Inputs: the
+problem's P and gain, the noise level (to choose alpha and mu: the inequality itself holds
+for every noise) and, for a direct gain, the residual check's eps_bar_P.
+
+Status: PROVED (alpha, mu proved); UNKNOWN (no candidate proved within the budget, or none
+at the samples); NOT APPLICABLE when the MPDI is violated (no contraction to build on) or a
+direct gain's residual has no sound bound.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from certify.checks.base import Check, Context
+from certify.model.problem import Problem
+from certify.presentation import Presentation, Quantity
+from certify.results import DissipationResult, MpdiResult, ResidualResult, Status
+from certify.settings import VerifySettings
+
+
+def check_dissipation(problem: Problem, settings: VerifySettings, *,
+                      mpdi: MpdiResult | None = None,
+                      residual: ResidualResult | None = None) -> DissipationResult:
+    """Choose and prove (alpha, mu) for `problem` at the settings' noise level, within
+    `settings.dissipation_seconds` (see the module docstring for the statuses)."""
+    from certify.arith.device import on_settings_device
+    from certify.prove.dissipation import prove_dissipation
+
+    t0 = time.perf_counter()
+    if mpdi is not None and mpdi.status == Status.VIOLATED:
+        return DissipationResult(Status.NOT_APPLICABLE, "not applicable: the MPDI is violated, "
+                                 "so no contraction bounds the error")
+    eps_P = 0.0
+    if not problem.structural:
+        eps_P = residual.upper_P if residual is not None else None
+        if eps_P is None:
+            return DissipationResult(Status.NOT_APPLICABLE, "not applicable: no sound bound "
+                                     "of ||P^(1/2) k(x, h(x))|| (residual check)")
+    out = prove_dissipation(on_settings_device(problem, settings), vbar=settings.noise,
+                            eps_P=eps_P, seconds=settings.dissipation_seconds,
+                            seed=settings.seed)
+    return DissipationResult(
+        status=out.status, message=out.message, alpha=out.alpha, mu=out.mu,
+        mu_residual=out.mu_residual, eps_bar=eps_P if out.mu_residual else None,
+        vertices=out.vertices, candidates=out.candidates, boxes=out.boxes,
+        seconds=time.perf_counter() - t0)
+
+
+class DissipationCheck(Check):
+    """V = e^T P e with V' <= -alpha V + mu ||v||^2 (+ mu_r ||r||^2), proved over X x Y."""
+
+    name = "dissipation"
+    title = "Joint dissipation certificate"
+    result_type = DissipationResult
+    reads = ("noise", "dissipation_seconds", "seed")
+    uses = ("mpdi", "residual")
+
+    def run(self, context: Context) -> DissipationResult:
+        return check_dissipation(context.problem, context.settings,
+                                 mpdi=context.result("mpdi"),
+                                 residual=context.result("residual"))
+
+    def present(self, r: DissipationResult, certificate: Any) -> Presentation:
+        s = certificate.settings or {}
+        return Presentation(
+            sampled=Quantity("sampled aim", r.candidates[0]["bound"] if r.candidates else None,
+                             "no candidate"),
+            proved=Quantity("\u03b1, \u03bc", None if r.alpha is None else
+                            f"{r.alpha:.4g}, {r.mu:.4g}", "not proved"),
+            setting=(Quantity("budget", s.get("dissipation_seconds"), suffix=" s"),),
+            numbers=(Quantity("alpha", r.alpha, sig=6), Quantity("mu", r.mu, sig=6),
+                     Quantity("mu_residual", r.mu_residual, sig=6),
+                     Quantity("vertices of dk/dy's cover", r.vertices),
+                     Quantity("boxes", r.boxes)),
+            facts=(Quantity("Status", r.status.value),
+                   Quantity("Rate of V (alpha)", r.alpha, "not proved", sig=6),
+                   Quantity("Noise gain (mu)", r.mu, "not proved", sig=6),
+                   Quantity("Residual gain", r.mu_residual, "none (structural gain)", sig=6),
+                   Quantity("Pieces proved", r.vertices),
+                   Quantity("Candidates tried", len(r.candidates))))
+
+
+CHECK = DissipationCheck()
