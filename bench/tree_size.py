@@ -31,7 +31,6 @@ One JSON line per instance. Example (the six-state chain that misses issue 9's 6
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import asdict
@@ -40,6 +39,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
+from record import emit as record_line  # noqa: E402  (bench/record.py)
 
 from bench.prove_suite import add_family_arguments, family_instances  # noqa: E402
 from certify.prove.mpdi import mpdi_decision, prove_mpdi  # noqa: E402
@@ -103,7 +103,7 @@ def main() -> None:
             rec.update(proof_status=out.status.value,
                        proof_boxes=out.stats.boxes_processed,
                        proof_seconds=round(out.stats.seconds, 2))
-        print(json.dumps(rec), flush=True)
+        record_line(rec)
 
 
 if __name__ == "__main__":
