@@ -1,8 +1,8 @@
 """Hostile and undefined specs: how long a refusal takes. One JSON line per input.
 
 In-process timings (no interpreter start-up) of `certify.spec.parse.parse_expression` on hostile
-expressions (issue 12.3) and of `System.from_text` (parse + domain check, issue 8.2) on the
-issue's undefined specs and on the built-in systems; medians over `--repeat` runs, seconds.
+expressions and of `System.from_text` (parse + domain check) on undefined specs and on the
+built-in systems; medians over `--repeat` runs, seconds.
 
 Run: python bench/parse.py [--repeat 5]
 """

@@ -1,4 +1,4 @@
-"""Prover suite (issue 9): the instance families of `bench/instances.py`, one JSON line per run.
+"""Prover suite: the instance families of `bench/instances.py`, one JSON line per run.
 
 Each run builds a seeded instance (tuned lam cached in --cache), proves it with the prover
 (`certify.prove.mpdi.prove_mpdi`) and, in the same run on the same instance, with the plain

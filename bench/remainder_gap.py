@@ -1,4 +1,4 @@
-"""How far the prover's enclosures are from the best any affine enclosure could do (issue 9).
+"""How far the prover's enclosures are from the best any affine enclosure could do.
 
 The MPDI prover bounds A(z) = M D(z) M^T on a sub-box by an affine matrix function plus an
 interval remainder E, and closes the box when max over the vertices of lam_max(affine) +

@@ -1,5 +1,5 @@
-"""How many boxes would a complete MPDI proof take? A random-descent estimate (issue 9;
-the estimator is `certify.search.tree_estimate`, which `certify run` also uses on an UNKNOWN proof).
+"""How many boxes would a complete MPDI proof take? A random-descent estimate (the
+estimator is `certify.search.tree_estimate`, which `certify run` also uses on an UNKNOWN proof).
 
 The tree of a decision proof is fixed by its bound and split rule, so random descents
 through it (the prover's own evaluation and rule: `certify.prove.mpdi.mpdi_decision`) estimate
@@ -23,7 +23,7 @@ W x 0.5, 0.99 M (+-53%) with both x 0.5; 2048 descents, e x 0.5 alone: 25.6 M ag
 both x 0.25: 1.1 k boxes. The estimates of the smaller trees are rough (few deep descents
 carry them), their order of magnitude is not.
 
-One JSON line per instance. Example (the six-state chain that misses issue 9's 600 s):
+One JSON line per instance. Example (the six-state chain, whose proof does not finish in 600 s on a small CPU):
     python bench/tree_size.py --n 6 --seeds 0 1 2 --points 2048
     python bench/tree_size.py --n 6 --points 2048 --what-if-majorant 0.5
 """
