@@ -23,7 +23,7 @@ W x 0.5, 0.99 M (+-53%) with both x 0.5; 2048 descents, e x 0.5 alone: 25.6 M ag
 both x 0.25: 1.1 k boxes. The estimates of the smaller trees are rough (few deep descents
 carry them), their order of magnitude is not.
 
-One JSON line per instance. Example (the six-state chain, whose proof does not finish in 600 s on a small CPU):
+One JSON line per instance. Example (the six-state chain, a long proof):
     python bench/tree_size.py --n 6 --seeds 0 1 2 --points 2048
     python bench/tree_size.py --n 6 --points 2048 --what-if-majorant 0.5
 """
