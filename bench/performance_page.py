@@ -133,6 +133,10 @@ def table(rows: list[dict]) -> list[str]:
     common = [c for c in cols if len(flat) > 1 and all(c in f for f in flat)
               and len({json.dumps(f[c]) for f in flat}) == 1]
     cols = [c for c in cols if c not in common]
+    # what names the instance (text, flags) before what was measured (numbers)
+    def named(c: str) -> bool:
+        return all(isinstance(f.get(c), (str, bool)) or f.get(c) is None for f in flat)
+    cols = [c for c in cols if named(c)] + [c for c in cols if not named(c)]
     lines = []
     if len(flat) == 1 and len(cols) > 6:  # one record with many fields: one row per field
         lines += ["| field | value |", "|---|---|"]
