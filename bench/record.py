@@ -5,7 +5,9 @@ Every bench script reports through `emit(record)`: the record is printed as one 
 `bench/performance_page.py` reads to write `docs/performance.md`. The tag is the same for
 every line of one process:
 
-- `run`: when the process started (UTC, ISO 8601, seconds), the key the page groups by;
+- `run`: when this module was first imported in the process (UTC, ISO 8601, seconds: at the
+  script's start, or at its first record where the script imports it then), the key the
+  page groups by;
 - `commit`: `git describe --always --dirty` of the checkout (`null` outside git);
 - `script`: the bench script's file stem;
 - `host`: the machine's name and CPU count, so numbers from different machines are not
@@ -26,6 +28,7 @@ import sys
 from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
+_STARTED = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0)
 _TAG: dict | None = None
 
 
@@ -48,8 +51,7 @@ def run_tag() -> dict:
     """The tag of this process's run (computed once)."""
     global _TAG
     if _TAG is None:
-        now = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0)
-        _TAG = {"run": now.isoformat(), "commit": _commit(), "script": script_name(),
+        _TAG = {"run": _STARTED.isoformat(), "commit": _commit(), "script": script_name(),
                 "host": f"{platform.node()} ({os.cpu_count()} CPUs)"}
     return _TAG
 
