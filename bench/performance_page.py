@@ -28,7 +28,7 @@ RESULTS = BENCH / "results"
 PAGE = ROOT / "docs" / "performance.md"
 
 #: fields of the run's tag, shown once per section rather than in every row
-TAG = ("run", "commit", "script", "host")
+TAG = ("run", "commit", "script", "host", "load")
 #: modules in bench/ that are not benchmarks (helpers, this script)
 NOT_BENCHES = {"record", "instances", "performance_page"}
 #: series too long for a table cell (they stay in the JSON lines)
@@ -159,8 +159,9 @@ def section(script: str, recs: list[dict]) -> list[str]:
     lines = [f"## `bench/{script}.py`", ""]
     if script in WHAT:
         lines += [WHAT[script][0].upper() + WHAT[script][1:] + ".", ""]
+    load = f", load {tag['load']} at the start" if tag.get("load") is not None else ""
     lines += [f"Run {tag['run']}, commit `{tag.get('commit') or 'unknown'}`, "
-              f"{tag.get('host') or 'unknown host'}.", ""]
+              f"{tag.get('host') or 'unknown host'}{load}.", ""]
     groups: dict[str, list[dict]] = {}
     for r in recs:
         groups.setdefault(group_name(r, script), []).append(r)

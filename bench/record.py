@@ -11,7 +11,9 @@ every line of one process:
 - `commit`: `git describe --always --dirty` of the checkout (`null` outside git);
 - `script`: the bench script's file stem;
 - `host`: the machine's name and CPU count, so numbers from different machines are not
-  read side by side.
+  read side by side;
+- `load`: the 1-minute load average when the run started (wall seconds of a run on a
+  loaded machine are long; CPU seconds move less).
 
 `CERTIFY_BENCH_RECORD` redirects the file (a path) or turns recording off (`0` or empty).
 The printed line is the record alone, without the tag.
@@ -29,6 +31,7 @@ from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
 _STARTED = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0)
+_LOAD = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
 _TAG: dict | None = None
 
 
@@ -52,7 +55,7 @@ def run_tag() -> dict:
     global _TAG
     if _TAG is None:
         _TAG = {"run": _STARTED.isoformat(), "commit": _commit(), "script": script_name(),
-                "host": f"{platform.node()} ({os.cpu_count()} CPUs)"}
+                "host": f"{platform.node()} ({os.cpu_count()} CPUs)", "load": _LOAD}
     return _TAG
 
 
