@@ -108,7 +108,10 @@ def cell(value: object) -> str:
         return f"{value:.4g}"
     if isinstance(value, list):
         return "[" + ", ".join(cell(v) for v in value) + "]"
-    text = str(value).replace(str(ROOT) + "/", "")  # paths relative to the checkout
+    text = str(value)
+    if text == str(ROOT):
+        return "."
+    text = text.replace(str(ROOT) + "/", "")  # paths relative to the checkout
     return text.replace("|", "\\|").replace("\n", " ")
 
 
@@ -133,15 +136,16 @@ def table(rows: list[dict]) -> list[str]:
     common = [c for c in cols if len(flat) > 1 and all(c in f for f in flat)
               and len({json.dumps(f[c]) for f in flat}) == 1]
     cols = [c for c in cols if c not in common]
-    # what names the instance (text, flags) before what was measured (numbers)
-    def named(c: str) -> bool:
-        return all(isinstance(f.get(c), (str, bool)) or f.get(c) is None for f in flat)
-    cols = [c for c in cols if named(c)] + [c for c in cols if not named(c)]
     lines = []
     if len(flat) == 1 and len(cols) > 6:  # one record with many fields: one row per field
         lines += ["| field | value |", "|---|---|"]
         lines += [f"| {c} | {cell(flat[0][c])} |" for c in cols]
         return lines
+
+    # what names the instance (text, flags) before what was measured (numbers)
+    def named(c: str) -> bool:
+        return all(isinstance(f.get(c), (str, bool)) or f.get(c) is None for f in flat)
+    cols = [c for c in cols if named(c)] + [c for c in cols if not named(c)]
     if common:
         lines.append("All rows: " + ", ".join(f"`{c}` = {cell(flat[0][c])}" for c in common)
                      + ".")
