@@ -31,6 +31,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from record import emit as record_line  # bench/record.py
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 if "--code" in sys.argv:  # import `certify` from another checkout (side-by-side comparisons)
@@ -120,13 +122,11 @@ def main() -> None:
     code = args.code.resolve()
     for name in args.nets:
         if args.only in (None, "prove"):
-            print(json.dumps({"code": str(code), **bench_prove(name, args.seconds)}),
-                  flush=True)
+            record_line({"code": str(code), **bench_prove(name, args.seconds)})
         if args.only in (None, "run"):
-            print(json.dumps({"code": str(code), **bench_run(name, args.run_seconds,
+            record_line({"code": str(code), **bench_run(name, args.run_seconds,
                                                              args.grid_points, code,
-                                                             args.skip)}),
-                  flush=True)
+                                                             args.skip)})
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
+from record import emit as record_line  # noqa: E402  (bench/record.py)
 
 from certify.spec.system import load_system  # noqa: E402
 
@@ -66,8 +67,8 @@ def cost(reps: int = 15, steps: int = 5) -> None:
     off = statistics.median(times[0])
     for k, ts in times.items():
         med = statistics.median(ts)
-        print(json.dumps({"bench": "curvature_cost", "pairs": k, "ms_per_step": round(1e3 * med, 3),
-                          "ratio_to_off": round(med / off, 3), "reps": reps}), flush=True)
+        record_line({"bench": "curvature_cost", "pairs": k, "ms_per_step": round(1e3 * med, 3),
+                          "ratio_to_off": round(med / off, 3), "reps": reps})
     for obj in objs.values():
         obj.close()
 
@@ -112,7 +113,7 @@ def proof(system_name: str, seeds: list[int], weights: list[float], rounds: int)
             except (OSError, KeyError, ValueError) as exc:
                 row["error"] = repr(exc)[:200]
             rows.append(row)
-            print(json.dumps(row), flush=True)
+            record_line(row)
     for w in weights:
         mine = [r for r in rows if r["curvature_weight"] == w and "boxes" in r]
         if not mine:
@@ -120,12 +121,12 @@ def proof(system_name: str, seeds: list[int], weights: list[float], rounds: int)
 
         def med(key: str, rows_: list[dict] = mine) -> float:
             return statistics.median(float(r[key]) for r in rows_)
-        print(json.dumps({"bench": "curvature_proof_median", "system": system_name,
+        record_line({"bench": "curvature_proof_median", "system": system_name,
                           "curvature_weight": w, "runs": len(mine),
                           "verdicts": [r["verdict"] for r in mine],
                           "boxes": med("boxes"), "proof_s": round(med("proof_s"), 3),
                           "L": round(med("L"), 3), "lam_cert": round(med("lam_cert"), 4),
-                          "adam_s": round(med("adam_s"), 2)}), flush=True)
+                          "adam_s": round(med("adam_s"), 2)})
 
 
 if __name__ == "__main__":

@@ -17,7 +17,6 @@ Example (on a machine with a GPU):
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -25,6 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
+from record import emit as record_line  # noqa: E402  (bench/record.py)
 
 from bench.instances import InstanceSpec  # noqa: E402
 from bench.prove_suite import FAMILIES, _cached_instance  # noqa: E402
@@ -116,7 +116,7 @@ def main() -> None:
                 rec = {"instance": spec.name, "device": describe(device),
                        "threads": args.threads}
                 rec.update(check(problem, args.boxes, radius, args.samples, device, 100 + k))
-                print(json.dumps(rec), flush=True)
+                record_line(rec)
 
 
 if __name__ == "__main__":

@@ -56,7 +56,9 @@ print(json.dumps(out))
 
 
 def emit(**record: object) -> None:
-    print(json.dumps(record), flush=True)
+    from record import emit as record_line  # bench/record.py
+
+    record_line(record)
 
 
 def measure(tree: Path) -> dict[str, float]:

@@ -14,11 +14,11 @@ Run: python bench/frontier.py [--sizes 100000 1000000 4000000] [--batch 2048] [-
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 
 import torch
+from record import emit as record_line  # bench/record.py
 
 from certify.search.frontier import Frontier
 
@@ -64,12 +64,11 @@ def main() -> None:
     for n_open in args.sizes:
         pooled = measure(n_open, args.dim, args.batch, args.rounds, True, 0)
         scan = measure(n_open, args.dim, args.batch, args.rounds, False, 0)
-        print(json.dumps({"bench": "frontier_take", "open_boxes": n_open, "dim": args.dim,
+        record_line({"bench": "frontier_take", "open_boxes": n_open, "dim": args.dim,
                           "batch": args.batch, "rounds": args.rounds, "pooled": pooled,
                           "full_scan": scan,
                           "speedup_mean": round(scan["take_mean_ms"]
-                                                / max(pooled["take_mean_ms"], 1e-9), 1)}),
-              flush=True)
+                                                / max(pooled["take_mean_ms"], 1e-9), 1)})
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Seeded prover benchmark instances (issue 9's families), built without tuning for the prover.
+"""Seeded prover benchmark instances (random-network families), built without tuning for the prover.
 
 An instance is a `Problem` on [-1, 1]^n x Y with y = x1 and
 

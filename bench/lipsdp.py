@@ -12,13 +12,13 @@ network. --clarabel also times the chordal cvxpy + Clarabel form (about 30-60 s)
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from record import emit as record_line  # bench/record.py
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -84,7 +84,7 @@ def main() -> None:
                                "cond_P": o.condition_number,
                                "gain_norm": o.solver.get("gain_norm"),
                                "sdp_vertices": o.solver.get("sdp_vertices")}
-    print(json.dumps(out, indent=2))
+    record_line(out)
 
 
 if __name__ == "__main__":

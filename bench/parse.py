@@ -1,8 +1,8 @@
 """Hostile and undefined specs: how long a refusal takes. One JSON line per input.
 
 In-process timings (no interpreter start-up) of `certify.spec.parse.parse_expression` on hostile
-expressions (issue 12.3) and of `System.from_text` (parse + domain check, issue 8.2) on the
-issue's undefined specs and on the built-in systems; medians over `--repeat` runs, seconds.
+expressions and of `System.from_text` (parse + domain check) on undefined specs and on the
+built-in systems; medians over `--repeat` runs, seconds.
 
 Run: python bench/parse.py [--repeat 5]
 """
@@ -10,11 +10,11 @@ Run: python bench/parse.py [--repeat 5]
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 
 import sympy
+from record import emit as record_line  # bench/record.py
 
 from certify.errors import SpecError
 from certify.spec.parse import parse_expression
@@ -63,16 +63,16 @@ def main() -> None:
     names = {"x1": sympy.Symbol("x1", real=True)}
     for label, text in HOSTILE.items():
         sec, outcome = _time(lambda t=text: parse_expression(t, names, "f[0]"), args.repeat)
-        print(json.dumps({"bench": "parse", "input": label, "seconds": round(sec, 6),
-                          "outcome": outcome}))
+        record_line({"bench": "parse", "input": label, "seconds": round(sec, 6),
+                          "outcome": outcome})
     for label, f in UNDEFINED.items():
         sec, outcome = _time(lambda f=f: System.from_text(_spec(f)), args.repeat)
-        print(json.dumps({"bench": "domain", "input": label, "seconds": round(sec, 6),
-                          "outcome": outcome}))
+        record_line({"bench": "domain", "input": label, "seconds": round(sec, 6),
+                          "outcome": outcome})
     for name in builtin_names():
         sec, outcome = _time(lambda n=name: System.from_text(builtin_text(n)), args.repeat)
-        print(json.dumps({"bench": "builtin", "input": name, "seconds": round(sec, 6),
-                          "outcome": outcome}))
+        record_line({"bench": "builtin", "input": name, "seconds": round(sec, 6),
+                          "outcome": outcome})
 
 
 if __name__ == "__main__":

@@ -12,13 +12,13 @@ else runs: the numbers are wall-clock on this machine.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from record import emit as record_line  # bench/record.py
 
 from certify.checks.mpdi import joint_box
 from certify.model.kernels import mpdi_lam_max
@@ -96,20 +96,19 @@ def main() -> None:
     t = time.perf_counter()
     prob = true_instance(args.margin, retune=args.retune)
     m, where = sampled_max(prob, prob.lam, grid=80, refine=64)
-    print(json.dumps({"instance": "vdp-5x30-true", "lam": prob.lam, "sampled_max": m,
-                      "argmax": where.tolist(), "setup_seconds": time.perf_counter() - t}),
-          flush=True)
+    record_line({"instance": "vdp-5x30-true", "lam": prob.lam, "sampled_max": m,
+                      "argmax": where.tolist(), "setup_seconds": time.perf_counter() - t})
     for name, taylor, secs in (("taylor+interval", True, args.seconds),
                                ("plain-interval", False, args.plain_seconds)):
         out = prove_mpdi(prob, seconds=secs, taylor=taylor)
         st = out.stats
-        print(json.dumps({
+        record_line({
             "case": f"true-5x30/{name}", "status": out.status.value, "upper": out.upper,
             "lower": out.lower, "seconds": round(st.seconds, 3),
             "boxes": st.boxes_processed, "boxes_per_second": round(st.boxes_per_second, 1),
             "proved_volume": st.proved_volume_fraction, "max_depth": st.max_depth,
             "volume_history": [[round(a, 2), round(b, 5)] for a, b in st.volume_history[::10]],
-        }), flush=True)
+        })
 
     import planted  # tests/planted.py
 
@@ -117,12 +116,11 @@ def main() -> None:
         pb = planted.planted_problem(kind)
         out = prove_mpdi(pb, seconds=30.0)
         st = out.stats
-        print(json.dumps({
+        record_line({
             "case": f"planted-{kind}", "status": out.status.value,
             "seconds": round(st.seconds, 3), "boxes": st.boxes_processed,
             "counterexample": None if out.counterexample is None else
-            [out.counterexample.xhat, out.counterexample.y, out.counterexample.value]}),
-            flush=True)
+            [out.counterexample.xhat, out.counterexample.y, out.counterexample.value]})
 
 
 if __name__ == "__main__":

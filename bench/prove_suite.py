@@ -1,4 +1,4 @@
-"""Prover suite (issue 9): the instance families of `bench/instances.py`, one JSON line per run.
+"""Prover suite: the instance families of `bench/instances.py`, one JSON line per run.
 
 Each run builds a seeded instance (tuned lam cached in --cache), proves it with the prover
 (`certify.prove.mpdi.prove_mpdi`) and, in the same run on the same instance, with the plain
@@ -29,6 +29,7 @@ if "--code" in sys.argv:  # import `certify` from another checkout (side-by-side
     sys.path.insert(0, str(Path(sys.argv[sys.argv.index("--code") + 1]).resolve()))
 
 import torch  # noqa: E402
+from record import emit as record_line  # noqa: E402  (bench/record.py)
 
 from bench.instances import InstanceSpec, make_instance  # noqa: E402
 from certify.prove.mpdi import prove_mpdi  # noqa: E402
@@ -189,7 +190,7 @@ def main() -> None:
                             bs = args.baseline_seconds or args.seconds
                             rec["baseline"] = _run(prob, bs, args.max_boxes, False,
                                                    batch=batch)
-                        print(json.dumps(rec), flush=True)
+                        record_line(rec)
                         rows.setdefault(rec["family"], []).append(rec)
     for fam, rs in rows.items():
         summ = {"summary": fam, "runs": len(rs),
@@ -202,7 +203,7 @@ def main() -> None:
             summ["baseline_median_seconds"] = statistics.median(
                 r["baseline"]["seconds"] for r in rs)
             summ["baseline_median_boxes"] = statistics.median(r["baseline"]["boxes"] for r in rs)
-        print(json.dumps(summ), flush=True)
+        record_line(summ)
     if executor is not None:
         executor.close()
 

@@ -1,4 +1,4 @@
-"""How far the prover's enclosures are from the best any affine enclosure could do (issue 9).
+"""How far the prover's enclosures are from the best any affine enclosure could do.
 
 The MPDI prover bounds A(z) = M D(z) M^T on a sub-box by an affine matrix function plus an
 interval remainder E, and closes the box when max over the vertices of lam_max(affine) +
@@ -31,7 +31,6 @@ Example (why the 2x10 six-state chain does not close at radius 1/4):
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -39,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from record import emit as record_line  # noqa: E402  (bench/record.py)
 
 from bench.prove_suite import add_family_arguments, family_instances  # noqa: E402
 from certify.arith.eigen import rho_upper  # noqa: E402
@@ -184,7 +184,7 @@ def main() -> None:
         for r in args.radii:
             rec = {"bench": "remainder_gap", "instance": spec.name}
             rec.update(measure(prob, r, args.boxes, args.points, spec.seed))
-            print(json.dumps(rec), flush=True)
+            record_line(rec)
 
 if __name__ == "__main__":
     main()

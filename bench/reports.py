@@ -49,7 +49,9 @@ EXAMPLES = ("vdp", "vdp_certified", "vdp_lmi", "vdp2_lmi", "lorenz_lmi")
 
 
 def emit(**record: object) -> None:
-    print(json.dumps(record), flush=True)
+    from record import emit as record_line  # bench/record.py
+
+    record_line(record)
 
 
 PYCACHE = Path(tempfile.gettempdir()) / "certify-bench-reports-pycache"

@@ -15,7 +15,8 @@ Runs of the two trees alternate, so load from other processes hits both alike; m
 `--repeat` runs (startup: `--startup-repeat`). Wall-clock seconds on a shared machine are
 noisy: read the ratios, and re-run when other work was going on.
 
-Run: python bench/run.py [--before /work/main] [--after .] [--repeat 3] [--only vdp_lmi]
+Run: python bench/run.py [--before /work/main | --before ''] [--after .] [--repeat 3]
+         [--only vdp_lmi]
 """
 
 from __future__ import annotations
@@ -39,7 +40,9 @@ REPORTS = ("--html", "r.html", "--pdf", "r.pdf", "--junit", "r.xml", "--json", "
 
 
 def emit(**record: object) -> None:
-    print(json.dumps(record), flush=True)
+    from record import emit as record_line  # bench/record.py
+
+    record_line(record)
 
 
 def _children_cpu() -> float:
@@ -119,7 +122,8 @@ def bench_startup(trees: dict[str, Path], repeat: int) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--before", default="/work/main", help="tree measured as 'before'")
+    ap.add_argument("--before", default="/work/main",
+                    help="tree measured as 'before' ('' to measure only --after)")
     ap.add_argument("--after", default=str(ROOT), help="tree measured as 'after'")
     ap.add_argument("--repeat", type=int, default=1, help="runs per configuration")
     ap.add_argument("--startup-repeat", type=int, default=7)
@@ -127,10 +131,12 @@ def main() -> None:
                     help="examples to run (default: vdp_certified, vdp, vdp_lmi)")
     ap.add_argument("--skip-runs", action="store_true", help="start-up times only")
     args = ap.parse_args()
-    trees = {"before": Path(args.before).resolve(), "after": Path(args.after).resolve()}
+    trees = {"after": Path(args.after).resolve()}
+    if args.before:
+        trees = {"before": Path(args.before).resolve(), **trees}
     startup = bench_startup(trees, args.startup_repeat)
     for (tag, command), value in startup.items():
-        if tag == "after":
+        if tag == "after" and "before" in trees:
             before = startup[("before", command)]
             emit(bench="compare", what=f"certify {command} start-up s", before=before,
                  after=value, ratio=round(value / before, 3))

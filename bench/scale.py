@@ -28,7 +28,6 @@ Run: python bench/scale.py [--part n,workers,six] [--repeats 3] [--boxes 600000]
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import resource
 import statistics
@@ -48,7 +47,9 @@ from certify.search.threads import torch_threads  # noqa: E402
 
 
 def emit(record: dict) -> None:
-    print(json.dumps(record), flush=True)
+    from record import emit as record_line  # bench/record.py
+
+    record_line(record)
 
 
 def lmi_checkpoint(name: str, folder: Path, margin: float = 0.5) -> str:

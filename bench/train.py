@@ -11,7 +11,6 @@ Run: python bench/train.py [--systems vdp,duffing] [--seed 0] [--save-vdp exampl
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -21,6 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from record import emit as record_line  # noqa: E402  (bench/record.py)
 
 from certify.model import checkpoint  # noqa: E402
 from certify.spec.system import load_system  # noqa: E402
@@ -54,7 +54,7 @@ def main() -> int:
             "points": config.points, "workers": WORKERS, "cores": os.cpu_count(),
             "load_avg_1min_before": round(load, 2), "torch": torch.__version__,
         }
-        print(json.dumps(line), flush=True)
+        record_line(line)
         if name == "vdp" and args.save_vdp:
             checkpoint.save(args.save_vdp, system=system, network=result.network,
                             lam=config.lam, P=np.asarray(config.P), training=result.record())

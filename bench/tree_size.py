@@ -1,5 +1,5 @@
-"""How many boxes would a complete MPDI proof take? A random-descent estimate (issue 9;
-the estimator is `certify.search.tree_estimate`, which `certify run` also uses on an UNKNOWN proof).
+"""How many boxes would a complete MPDI proof take? A random-descent estimate (the
+estimator is `certify.search.tree_estimate`, which `certify run` also uses on an UNKNOWN proof).
 
 The tree of a decision proof is fixed by its bound and split rule, so random descents
 through it (the prover's own evaluation and rule: `certify.prove.mpdi.mpdi_decision`) estimate
@@ -23,7 +23,7 @@ W x 0.5, 0.99 M (+-53%) with both x 0.5; 2048 descents, e x 0.5 alone: 25.6 M ag
 both x 0.25: 1.1 k boxes. The estimates of the smaller trees are rough (few deep descents
 carry them), their order of magnitude is not.
 
-One JSON line per instance. Example (the six-state chain that misses issue 9's 600 s):
+One JSON line per instance. Example (the six-state chain, a long proof):
     python bench/tree_size.py --n 6 --seeds 0 1 2 --points 2048
     python bench/tree_size.py --n 6 --points 2048 --what-if-majorant 0.5
 """
@@ -31,7 +31,6 @@ One JSON line per instance. Example (the six-state chain that misses issue 9's 6
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import asdict
@@ -40,6 +39,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
+from record import emit as record_line  # noqa: E402  (bench/record.py)
 
 from bench.prove_suite import add_family_arguments, family_instances  # noqa: E402
 from certify.prove.mpdi import mpdi_decision, prove_mpdi  # noqa: E402
@@ -103,7 +103,7 @@ def main() -> None:
             rec.update(proof_status=out.status.value,
                        proof_boxes=out.stats.boxes_processed,
                        proof_seconds=round(out.stats.seconds, 2))
-        print(json.dumps(rec), flush=True)
+        record_line(rec)
 
 
 if __name__ == "__main__":

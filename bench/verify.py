@@ -15,7 +15,6 @@ Run: python bench/verify.py [--points 2000000] [--skip run]. Wall-clock on this 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -34,7 +33,9 @@ from certify.settings import VerifySettings  # noqa: E402
 
 
 def emit(**record: object) -> None:
-    print(json.dumps(record), flush=True)
+    from record import emit as record_line  # bench/record.py
+
+    record_line(record)
 
 
 def grid_rate(fn, problem, points: int, chunk: int = 8192) -> float:

@@ -32,12 +32,12 @@ RATE_FINE_BOXES = 16_384
 #: closing, the rest of the budget goes to MPDI decisions above the proved rate
 #: (`certify.prove.rate.raise_rate`). When the MPDI proof already proved the design rate
 #: and the branch and bound has not proved more after RATE_FINE_BOXES boxes, it hands over
-#: to the decisions then (examples/vdp2_lmi.ckpt: its quarter share ended at 0.93, below
-#: the design rate 1.0, and the decisions reached 1.118)
+#: to the decisions then: on a flat D the maximisation can end below the design rate where
+#: the decisions still climb (the reason: `bench/run.py --only vdp2_lmi`)
 RATE_BNB_SHARE = 0.25
 #: the decisions stop when the bracket [proved, sampled] is this narrow (relative): the
 #: report prints lam_cert to 4 significant digits, and each halving costs about twice the
-#: last (examples/vdp2_lmi.ckpt: 1.0 -> 1.1179 against the sampled 1.1188)
+#: last
 RATE_LADDER_REL_TOL = 1e-3
 
 
@@ -82,11 +82,11 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
         from certify.prove.mpdi import prove_rate
 
         # the grid's worst point seeds the closing level: with it the proof stops at the
-        # precision the report prints (RATE_REL_TOL) in about half the boxes an unseeded
-        # proof needs for 1e-3 (vdp_certified: 5.6k vs 11.7k boxes); where that precision
-        # is dear (bounds of first order: vdp_lmi needs 178k boxes), the tolerance relaxes
-        # to 1e-3 after RATE_FINE_BOXES boxes. On settings.device, in rounds of the CPU's
-        # size: the same boxes and bound on every device (up to the last bits of rounding)
+        # precision the report prints (RATE_REL_TOL) in fewer boxes than an unseeded
+        # proof needs for 1e-3 (`bench/run.py`); where that precision is dear (bounds of
+        # first order), the tolerance relaxes to 1e-3 after RATE_FINE_BOXES boxes. On
+        # settings.device, in rounds of the CPU's size: the same boxes and bound on every
+        # device (up to the last bits of rounding)
         seeds = [[*worst_cex.xhat, *worst_cex.y]] if worst_cex is not None else None
         on_device = on_settings_device(problem, settings)
         t_rate = time.perf_counter()

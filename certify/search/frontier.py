@@ -2,7 +2,7 @@
 
 Every round takes a batch out of the open boxes and later adds the batch's children; with
 plain tensors both are a copy of the whole frontier (hundreds of thousands of boxes late in
-a long proof: tens of ms a round, all of it on the driver). `Frontier` keeps the boxes in
+a long proof, all of it on the driver). `Frontier` keeps the boxes in
 slots of preallocated buffers: adding writes behind the last slot (capacity doubles when
 full), taking or closing clears a slot's `alive` flag, and the buffers are compacted (live
 slots moved to the front, in slot order) only when more than half the used slots are dead:
@@ -17,9 +17,8 @@ only when it runs short of a batch, grows past 4x its built size, or a compactio
 slots. The worst k of the frontier are the worst k of the top pool whenever that pool holds
 at least k live slots (every slot outside it is below tau_top, every slot inside at or
 above), and the same for the nearest, so the pools change the cost, not the boxes taken
-(up to the order among equal bounds). Measured (`bench/frontier.py`, 4 M open boxes of 7
-dimensions, k = 2048): 207 ms a take with the full scan, 8 ms from the pools; on the 2x10
-six-state chain's 2-worker proof the full scan had been the driver's largest cost.
+(up to the order among equal bounds). `bench/frontier.py` compares the cost of a take from
+the pools with a full scan by frontier size.
 
 Everything is a function of the frontier's contents and the order of the calls only, so two
 runs that add and take the same boxes in the same order take the same batches (branch and

@@ -1,10 +1,10 @@
 """Fast no-grad lam_max(D) for dense grids (the falsifier's inner loop).
 
 The general kernel (`certify.model.kernels`) keeps points in rows, which suits autograd. For a dense
-grid the work is many tiny 30 x 30 products and elementwise activations; storing points in
-columns (feature-major, `certify.model.gain.ColumnArithmetic`) lets every layer be one large matrix
-product with contiguous elementwise passes, several times faster. Only the n tangent
-directions of xhat are propagated (D needs dk/dxhat, not dk/dy). It covers the `direct`
+grid the work is many tiny 30 x 30 products and elementwise activations; storing points in columns
+(feature-major, `certify.model.gain.ColumnArithmetic`) lets every layer be one large matrix product
+with contiguous elementwise passes, several times faster (`bench/verify.py`, "grid"). Only the n
+tangent directions of xhat are propagated (D needs dk/dxhat, not dk/dy). It covers the `direct`
 structure with or without the linear term K; other structures use the general kernel.
 
 A float32 kernel is only ever a screen (`certify.search.falsify.maximize_over_box`: it selects the

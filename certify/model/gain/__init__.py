@@ -31,12 +31,9 @@ CEGIS' `training.cegis_objective`, the curvature term), and the prover's enclosu
 `certify.enclose.crown.forward_bounds` (`propagate` in `PairedArithmetic`; its `layer_hook`
 intersects, adds the composed first layer's slack at layer 0, runs the backward CROWN
 queries that tighten pre_l and the tangent columns, and records each layer's relaxations).
-The ports were bit-identical to the code they replaced (frozen in
-tests/test_gain_interval.py, tests/test_gain_compose.py, tests/test_crown_forward.py and,
-for the training heads, tests/test_training_heads.py), except dk/dy of the interval gain,
-which `compose` forms as dN/dy r + G + K with exact constants where the old code summed
-G_il * 1 and K_il * 1 with product and summation rounding: the new enclosure lies inside
-the old one.
+Their values are frozen bit for bit by the gain, compose, crown-forward and training-head
+tests; dk/dy of the interval gain is formed as dN/dy r + G + K with exact constants (no
+product rounding on G_il * 1 and K_il * 1).
 
 Not (yet) written once:
 - The linear-relaxation arithmetic: CROWN's backward pass (`certify.enclose.crown_backward`),

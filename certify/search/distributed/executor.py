@@ -314,9 +314,9 @@ def _cancelled_group() -> type[BaseException]:
 def _worker_environment() -> Any:
     """Dask's worker environment without MALLOC_TRIM_THRESHOLD_: Dask sets it (to return
     memory to the OS sooner), which also turns off glibc's adaptive mmap threshold, so every
-    large torch temporary becomes an mmap + page faults + munmap; the box bounds ran 2-5x
-    slower on a worker than in-process with it. One thread per library stays, and the
-    workers' profiler is off."""
+    large torch temporary becomes an mmap + page faults + munmap, and the box bounds run
+    several times slower on a worker than in-process (`bench/scale.py`). One thread per
+    library stays, and the workers' profiler is off."""
     import dask
 
     env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {})
