@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from certify.errors import CertifyError
+from certify.files import stage_file
 from certify.spec import builtin
 
 #: the report flags of `run` and `report`, and which of them may name stdout ("-")
@@ -120,26 +121,6 @@ def system_argument(value: str) -> Path | None:
     hint = f"; did you mean '{close[0]}'?" if close else ""
     raise SpecError(f"unknown system '{value}'{hint} (built-ins: {', '.join(names)}; or give "
                     "the path of a .toml spec)")
-
-
-def stage_file(path: str | Path, data: bytes) -> str:
-    """Write `data` to a new temporary file beside `path` (same directory, so that renaming
-    it onto `path` is atomic), flushed to disk with the mode a new file gets; returns its
-    name. Nothing is left behind when this raises."""
-    target = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual mode
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return tmp
 
 
 def commit_files(contents: dict[str, bytes]) -> None:
