@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from certify.certificate import Certificate
-from certify.presentation import ErrorHeadline, Quantity
+from certify.presentation import ErrorHeadline, Quantity, upper_text
 from certify.results import CheckFailure, Status
 
 DASH = "\u2014"
@@ -342,7 +342,8 @@ def verdict_notes(cert: Certificate) -> list[str]:
     if b is not None and getattr(b, "vacuous", False):
         best = b.ultimate if b.ultimate is not None else min(
             (x.bias for x in b.bounds() if x.applicable and x.bias is not None), default=None)
-        notes.append(f"the proved error bound {fmt(best)} is valid but vacuous: larger than "
+        shown = DASH if best is None else upper_text(float(best))  # as the headline's limit
+        notes.append(f"the proved error bound {shown} is valid but vacuous: larger than "
                      f"the box (half-diagonal of X {fmt(b.box_half_diagonal)})")
     return notes
 
