@@ -13,7 +13,7 @@ from typing import Any
 
 from certify.errors import CertifyError
 from certify.figuredata import FigureData
-from certify.presentation import Presentation
+from certify.presentation import ErrorHeadline, Presentation, error_headline
 from certify.results import (
     RESULT_TYPES,
     Status,
@@ -29,6 +29,9 @@ SCHEMA_NAME = "certify-certificate"
 #: to at most 150 samples that keep every run's extremes; the simulated states `x`, `xhat`
 #: written only on request (`trajectories`). v1 and v2 documents are read as they are, their
 #: figure arrays brought to figure size on reading.
+#: v3 also carries, optionally, the top-level "error_bound": the headline of the bounds check
+#: (`certify.presentation.ErrorHeadline.to_dict`), derived from `checks.bounds` on writing
+#: and ignored on reading (documents without it are read the same).
 SCHEMA_VERSION = 3
 READABLE_VERSIONS = (1, 2, 3)
 #: lines of the JSON text are kept within this many characters where a list allows it
@@ -90,10 +93,21 @@ class Certificate:
         r = self.checks.get(name)
         return None if r is None else presentation(name, r, self)
 
+    def error_headline(self) -> ErrorHeadline:
+        """The certified error bound as the second headline after the verdict (or why there
+        is none), from the bounds check's result and the system's state names."""
+        return error_headline(self.checks.get("bounds"), (self.system or {}).get("states"))
+
     def to_dict(self, *, trajectories: bool = False) -> dict[str, Any]:
         """The JSON form; each simulated run's states `x` and `xhat` only with
-        `trajectories` (they are drawn only on request; empty lists otherwise)."""
-        data = to_jsonable(self)
+        `trajectories` (they are drawn only on request; empty lists otherwise). After the
+        verdict and summary comes "error_bound", the error headline (`error_headline`)."""
+        full = to_jsonable(self)
+        data: dict[str, Any] = {}
+        for key, value in full.items():
+            data[key] = value
+            if key == "summary":
+                data["error_bound"] = to_jsonable(self.error_headline().to_dict())
         sim = data["checks"].get("simulation")
         if not trajectories and isinstance(sim, dict):
             for run in sim.get("runs") or []:
@@ -121,7 +135,9 @@ class Certificate:
                 if name not in RESULT_TYPES:
                     raise CertifyError(f"certificate has an unknown check '{name}'")
                 checks[name] = result_from_jsonable(name, raw)
-            kwargs = {k: v for k, v in data.items() if k not in ("checks", "figures")}
+            # "error_bound" is derived from the bounds check: recomputed, never read
+            kwargs = {k: v for k, v in data.items()
+                      if k not in ("checks", "figures", "error_bound")}
             # an older document is read as it is and re-stamped with the current version
             kwargs["schema_version"] = SCHEMA_VERSION
             return cls(checks=checks, figures=FigureData.coerce(data.get("figures")),

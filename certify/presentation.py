@@ -7,12 +7,15 @@ importing any check.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from decimal import ROUND_CEILING, Decimal
 from typing import Any
 
-from certify.results import CheckFailure, Status
+from certify.results import BoundsResult, CheckFailure, Status
 
-__all__ = ["Quantity", "Presentation", "NOTHING", "present_failure"]
+__all__ = ["Quantity", "Presentation", "NOTHING", "present_failure", "ErrorHeadline",
+           "error_headline", "upper_text", "BOUND_TITLES"]
 
 
 @dataclass(frozen=True)
@@ -39,6 +42,9 @@ class Presentation:
     `sampled` is the falsification side (a value found at concrete points), `proved` the
     sound side; `setting` names the knobs it ran with; `numbers` lists every number (JUnit
     and the HTML table); `facts` are the key facts of the check's report section.
+    `qualifier`: a word that qualifies the status and goes wherever the status goes (e.g.
+    "vacuous" for a proved error bound larger than the box): a renderer shows
+    "PROVED — vacuous" and never the plain colour of a pass; "" when the status says it all.
     """
 
     sampled: Quantity
@@ -46,6 +52,7 @@ class Presentation:
     setting: tuple[Quantity, ...] = ()
     numbers: tuple[Quantity, ...] = ()
     facts: tuple[Quantity, ...] = ()
+    qualifier: str = ""
 
 
 NOTHING = Quantity("", None)
@@ -59,3 +66,174 @@ def present_failure(result: CheckFailure) -> Presentation:
     if result.error_type:
         facts += (Quantity("Exception", result.error_type),)
     return Presentation(side, side, (), facts, facts)
+
+
+# ----------------------------------------------------------------------------- error headline
+
+#: what each error bound of `BoundsResult.bounds()` is, in words
+BOUND_TITLES = {"dissipation": "joint dissipation certificate",
+                "iss_metric": "metric-weighted ISS bound", "iss": "ISS bound",
+                "theorem3": "Theorem 3 as stated"}
+
+#: relative outward nudge on a bound scaled here (one float multiply and divide)
+_NUDGE = 1e-12
+
+
+def upper_text(x: float, sig: int = 3) -> str:
+    """An upper bound as text, rounded UP to `sig` significant digits, so that the printed
+    number is never below the proved one (1.2431 -> '1.25', 1240.2 -> '1250'); 'inf' and
+    'NaN' spelled out. Exact: the float is read as the decimal it is."""
+    if math.isnan(x):
+        return "NaN"
+    if math.isinf(x):
+        return "\u221e" if x > 0 else "-\u221e"
+    if x == 0:
+        return "0"
+    d = Decimal(x)
+    q = d.quantize(Decimal(1).scaleb(d.adjusted() - sig + 1), rounding=ROUND_CEILING)
+    return format(q.normalize(), "f")
+
+
+@dataclass(frozen=True)
+class ErrorHeadline:
+    """The certified error bound as the second headline after the verdict, as data.
+
+    With a bound (`proved`): ||e(t)|| <= `bound` for noise ||v|| <= `noise` for every
+    t >= `after` (seconds) from any start with x, xhat in X, under the validity conditions of
+    the bounds check; `components` are (state name, bound on |e_i| over the same times);
+    `vacuous`: the bound's limit `ultimate` exceeds `half_diagonal`, the half-diagonal of X
+    (true, but it says little); `source` names the bound it comes from (`BOUND_TITLES`).
+    `after` is None for a certificate that recorded no settle time: then `bound` is the
+    ultimate bound, reached as t -> infinity. Without a bound, `reason` says why, in words
+    that start "no error bound".
+
+    Every number is an upper bound as proved (never rounded down); `sentence` and
+    `components_text` print them rounded up (`upper_text`).
+    """
+
+    status: str
+    proved: bool
+    reason: str = ""
+    bound: float | None = None
+    noise: float | None = None
+    after: float | None = None
+    components: tuple[tuple[str, float], ...] = ()
+    vacuous: bool = False
+    half_diagonal: float | None = None
+    source: str = ""
+    ultimate: float | None = None
+
+    def _le(self, unicode: bool) -> str:
+        return "\u2264" if unicode else "<="
+
+    def sentence(self, unicode: bool = True) -> str:
+        """'‖e‖ ≤ 1.25 for noise ≤ 0.15 after t ≥ 3.1 s' (ASCII: '||e|| <= 1.25 ...'); the
+        reason when there is no bound."""
+        if not self.proved or self.bound is None:
+            return self.reason
+        le, norm = self._le(unicode), ("\u2016e\u2016" if unicode else "||e||")
+        noise = f"{self.noise:g}" if self.noise is not None else "?"
+        head = f"{norm} {le} {upper_text(self.bound)} for noise {le} {noise}"
+        if self.after is None or not math.isfinite(self.after):
+            return head + (" as t \u2192 \u221e" if unicode else " as t -> infinity")
+        ge = "\u2265" if unicode else ">="
+        return head + f" after t {ge} {upper_text(self.after, 2)} s"
+
+    def components_text(self, unicode: bool = True) -> str:
+        """'|e1| ≤ 0.396 (x1), |e2| ≤ 1.38 (x2)'; '' without a bound."""
+        le = self._le(unicode)
+        return ", ".join(f"|e{i + 1}| {le} {upper_text(v)}" + (f" ({n})" if n else "")
+                         for i, (n, v) in enumerate(self.components))
+
+    def size_word(self) -> str:
+        """'useful' or 'vacuous' ('' without a bound)."""
+        return "" if not self.proved else ("vacuous" if self.vacuous else "useful")
+
+    def size_text(self) -> str:
+        """'useful (smaller than the box, half-diagonal 3.61)' or 'vacuous (larger than the
+        box, half-diagonal 3.61)'; '' without a bound."""
+        if not self.proved:
+            return ""
+        if self.half_diagonal is None:
+            return f"{self.size_word()} (the box's half-diagonal was not recorded)"
+        rel = "larger" if self.vacuous else "smaller"
+        return f"{self.size_word()} ({rel} than the box, half-diagonal {self.half_diagonal:.3g})"
+
+    def source_text(self, unicode: bool = True) -> str:
+        """Which bound it comes from and its limit, for the small print."""
+        if not self.proved:
+            return ""
+        title = BOUND_TITLES.get(self.source, self.source or "bound")
+        text = f"from the {title} ({self.source})" if self.source else "from the best bound"
+        if self.ultimate is not None and self.after is not None:
+            arrow = "t \u2192 \u221e" if unicode else "t -> infinity"
+            text += f"; limit {upper_text(self.ultimate)} as {arrow}"
+        return text
+
+    def line(self, unicode: bool = True) -> str:
+        """Everything on one line: sentence, per component, size, source (or the reason)."""
+        if not self.proved:
+            return self.reason
+        parts = [self.sentence(unicode)]
+        if self.components:
+            parts.append(self.components_text(unicode))
+        parts.append(self.size_text())
+        return "; ".join(parts) + f" [{self.source_text(unicode)}]"
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON summary (`Certificate.to_dict`'s top-level "error_bound")."""
+        return {"status": self.status,
+                "statement": self.sentence() if self.proved else None,
+                "bound": self.bound, "noise": self.noise, "after": self.after,
+                "per_component": {n or f"e{i + 1}": v
+                                  for i, (n, v) in enumerate(self.components)},
+                "size": self.size_word() or None, "vacuous": self.vacuous if self.proved
+                else None, "box_half_diagonal": self.half_diagonal,
+                "source": self.source or None, "ultimate": self.ultimate,
+                "reason": self.reason or None}
+
+
+def _no_bound(status: str, why: str) -> ErrorHeadline:
+    why = why.strip() or "no reason recorded"
+    reason = why if why.lower().startswith("no error bound") else f"no error bound: {why}"
+    return ErrorHeadline(status=status, proved=False, reason=reason)
+
+
+def error_headline(bounds: Any, states: list[str] | None = None) -> ErrorHeadline:
+    """The headline of the bounds check's result (`BoundsResult`, a `CheckFailure` or None
+    when it did not run); `states` names the components (the system's state names).
+
+    A certificate written before the headline fields existed (PROVED, `headline` None) gets
+    the smallest applicable ultimate bound, reached as t -> infinity (`after` None)."""
+    if bounds is None:
+        return _no_bound(Status.SKIPPED.value, "the bounds check was not run")
+    status = bounds.status.value if isinstance(bounds.status, Status) else str(bounds.status)
+    if isinstance(bounds, CheckFailure):
+        word = "ended in ERROR" if bounds.status == Status.ERROR else "could not run"
+        return _no_bound(status, f"the bounds check {word}: {bounds.message}")
+    if not isinstance(bounds, BoundsResult) or bounds.status != Status.PROVED:
+        return _no_bound(status, getattr(bounds, "message", ""))
+    names = list(states or [])
+    applicable = [b for b in bounds.bounds() if b.applicable and b.bias is not None]
+    if bounds.headline is not None and bounds.ultimate is not None:
+        bound, after, ultimate = float(bounds.headline), bounds.settle_time, float(bounds.ultimate)
+        source = bounds.best
+    elif applicable:
+        best = min(applicable, key=lambda b: float(b.bias))  # type: ignore[arg-type]
+        bound, after, ultimate, source = float(best.bias), None, None, best.name  # type: ignore
+    else:
+        return _no_bound(status, bounds.message or "no applicable bound")
+    comps: list[tuple[str, float]] = []
+    if bounds.per_component:
+        # |e_i| <= per_component[i] at the limit; at t >= after scaled like the norm bound
+        scale = 1.0 if ultimate is None or after is None else (
+            bound / ultimate if ultimate > 0 else 1.0)
+        for i, v in enumerate(bounds.per_component):
+            name = names[i] if i < len(names) else ""
+            comps.append((name, float(v) * scale * (1.0 + _NUDGE) if scale != 1.0
+                          else float(v)))
+    return ErrorHeadline(status=status, proved=True, bound=bound, noise=float(bounds.vbar),
+                         after=None if after is None else float(after),
+                         components=tuple(comps), vacuous=bool(bounds.vacuous),
+                         half_diagonal=bounds.box_half_diagonal, source=source,
+                         ultimate=ultimate)

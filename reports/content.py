@@ -14,14 +14,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from certify.certificate import Certificate
-from certify.presentation import Quantity
+from certify.presentation import ErrorHeadline, Quantity, upper_text
 from certify.results import CheckFailure, Status
 
 DASH = "\u2014"
 
 #: the order checks appear in every report
-CHECK_ORDER = ("necessary", "metric", "mpdi", "rate", "residual", "lipschitz", "bounds",
-               "simulation")
+CHECK_ORDER = ("necessary", "metric", "mpdi", "rate", "residual", "lipschitz", "dissipation",
+               "bounds", "simulation")
 
 STATUS_COLOURS = {  # text colour, background
     "PROVED": ("#14532d", "#dcfce7"),
@@ -31,7 +31,11 @@ STATUS_COLOURS = {  # text colour, background
     "SKIPPED": ("#374151", "#e5e7eb"),
     "NOT APPLICABLE": ("#374151", "#e5e7eb"),
     "ERROR": ("#581c87", "#f3e8ff"),
+    # a status with a qualifier ("PROVED — vacuous"): amber, never the plain colour of a pass
+    "QUALIFIED": ("#78350f", "#fef3c7"),
 }
+#: the colours of the error headline's size word
+SIZE_COLOURS = {"useful": STATUS_COLOURS["PROVED"], "vacuous": STATUS_COLOURS["QUALIFIED"]}
 VERDICT_COLOURS = {"CERTIFIED": "#15803d", "NOT CERTIFIED": "#b91c1c", "INCONCLUSIVE": "#b45309"}
 
 CONVENTION = ("Convention: He{M} = (M + M\u1d40)/2 and D = He{P (J_f + \u2202k/\u2202x\u0302)} "
@@ -149,6 +153,28 @@ class CheckRow:
     message: str
     seconds: float | None
     numbers: list[tuple[str, str]] = field(default_factory=list)  # every number, for JUnit
+    #: a word that qualifies the status (the presenter's `qualifier`, e.g. "vacuous")
+    qualifier: str = ""
+
+    @property
+    def badge(self) -> str:
+        """The status as every report shows it: 'PROVED' or 'PROVED — vacuous'."""
+        return badge(self.status, self.qualifier)
+
+    @property
+    def badge_key(self) -> str:
+        """The key of the badge's colours in `STATUS_COLOURS` (and its HTML class)."""
+        return badge_key(self.status, self.qualifier)
+
+
+def badge(status: str, qualifier: str = "") -> str:
+    """A status with its qualifier: 'PROVED — vacuous'."""
+    return f"{status} {DASH} {qualifier}" if qualifier else status
+
+
+def badge_key(status: str, qualifier: str = "") -> str:
+    """'QUALIFIED' for a qualified status (amber), else the status itself."""
+    return "QUALIFIED" if qualifier else status
 
 
 def fmt_value(v: Any, sig: int = 4, *, signed: bool = False) -> str:
@@ -200,16 +226,18 @@ def check_rows(cert: Certificate) -> list[CheckRow]:
                                  Side("", DASH), Side("", DASH), "", "not run", None))
             continue
         pres = cert.presentation(name)
+        qualifier = ""
         if pres is None:
             sampled, proved, setting, nums = Side("", DASH), Side("", DASH), "", []
         else:
             sampled, proved = side(pres.sampled), side(pres.proved)
             setting, nums = setting_text(pres.setting), pairs(pres.numbers)
+            qualifier = getattr(pres, "qualifier", "")
         seconds = to_float((cert.timings or {}).get(name))
         if seconds is None:
             seconds = to_float(getattr(r, "seconds", None))
         rows.append(CheckRow(name, title, r.status.value, required, sampled, proved, setting,
-                             r.message, seconds, nums))
+                             r.message, seconds, nums, qualifier))
     return rows
 
 
@@ -312,11 +340,53 @@ def verdict_notes(cert: Certificate) -> list[str]:
     notes = []
     b = result(cert, "bounds")
     if b is not None and getattr(b, "vacuous", False):
-        best = min((x.bias for x in (b.theorem3, b.iss, b.iss_metric)
-                    if x is not None and x.applicable and x.bias is not None), default=None)
-        notes.append(f"the proved error bound {fmt(best)} is valid but vacuous: larger than "
+        best = b.ultimate if b.ultimate is not None else min(
+            (x.bias for x in b.bounds() if x.applicable and x.bias is not None), default=None)
+        shown = DASH if best is None else upper_text(float(best))  # as the headline's limit
+        notes.append(f"the proved error bound {shown} is valid but vacuous: larger than "
                      f"the box (half-diagonal of X {fmt(b.box_half_diagonal)})")
     return notes
+
+
+# ----------------------------------------------------------------------------- error headline
+
+@dataclass(frozen=True)
+class HeadlineText:
+    """The certified error bound, the second headline after the verdict, as the lines every
+    medium shows (`error_headline_text`): `sentence` ('‖e‖ ≤ 1.25 for noise ≤ 0.15 after
+    t ≥ 3.1 s', or the reason there is none), `components` ('|e1| ≤ 0.396 (x1), ...'),
+    `size_word` ('useful' / 'vacuous', '' without a bound), `size` (the word with the box's
+    half-diagonal), `source` (which bound it comes from: small print)."""
+
+    proved: bool
+    sentence: str
+    components: str = ""
+    size_word: str = ""
+    size: str = ""
+    source: str = ""
+
+    @property
+    def line(self) -> str:
+        """One line: 'error bound: <sentence>; <components>; <size> [<source>]', or the
+        reason there is none."""
+        if not self.proved:
+            return self.sentence
+        parts = [self.sentence] + ([self.components] if self.components else []) + [self.size]
+        return "error bound: " + "; ".join(parts) + (f" [{self.source}]" if self.source else "")
+
+
+def error_headline(cert: Certificate) -> ErrorHeadline:
+    """The error headline's data (`Certificate.error_headline`)."""
+    return cert.error_headline()
+
+
+def error_headline_text(cert: Certificate, *, unicode: bool = True) -> HeadlineText:
+    """The error headline as text: Unicode (‖e‖ ≤) where the medium allows, else ASCII."""
+    h = error_headline(cert)
+    if not h.proved:
+        return HeadlineText(False, h.reason)
+    return HeadlineText(True, h.sentence(unicode), h.components_text(unicode), h.size_word(),
+                        h.size_text(), h.source_text(unicode))
 
 
 def verdict_summary(cert: Certificate) -> str:

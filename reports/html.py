@@ -46,7 +46,7 @@ def context(cert: Certificate, figures: list[RenderedFigure]) -> dict[str, Any]:
     secs = []
     for sec in S.sections(cert):
         secs.append({"anchor": sec.anchor, "title": sec.title, "short": sec.short,
-                     "status": sec.status,
+                     "status": sec.status, "badge": sec.badge, "badge_key": sec.badge_key,
                      "message": sec.message, "tone": sec.tone, "paragraphs": sec.paragraphs,
                      "statements": sec.statements, "facts": sec.facts,
                      "tables": [_table_ctx(t) for t in sec.tables],
@@ -62,6 +62,7 @@ def context(cert: Certificate, figures: list[RenderedFigure]) -> dict[str, Any]:
     sy = cert.system or {}
     return {
         "verdict": cert.verdict, "summary": C.verdict_summary(cert),
+        "headline": C.error_headline_text(cert),
         "verdict_colour": C.VERDICT_COLOURS.get(cert.verdict, "#374151"),
         "status_colours": C.STATUS_COLOURS, "system_name": sy.get("name", "system"),
         "system_description": sy.get("description", ""),

@@ -8,7 +8,12 @@ run (nothing established) is a <failure> by default (the policy `unknown="error"
 <error>, to tell "could not decide" from "proved false" on dashboards), or <skipped> when the
 settings allow unknown required checks. A check that is not required never fails the build:
 it passes when it passed, and is otherwise <skipped> with its status and finding as the
-reason. Every case carries the numbers of both sides in <system-out>. When `certify run`
+reason. Every case carries the numbers of both sides in <system-out>; a status with a
+qualifier is written with it ("PROVED — vacuous": a vacuous error bound still passes, it is
+valid, but never without that word). The certified error bound, the second headline after
+the verdict, opens the bounds case's <system-out> and is in the suite's properties
+(`error_bound`, one `error_bound_e<i>_<state>` per component, `error_bound_size` "useful" or
+"vacuous", `error_bound_source`; without a bound, `error_bound` says why). When `certify run`
 stops on an internal error (exit 4, no certificate), `render_internal_error` gives the one
 <error> case CI shows instead.
 """
@@ -19,13 +24,15 @@ import datetime as _dt
 import xml.etree.ElementTree as ET
 
 from certify.certificate import Certificate
+from certify.presentation import upper_text
 from reports import content as C
 
 UNKNOWN_POLICIES = ("failure", "error")
 
 
-def _numbers_text(row: C.CheckRow) -> str:
-    lines = [f"status: {row.status}" + (" (required)" if row.required else " (not required)"),
+def _numbers_text(row: C.CheckRow, headline: C.HeadlineText | None = None) -> str:
+    lines = [headline.line] if headline is not None and row.name == "bounds" else []
+    lines += [f"status: {row.badge}" + (" (required)" if row.required else " (not required)"),
              f"message: {row.message}",
              f"sampled side: {row.sampled.label}: {row.sampled.text}",
              f"proved side: {row.proved.label}: {row.proved.text}",
@@ -43,7 +50,7 @@ def case_outcome(row: C.CheckRow, unknown: str, allow_unknown: bool) -> tuple[st
 
     Mirrors `certify.certificate.decide_verdict`, so CI shows red exactly when the gate fails.
     """
-    finding = f"{row.status}: {row.message}"
+    finding = f"{row.badge}: {row.message}"
     if row.status in PASSING:
         return "", finding
     if not row.required:
@@ -69,11 +76,12 @@ def render_junit(cert: Certificate, *, unknown: str = "failure") -> str:
     suite_name = f"certify.{name}"
     counts = {"failure": 0, "error": 0, "skipped": 0}
     cases = []
+    headline = C.error_headline_text(cert)
     for row in rows:
         case = ET.Element("testcase", {"classname": suite_name, "name": row.name,
                                        "time": f"{row.seconds or 0.0:.3f}"})
         element, msg = case_outcome(row, unknown, allow_unknown)
-        text = _numbers_text(row)
+        text = _numbers_text(row, headline)
         if element == "skipped":
             ET.SubElement(case, element, {"message": msg})
         elif element:  # a failure or error carries the numbers of both sides itself
@@ -97,11 +105,28 @@ def render_junit(cert: Certificate, *, unknown: str = "failure") -> str:
                        ("checkpoint", str(ck.get("path", ""))),
                        ("sha256", str(ck.get("sha256", ""))), ("lam", C.fmt(cert.lam, 6)),
                        ("lam_cert", C.lam_cert_text(cert)),
-                       ("unknown_policy", unknown)):
+                       ("unknown_policy", unknown), *_headline_properties(cert)):
         ET.SubElement(props, "property", {"name": key, "value": value})
     suite.extend(cases)
     ET.indent(root)
     return ET.tostring(root, encoding="unicode", xml_declaration=True) + "\n"
+
+
+def _headline_properties(cert: Certificate) -> list[tuple[str, str]]:
+    """The error headline as suite properties: the sentence, its numbers (rounded up, as
+    printed), one per component (named by state), the size word and the bound's source."""
+    data = cert.error_headline()
+    if not data.proved or data.bound is None:
+        return [("error_bound", data.reason)]
+    text = C.error_headline_text(cert)
+    props = [("error_bound", text.sentence), ("error_bound_value", upper_text(data.bound)),
+             ("error_bound_noise", f"{data.noise:g}" if data.noise is not None else "")]
+    if data.after is not None:
+        props.append(("error_bound_after_seconds", upper_text(data.after, 2)))
+    props += [(f"error_bound_e{i + 1}" + (f"_{name}" if name else ""), upper_text(v))
+              for i, (name, v) in enumerate(data.components)]
+    props += [("error_bound_size", text.size_word), ("error_bound_source", data.source)]
+    return props
 
 
 def render_internal_error(where: str, message: str, error_type: str) -> str:

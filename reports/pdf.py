@@ -31,11 +31,11 @@ from reports.pdf_writer import PdfWriter
 def _check_table(doc: PdfDocument, cert: Certificate) -> None:
     rows, spans = [], {}
     for i, r in enumerate(C.check_rows(cert)):
-        fg, bg = C.STATUS_COLOURS.get(r.status, (INK, PANEL))
+        fg, bg = C.STATUS_COLOURS.get(r.badge_key, (INK, PANEL))
         name = Cell([Run(r.title, 8.2, "bold"),
                      Run(r.name + ("  \u00b7 required" if r.required else ""), 7.2,
                          color="#1e3a8a" if r.required else MUTED)])
-        status = Cell([Run(r.status, 7.2, "bold", fg, pill=(fg, bg))]
+        status = Cell([Run(r.badge, 7.2, "bold", fg, pill=(fg, bg))]
                       + ([Run(C.fmt_seconds(r.seconds), 7.2, color=MUTED)]
                          if r.seconds is not None else []))
         sides = []
@@ -66,8 +66,35 @@ def _verdict(doc: PdfDocument, cert: Certificate) -> None:
     doc.y += h + 0.18
 
 
+def _headline(doc: PdfDocument, cert: Certificate) -> None:
+    """The certified error bound under the verdict banner: the sentence and its size word,
+    per component, the size against the box, and (small) which bound it comes from; or the
+    one line saying why there is none."""
+    h = C.error_headline_text(cert)
+    what = Run("CERTIFIED ERROR BOUND", 7.2, "bold", MUTED)
+    if not h.proved:
+        runs = [what, Run(h.sentence, 9.5, color=MUTED)]
+        edge, box = "#9ca3af", PANEL
+    else:
+        fg, bg = C.SIZE_COLOURS[h.size_word]
+        runs = [what, Run(h.sentence, 13, "bold"), Run(h.size_word, 8.0, "bold", fg,
+                                                      pill=(fg, bg))]
+        if h.components:
+            runs.append(Run(h.components, 10))
+        runs += [Run(h.size, 9), Run(h.source, 7.4, color=MUTED)]
+        edge = "#15803d" if h.size_word == "useful" else "#b45309"
+        box = PANEL if h.size_word == "useful" else "#fffbeb"
+    lines = doc.layout(runs, CONTENT_W - 0.35)
+    height = sum(x[2] for x in lines) + 0.22
+    doc.need(height)
+    doc.rect(MARGIN_X, doc.y, CONTENT_W, height, box, round_=True)
+    doc.rect(MARGIN_X, doc.y, 0.06, height, edge)
+    doc.draw_lines(MARGIN_X + 0.2, doc.y + 0.11, lines)
+    doc.y += height + 0.18
+
+
 def _section(doc: PdfDocument, sec: S.Section, figures: list[RenderedFigure]) -> None:
-    doc.heading(sec.title, 1, sec.status)
+    doc.heading(sec.title, 1, sec.badge, sec.badge_key)
     if sec.message:
         tone = {"good": ("#f0fdf4", "#15803d"), "bad": ("#fef2f2", "#b91c1c"),
                 "warn": ("#fffbeb", "#b45309")}.get(sec.tone, (PANEL, "#9ca3af"))
@@ -115,6 +142,7 @@ def render_pdf(cert: Certificate, figures: list[RenderedFigure] | None = None) -
     if sy.get("description"):
         doc.para(sy["description"], 9.5, MUTED)
     _verdict(doc, cert)
+    _headline(doc, cert)
     doc.heading("Checks", 1)
     _check_table(doc, cert)
     doc.heading("System, metric and rates", 1)

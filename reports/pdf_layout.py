@@ -206,7 +206,9 @@ class PdfDocument:
         return y
 
     # -- blocks
-    def heading(self, s: str, level: int = 1, badge: str = "") -> None:
+    def heading(self, s: str, level: int = 1, badge: str = "", colours: str = "") -> None:
+        """A heading; `badge` a status pill after it, coloured as `STATUS_COLOURS[colours]`
+        (default: the badge's own text)."""
         size = {0: 17.0, 1: 13.5, 2: 11.0}[level]
         run = Run(s, size, "bold")
         lines = self.layout([run], CONTENT_W - (1.0 if badge else 0))
@@ -216,7 +218,7 @@ class PdfDocument:
         self.y = self.draw_lines(MARGIN_X, self.y, lines)
         if badge:
             last_w = self.m.width(lines[-1][0], run)
-            fg, bg = C.STATUS_COLOURS.get(badge, (INK, PANEL))
+            fg, bg = C.STATUS_COLOURS.get(colours or badge, (INK, PANEL))
             pill = Run(badge, 7.5, "bold", fg, pill=(fg, bg))
             self.draw_lines(MARGIN_X + last_w + 0.15, self.y - lines[-1][2] + 0.04,
                             [(badge, pill, line_height(pill))])

@@ -14,6 +14,8 @@ from typing import Any
 from certify.certificate import Certificate
 from reports.content import (
     DASH,
+    badge,
+    badge_key,
     check_facts,
     fmt,
     fmt_none,
@@ -39,6 +41,14 @@ ISS_TEXT = (
     "\u2016e(t)\u2016 \u2264 (e^(\u22122\u03bbt) W(0) + (1 \u2212 e^(\u22122\u03bbt)) "
     "\u2016P^\u00bd\u2016\u2082 (\u03b5\u0304 + L v\u0304) / (2\u03bb)) / \u221a\u03bb_min(P). "
     "It needs no \u03bb > 2; for P = I and \u03bb > 2 it is never larger than Theorem 3's.")
+
+DISSIPATION_TEXT = (
+    "Joint dissipation certificate: with V = e\u1d40 P e, the inequality V\u2032 \u2264 "
+    "\u2212\u03b1 V + \u03bc \u2016v\u2016\u00b2 (+ \u03bc_r \u03b5\u0304\u00b2 for a "
+    "direct gain) is proved over X \u00d7 Y as one matrix inequality in [e; v], for every "
+    "vertex of an enclosure of \u2202k/\u2202y, so the error tends to at most "
+    "\u221a((\u03bc v\u0304\u00b2 + \u03bc_r \u03b5\u0304\u00b2) / (\u03b1 "
+    "\u03bb_min(P))) without the Cauchy\u2013Schwarz step of the ISS bound.")
 
 NECESSARY_TEXT = (
     "For any C\u00b9 gain with exact boundary condition k(x, h(x)) = 0, on the output manifold "
@@ -114,9 +124,7 @@ def bound_rows(cert: Certificate) -> list[list[str]]:
     if r is None:
         return []
     rows = []
-    for b in (r.theorem3, r.iss, r.iss_metric):
-        if b is None:
-            continue
+    for b in r.bounds():
         rows.append([b.name, "yes" if b.applicable else "no", b.reason,
                      fmt(b.rate), fmt(b.gain), fmt(b.bias), fmt(b.bias_per_unit_noise)])
     return rows
@@ -188,11 +196,24 @@ class Section:
     empty: str = ""
     #: small print after the tables (e.g. how floating-point soundness was kept)
     notes: list[str] = field(default_factory=list)
+    #: a word that qualifies the status ("vacuous"): shown beside it, in amber
+    qualifier: str = ""
 
     @property
     def tone(self) -> str:
+        if self.qualifier:
+            return "warn"
         return {"PROVED": "good", "PASSED": "good", "VIOLATED": "bad", "ERROR": "bad",
                 "UNKNOWN": "warn"}.get(self.status, "")
+
+    @property
+    def badge(self) -> str:
+        """The status as shown beside the title: 'PROVED' or 'PROVED \u2014 vacuous'."""
+        return badge(self.status, self.qualifier) if self.status else ""
+
+    @property
+    def badge_key(self) -> str:
+        return badge_key(self.status, self.qualifier)
 
 
 def _status(cert: Certificate, name: str) -> str:
@@ -305,19 +326,29 @@ def sections(cert: Certificate) -> list[Section]:
         _without_result(sec, cert, "lipschitz", "The Lipschitz constant was not computed.")
     out.append(sec)
 
-    sec = Section("bounds", "Error bounds: Theorem 3 as stated and the ISS bound",
-                  "Bounds", _status(cert, "bounds"), _message(cert, "bounds"))
+    if "dissipation" in cert.checks:
+        sec = Section("dissipation", cert.title("dissipation"), "Dissipation",
+                      _status(cert, "dissipation"), _message(cert, "dissipation"))
+        sec.paragraphs.append(DISSIPATION_TEXT)
+        sec.facts = check_facts(cert, "dissipation")
+        out.append(sec)
+
+    sec = Section("bounds", "Error bounds: the certified bound, Theorem 3 as stated and the "
+                  "ISS bounds", "Bounds", _status(cert, "bounds"), _message(cert, "bounds"))
     sec.statements = [THEOREM3_TEXT, ISS_TEXT]
     b = result(cert, "bounds")
     if b is not None:
+        pres = cert.presentation("bounds")
+        sec.qualifier = getattr(pres, "qualifier", "") if pres is not None else ""
+        if b.dissipation is not None:
+            sec.statements.append(DISSIPATION_TEXT)
         sec.facts = check_facts(cert, "bounds")
         rows = bound_rows(cert)
         if rows:
             sec.tables.append(Table(["Bound", "Applies", "Why (not)", "Rate", "Gain", "Bias b",
                                      "db/dv\u0304"], rows, "Conditions and numbers",
                                     [1.4, 0.7, 3.0, 0.8, 0.8, 0.8, 0.8]))
-        formulas = [(x.name, x.formula) for x in (b.theorem3, b.iss, b.iss_metric)
-                    if x is not None and x.formula]
+        formulas = [(x.name, x.formula) for x in b.bounds() if x.formula]
         if formulas:
             sec.tables.append(Table(["Bound", "Formula"], [list(f) for f in formulas],
                                     "Formulas", [1, 4]))

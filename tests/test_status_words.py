@@ -29,7 +29,8 @@ def test_vacuous_bound_on_the_verdict_line_in_json_and_table_of_runs(workdir, ca
     code, out, err = run_cli(capsys, "run", path, "--noise", "4", "--sim-time", "3",
                              "--json", "c.json", "--junit", "c.xml", "--trajectories")
     assert code == 0, (out, err)
-    verdict = out.strip().splitlines()[-1]
+    verdict, headline = out.strip().splitlines()[-2:]  # the error bound after the verdict
+    assert headline.startswith("error bound: ") and "; vacuous (larger than the box" in headline
     assert verdict.startswith("CERTIFIED: all required checks proved: mpdi; note: the proved "
                               "error bound ")
     assert "is valid but vacuous: larger than the box (half-diagonal of X 1.414)" in verdict
@@ -45,7 +46,7 @@ def test_vacuous_bound_on_the_verdict_line_in_json_and_table_of_runs(workdir, ca
     assert table[1].split() == ["run", "valid", "window", "(s)", "what", "ended", "it",
                                 "max", "e/b", "breach"]
     runs = cert["checks"]["simulation"]["runs"]
-    assert len(table) >= len(runs) + 3  # header, one row per run, verdict line
+    assert len(table) >= len(runs) + 4  # header, one row per run, verdict, error bound
     for run in runs:
         assert run["window"] is not None and run["start"]
     # JUnit: every check passed or was not required; nothing red

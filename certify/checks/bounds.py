@@ -32,7 +32,7 @@ import numpy as np
 from certify.checks.base import Check, Context
 from certify.errors import SettingsError
 from certify.model.problem import Problem
-from certify.presentation import Presentation, Quantity
+from certify.presentation import Presentation, Quantity, error_headline, upper_text
 from certify.results import BoundResult, BoundsResult, DissipationResult, Status
 
 #: Names accepted by `bound_curve`.
@@ -446,6 +446,7 @@ def ultimate_bound_per_unit_noise(*, lam_cert: float | None, eps_bar: float | No
 # ----------------------------------------------------------------------------- check protocol
 
 def _bias_quantity(label: str, b: BoundResult | None, r: BoundsResult) -> Quantity:
+    """A bound's ultimate value as a report side: vacuous when larger than the box."""
     if b is None:
         return Quantity(label, None, "not computed")
     if not b.applicable:
@@ -486,31 +487,62 @@ class BoundsCheck(Check):
             dissipation=joint)
 
     def present(self, r: BoundsResult, certificate: Any) -> Presentation:
+        """The proved side is the headline bound (||e|| after t >= settle_time, from the best
+        bound); a vacuous one carries the qualifier "vacuous" wherever its status is shown."""
+        head = error_headline(r, (getattr(certificate, "system", None) or {}).get("states"))
         numbers = [Quantity("vbar", r.vbar, sig=6), Quantity("lam_cert", r.lam_cert, sig=6),
                    Quantity("eps_bar", r.eps_bar, sig=6), Quantity("L", r.L, sig=6),
                    Quantity("box half-diagonal", r.box_half_diagonal, sig=6),
                    Quantity("vacuous (larger than the box)", r.vacuous)]
-        for b in (r.theorem3, r.iss, r.iss_metric):
-            if b is not None and b.applicable:
+        if head.proved:
+            numbers += [Quantity("error bound", head.sentence(unicode=False)),
+                        Quantity("error bound per component",
+                                 head.components_text(unicode=False) or None, "not computed"),
+                        Quantity("error bound size", head.size_text()),
+                        Quantity("best bound", r.best or head.source),
+                        Quantity("headline bound", r.headline, sig=6),
+                        Quantity("settle time", r.settle_time, sig=6),
+                        Quantity("ultimate bound", r.ultimate, sig=6)]
+        else:
+            numbers.append(Quantity("error bound", head.reason))
+        for b in r.bounds():
+            if b.applicable:
                 numbers += [Quantity(f"{b.name} bias", b.bias, sig=6),
                             Quantity(f"{b.name} rate", b.rate, sig=6),
                             Quantity(f"{b.name} gain", b.gain, sig=6)]
-            elif b is not None:
+            else:
                 numbers.append(Quantity(b.name, f"not applicable: {b.reason}"))
+        if head.proved and r.headline is not None:
+            after = ("" if r.settle_time is None
+                     else f"after t \u2265 {upper_text(r.settle_time, 2)} s; ")
+            proved = Quantity(f"\u2016e\u2016 bound ({r.best})", upper_text(r.headline),
+                              suffix=f" ({after}{head.size_word()})")
+        else:
+            best = min((b for b in r.bounds() if b.applicable and b.bias is not None),
+                       key=lambda b: float(b.bias), default=None)  # type: ignore[arg-type]
+            proved = _bias_quantity(f"ultimate bound ({best.name if best else 'ISS'})",
+                                    best or r.iss, r)
+        facts = [Quantity("Status", r.status.value)]
+        if head.proved:
+            facts += [Quantity("Error bound", head.sentence()),
+                      Quantity("Per component", head.components_text() or None,
+                               "not computed"),
+                      Quantity("Size", head.size_text()),
+                      Quantity("From", head.source_text())]
+        facts += [Quantity("Noise level v\u0304", r.vbar),
+                  Quantity("\u03bb_cert used", r.lam_cert, "none: no bound"),
+                  Quantity("\u03b5\u0304 used", r.eps_bar), Quantity("L used", r.L),
+                  Quantity("cond(P)", r.kappa_P),
+                  Quantity("Half-diagonal of X", r.box_half_diagonal, "not recorded")]
+        if not head.proved:
+            facts.append(Quantity("Error bound", None, head.reason))
         return Presentation(
             sampled=_bias_quantity("Theorem 3 (as stated): ultimate bias", r.theorem3, r),
-            proved=_bias_quantity("ISS bound: ultimate bias", r.iss, r),
+            proved=proved,
             setting=(Quantity("v\u0304 =", r.vbar),
                      Quantity("\u03bb_cert used:", r.lam_cert, "none")),
-            numbers=tuple(numbers),
-            facts=(Quantity("Status", r.status.value), Quantity("Noise level v\u0304", r.vbar),
-                   Quantity("\u03bb_cert used", r.lam_cert, "none: no bound"),
-                   Quantity("\u03b5\u0304 used", r.eps_bar), Quantity("L used", r.L),
-                   Quantity("cond(P)", r.kappa_P),
-                   Quantity("Half-diagonal of X", r.box_half_diagonal, "not recorded"),
-                   Quantity("Size", ("valid but vacuous: larger than the box" if r.vacuous
-                                     else "smaller than the box") if r.status == Status.PROVED
-                            else None, "no bound")))
+            numbers=tuple(numbers), facts=tuple(facts),
+            qualifier="vacuous" if head.proved and r.vacuous else "")
 
 
 CHECK = BoundsCheck()

@@ -429,11 +429,11 @@ def write_outputs(cert: Any, args: argparse.Namespace, display: Any) -> None:
 
 
 def _summary(cert: Any, args: argparse.Namespace) -> None:
-    from reports.content import verdict_line
+    from certify.cli.display import print_verdict
 
     out = human_stream(args)
-    if args.quiet:
-        print(verdict_line(cert), file=out)
+    if args.quiet:  # the verdict line and the error bound on the line after it
+        print_verdict(cert, out)
     else:
         print_summary(cert, out)
 

@@ -1,7 +1,9 @@
 """What the command line shows: live progress while it works, then the summary.
 
 `print_summary`: the table of checks, each check's one-line message, the table of
-simulation runs and the verdict line (with its notes, e.g. a vacuous bound).
+simulation runs, the verdict line (with its notes, e.g. a vacuous bound) and on the line
+after it the certified error bound (`headline_line`: "‖e‖ ≤ B for noise ≤ v̄ after t ≥ T",
+per component, "useful" or "vacuous"; or why there is none).
 
 On a terminal: `rich.progress` bars, one row per running step and one per task inside it
 (a grid sweep counts points; a proof shows its closed volume against its budget of seconds
@@ -236,9 +238,39 @@ def run_table(cert: Any) -> tuple[list[str], list[list[str]]]:
     return ["run", "valid window (s)", "what ended it", "max e/b", "breach"], rows
 
 
+def _unicode_ok(out: TextIO) -> bool:
+    """Whether `out` can print the headline's symbols (‖ ≤ ≥ →): its encoding says so (a
+    stream without one, e.g. an in-memory `io.StringIO`, takes any text)."""
+    encoding = getattr(out, "encoding", None)
+    if encoding is None:
+        return True
+    try:
+        "\u2016\u2264\u2265\u2192\u221e".encode(encoding)
+    except (LookupError, UnicodeEncodeError):
+        return False
+    return True
+
+
+def headline_line(cert: Any, out: TextIO) -> str:
+    """The certified error bound on one line, in Unicode where `out` can print it."""
+    from reports.content import error_headline_text
+
+    return error_headline_text(cert, unicode=_unicode_ok(out)).line
+
+
+def print_verdict(cert: Any, out: TextIO) -> None:
+    """The verdict line and, on the next line, the certified error bound (plain text: what
+    `--quiet` prints)."""
+    from reports.content import verdict_line
+
+    print(verdict_line(cert), file=out)
+    print(headline_line(cert, out), file=out)
+
+
 def print_summary(cert: Any, out: TextIO) -> None:
-    """The checks table, messages, simulation runs and verdict line (rich on a terminal)."""
-    from reports.content import check_rows, verdict_line, verdict_summary
+    """The checks table, messages, simulation runs, the verdict line and the error bound
+    after it (rich on a terminal)."""
+    from reports.content import check_rows, error_headline_text, verdict_summary
 
     rows = check_rows(cert)
     header, runs = run_table(cert)
@@ -251,9 +283,9 @@ def print_summary(cert: Any, out: TextIO) -> None:
         for col in ("check", "status", "sampled", "proved", "required"):
             table.add_column(col)
         colours = {"PROVED": "green", "PASSED": "green", "VIOLATED": "red",
-                   "UNKNOWN": "yellow", "ERROR": "red"}
+                   "UNKNOWN": "yellow", "ERROR": "red", "QUALIFIED": "yellow"}
         for r in rows:
-            table.add_row(r.title, f"[{colours.get(r.status, 'white')}]{r.status}[/]",
+            table.add_row(r.title, f"[{colours.get(r.badge_key, 'white')}]{r.badge}[/]",
                           r.sampled.value, r.proved.value, "yes" if r.required else "")
         console = Console(file=out)
         console.print(table)
@@ -272,9 +304,22 @@ def print_summary(cert: Any, out: TextIO) -> None:
         colour = {"CERTIFIED": "green", "NOT CERTIFIED": "red"}.get(cert.verdict, "yellow")
         console.print(f"[bold {colour}]{cert.verdict}[/]: ", end="", highlight=False)
         console.print(verdict_summary(cert), highlight=False, markup=False)
+        h = error_headline_text(cert, unicode=_unicode_ok(out))
+        if h.proved:
+            word = "green" if h.size_word == "useful" else "yellow"
+            console.print("[bold]error bound[/]: ", end="", highlight=False)
+            console.print(h.sentence, end="", highlight=False, markup=False)
+            console.print(f" [bold {word}]{h.size_word}[/]", highlight=False)
+            if h.components:
+                console.print(f"  per component: {h.components}", highlight=False,
+                              markup=False)
+            console.print(f"  {h.size}", highlight=False, markup=False)
+            console.print(f"  {h.source}", style="dim", highlight=False, markup=False)
+        else:
+            console.print(h.sentence, highlight=False, markup=False)
         return
     _plain_table(["check", "status", "sampled", "proved", "req"],
-                 [[r.title, r.status, r.sampled.value, r.proved.value,
+                 [[r.title, r.badge, r.sampled.value, r.proved.value,
                    "yes" if r.required else ""] for r in rows], out)
     for r in rows:
         print(f"  {r.name}: {r.message}", file=out)
@@ -283,4 +328,4 @@ def print_summary(cert: Any, out: TextIO) -> None:
         _plain_table(header, runs, out, indent="    ")
         if outside:
             print("    * outside the theorem's conditions (Gaussian noise)", file=out)
-    print(verdict_line(cert), file=out)
+    print_verdict(cert, out)
