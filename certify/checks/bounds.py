@@ -259,7 +259,8 @@ def _headline(r: BoundsResult, P: np.ndarray, X: np.ndarray) -> None:
     best = min(applicable, key=lambda b: float(b.bias))  # type: ignore[arg-type]
     r.best, r.ultimate = best.name, float(best.bias)  # type: ignore[arg-type]
     r.headline = _up(HEADLINE_MARGIN * r.ultimate)
-    r.settle_time = settle_time(r, best.name, worst_start(best, P, X), r.headline)
+    t_settle = settle_time(r, best.name, worst_start(best, P, X), r.headline)
+    r.settle_time = t_settle if math.isfinite(t_settle) else None  # ultimate 0: only as t -> inf
     if best.name == "theorem3":
         r.per_component = [r.ultimate] * P.shape[0]
     else:  # |e_i| <= W sqrt((P^-1)_ii), W <= bias sqrt(lam_min) <= bias / gain
@@ -369,8 +370,10 @@ def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | N
                 if r.vacuous else f"useful: the box's half-diagonal is {half_diagonal:.4g}")
         parts = ", ".join(f"{b.name} {b.bias:.4g}" for b in applicable)
         r.status = Status.PROVED
-        r.message = (f"||e|| <= {r.headline:.4g} for noise <= {vbar:g} after t >= "
-                     f"{r.settle_time:.3g} s ({size}); ultimate bounds: {parts}; per "
+        when = ("as t -> infinity" if r.settle_time is None
+                else f"after t >= {r.settle_time:.3g} s")
+        r.message = (f"||e|| <= {r.headline:.4g} for noise <= {vbar:g} {when} "
+                     f"({size}); ultimate bounds: {parts}; per "
                      f"component |e_i| <= " + ", ".join(f"{v:.3g}" for v in r.per_component or [])
                      + f"; Theorem 3 as stated: {t3}. Valid only under conditions (a)-(d).")
     elif no_rate and not [x for x in invalid if not x.startswith("lam_cert")]:
