@@ -121,7 +121,7 @@ def choose_starts(system: System, P: np.ndarray, count: int, seed: int, *, horiz
     notes: list[str] = []
     src = source_initial_condition(system)
     if src is not None:
-        labels.append("source x0, bounded noise")
+        labels.append("source x0")
         x0s.append(torch.tensor([src[0]], dtype=torch.float64))
         xh0s.append(torch.tensor([src[1]], dtype=torch.float64))
         notes.append("the spec's [simulation] x0 and xhat0")
