@@ -114,11 +114,12 @@ def bound_radius(bounds: BoundsResult | None, P: np.ndarray) -> float | None:
 
 def initial_conditions(system: Any, count: int, seed: int, *, P: np.ndarray | None = None,
                        horizon: float = 10.0, vbar: float = 0.0, L_is_local: bool = False,
-                       radius: float | None = None) -> InitialConditions:
+                       radius: float | None = None, need_time: float | None = None
+                       ) -> InitialConditions:
     """The bounded-noise runs' starts (see `certify.simulate.starts.choose_starts`)."""
     P = np.eye(system.n) if P is None else np.asarray(P, dtype=np.float64)
     return choose_starts(system, P, count, seed, horizon=horizon, vbar=vbar,
-                         L_is_local=L_is_local, radius=radius)
+                         L_is_local=L_is_local, radius=radius, need_time=need_time)
 
 
 def _first_exit(problem: Problem, x: torch.Tensor, xhat: torch.Tensor, v: torch.Tensor,
@@ -227,6 +228,7 @@ class Horizon:
     dt: float
     extended: bool = False
     note: str = ""
+    need: float | None = None  # how long a run should stay valid (s; None: no bound)
 
     @property
     def seconds(self) -> float:
@@ -255,17 +257,20 @@ def plan_horizon(bounds: BoundsResult | None, P: np.ndarray, X: np.ndarray,
     w0 = ERROR_FRACTION * float(ellipsoid_room(X, P, X.mean(axis=1)))
     settle = settle_time(bounds, b.name, max(w0, 0.0), float(bounds.headline))
     need = max(MIN_TIME_CONSTANTS * tau, settle + AFTER_SETTLING * tau)
-    if not math.isfinite(need) or need <= steps * dt:
-        return Horizon(steps, dt)
+    if not math.isfinite(need):
+        return Horizon(steps, dt, need=MIN_TIME_CONSTANTS * tau)
+    if need <= steps * dt:
+        return Horizon(steps, dt, need=need)
     why = (f"{MIN_TIME_CONSTANTS:g} time constants of the {b.name} bound ({tau:.3g} s each)"
            f", {AFTER_SETTLING:g} of them after its settling time {settle:.3g} s")
     if settings.sim_time != DEFAULT_SIM_TIME:
-        return Horizon(steps, dt, note=f"the horizon sim_time = {settings.sim_time:g} s is "
-                                       f"shorter than {need:.3g} s ({why})")
+        return Horizon(steps, dt, need=need,
+                       note=f"the horizon sim_time = {settings.sim_time:g} s is shorter "
+                            f"than {need:.3g} s ({why})")
     want = even_steps(need)
     capped = want > MAX_AUTO_STEPS
     steps = min(want, MAX_AUTO_STEPS - MAX_AUTO_STEPS % 2)
-    return Horizon(steps, dt, extended=True,
+    return Horizon(steps, dt, extended=True, need=need,
                    note=f"horizon extended from {settings.sim_time:g} s to "
                         f"{steps * dt:.4g} s for {why}; sim_time was not set"
                         + (f" (capped at {MAX_AUTO_STEPS} steps of {dt:g} s)" if capped
@@ -296,7 +301,7 @@ def check_simulation(problem: Problem, bounds: BoundsResult | None,
 
     ics = initial_conditions(sysm, settings.sim_initial_conditions, settings.seed, P=P,
                              horizon=steps * dt, vbar=vbar, L_is_local=measured,
-                             radius=radius)
+                             radius=radius, need_time=horizon.need)
     progress.update("simulation")
     S = len(ics.labels)
     # every start under each bounded noise kind, side by side: (start 1, uniform), (start 1,
