@@ -514,6 +514,7 @@ class Summary:
     long_runs: int  # bounded runs valid for >= MIN_TIME_CONSTANTS time constants
     bounded: int
     text: str  # the peak-vs-bound sentence and the horizon note ("" without a bound)
+    note: str = ""  # the horizon note alone
 
 
 def _summary(runs: list[SimulationRun], bounds: BoundsResult | None,
@@ -540,7 +541,7 @@ def _summary(runs: list[SimulationRun], bounds: BoundsResult | None,
     if horizon.note:
         parts.append(horizon.note)
     return Summary(worst=worst, peaks=len(with_peak), long_runs=long_runs,
-                   bounded=len(bounded), text="; ".join(parts))
+                   bounded=len(bounded), text="; ".join(parts), note=horizon.note)
 
 
 def _verdict(runs: list[SimulationRun], bounds: BoundsResult | None, have_bound: bool,
@@ -581,10 +582,11 @@ def _verdict(runs: list[SimulationRun], bounds: BoundsResult | None, have_bound:
                                 f"{where}{src_text}")
     worst = max(run.max_ratio for run in compared)  # type: ignore[type-var]
     if tau is not None and max(windows) < tau:
+        note = f" ({summary.note})" if summary.note else ""
         return Status.UNKNOWN, (
             f"inconclusive evidence: no breach, but every valid window is shorter than "
-            f"{tau_text} ({span}), so the runs compare almost nothing; largest error/bound "
-            f"{worst:.3g}. {where}{src_text}")
+            f"{tau_text} ({span}{note}), so the runs compare almost nothing; largest "
+            f"error/bound {worst:.3g}. {where}{src_text}")
     late = (f"; {late_ratio:.3g} after one time constant" if late_ratio is not None else "")
     return Status.PASSED, (
         f"no breach in {len(compared)} bounded-noise runs (uniform and switching noise, "

@@ -7,8 +7,10 @@ The noise v is held constant over each step (sample and hold), so every RK4 step
 a smooth right-hand side and keeps its fourth order. Two noise models:
 
 - `bounded_noise`: piecewise constant over holds of a few steps, each value a random
-  direction scaled to norm exactly `vbar` (so ||v(t)||_2 <= vbar holds exactly; the largest
-  admissible magnitude, which stresses a bound the most);
+  direction scaled to norm vbar (1 - 1e-14) (so ||v(t)||_2 <= vbar holds however the norm
+  is computed; the largest admissible magnitude, which stresses a bound the most);
+- worst-case-like noise chosen from the states as the run goes (`simulate_doubled`'s
+  `feedback`, `certify.simulate.noise.SwitchingNoise`);
 - `gaussian_noise`: white Gaussian samples of a given standard deviation, one per step (the
   source's protocol; it has no bound vbar).
 
@@ -67,10 +69,11 @@ def bounded_noise(steps: int, batch: int, p: int, vbar: float, dt: float, *,
     m = -(-steps // k)
     d = torch.randn(m, batch, p, generator=gen, dtype=torch.float64)
     d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True).clamp_min(1e-300)
-    v = d * float(vbar)
-    # the rounding of the scaling may exceed vbar by an ulp: clip to the exact bound
+    # norm vbar (1 - 1e-14): the rounding of the scaling, or a norm computed by another
+    # library, may exceed vbar (1 - 1e-14) by a few ulps, never vbar
+    v = d * (float(vbar) * (1 - 1e-14))
     norm = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-    v = torch.where(norm > vbar, v * (vbar / norm) * (1 - 1e-15), v)
+    v = torch.where(norm > vbar, v * (vbar / norm) * (1 - 1e-14), v)
     return v.repeat_interleave(k, dim=0)[:steps]
 
 

@@ -51,12 +51,18 @@ WINDOW_DECAYS = 4.0
 MIN_WINDOW_HOLDS = 8
 
 
+#: rows at the full size vbar are scaled to vbar (1 - BALL_MARGIN): norms computed by
+#: another library (another summation order) may differ by a few ulps, never by 1e-14
+BALL_MARGIN = 1e-14
+
+
 def clip_to_ball(v: np.ndarray, vbar: float) -> np.ndarray:
-    """v [..., p] with every row of 2-norm > vbar scaled back inside (rounding of a scaling
-    may exceed vbar by an ulp); asserts the result is inside the ball."""
+    """v [..., p] with every row of 2-norm > vbar (1 - BALL_MARGIN) scaled to that size, so
+    that its norm stays <= vbar however it is computed; asserts the result is inside."""
+    cap = vbar * (1.0 - BALL_MARGIN)
     norm = np.linalg.norm(v, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
-        v = np.where(norm > vbar, v * (vbar / norm) * (1.0 - 1e-15), v)
+        v = np.where(norm > cap, v * (cap / norm), v)
     norm = np.linalg.norm(v, axis=-1)
     assert np.all(norm <= vbar), f"noise of norm {float(norm.max())!r} > vbar = {vbar!r}"
     return v
