@@ -11,7 +11,11 @@ for every x in K, the observer state stays in X too. So:
    is how long x stays in X and h(x) in Y (Y shrunk by vbar when L is a local bound, so that
    y = h(x) + v stays in Y too), and its room is the smallest P-ellipsoid radius that fits
    in X around x(s) over that window;
-2. the starts with the longest windows (then the most room) are kept, spread apart;
+2. candidates are drawn again around the best ones, closer each round (`REFINE_ROUNDS`:
+   the plant may stay long only near a small set, e.g. close to an unstable equilibrium);
+   the best are kept: the longest windows, then the most room, spread apart; or, when runs
+   must stay valid a given time (`need_time`, five time constants of the bound), those
+   whose window reaches it, then the most room over it, only kept distinct;
 3. each initial error e(0) = x(0) - xhat(0) has W(0) = ||P^(1/2) e(0)|| = half the room, in a
    seeded random direction: small enough that xhat(0) is in X, and, when the bound's radius
    c/(2 lam) also fits in the room, the checkable form holds over the whole window.
