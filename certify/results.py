@@ -287,7 +287,8 @@ class SimulationRun:
     max_noise: float | None = None
     #: the valid window in time constants of the best bound (None: no bound)
     time_constants: float | None = None
-    #: when this run's own curve of the best bound falls to the headline value (seconds)
+    #: the headline's settling time T (from the worst start in X; seconds): the peak is
+    #: taken after it
     settle_time: float | None = None
     #: the largest ||e|| over [settle_time, first exit) (None: the run left the conditions
     #: before it settled, or no bound), when it happened, and max |e_i| over the same times

@@ -264,16 +264,16 @@ def test_a_planted_too_small_bound_is_an_error_naming_the_run(planted):
     else:  # the norm bound is true; the per-component bounds planted 100x too small
         bounds = true_bounds(problem)
         bounds.per_component = [v / 100 for v in bounds.per_component]
-    res = check_simulation(problem, bounds, settings(sim_time=6.0), certified=True)
+    res = check_simulation(problem, bounds, settings(), certified=True)
     assert res.status == Status.ERROR, res.message
     assert res.message.startswith("PROVED certificate breached by simulation")
     named = [r for r in res.runs if r.breach]
     assert named and all(r.noise == "bounded" for r in named)
     assert f"run '{named[0].label}'" in res.message
     if planted == "component":
-        assert "|e_" in res.message and "after its settling time" in res.message
+        assert "|e_" in res.message and "after the settling time" in res.message
     # without a passing certificate the same numbers are a violation, not a bug
-    res2 = check_simulation(problem, bounds, settings(sim_time=6.0), certified=False)
+    res2 = check_simulation(problem, bounds, settings(), certified=False)
     assert res2.status == Status.VIOLATED
 
 
