@@ -657,11 +657,21 @@ class SimulationCheck(Check):
         numbers = [Quantity("runs", len(r.runs)), Quantity("breaches", breaches),
                    Quantity("exits", exits), Quantity("max error/bound", worst, sig=6),
                    Quantity("longest valid window (s)", longest, sig=4),
-                   Quantity("one time constant 1/(2 lam_cert) (s)", r.time_constant, "no bound",
-                            sig=4)]
+                   Quantity("one time constant of the bound (s)", r.time_constant, "no bound",
+                            sig=4),
+                   Quantity("horizon (s)", r.horizon, "not recorded", sig=4),
+                   Quantity("bound after the settling time (headline)", r.headline,
+                            "no bound", sig=6),
+                   Quantity("worst observed peak after the settling time", r.peak_error,
+                            "no run settled", sig=6),
+                   Quantity("bound / worst peak", r.conservatism, "no run settled", sig=4),
+                   Quantity(f"runs valid >= {r.min_time_constants:g} time constants",
+                            r.long_runs)]
         for run in r.runs:
             numbers += [Quantity(f"run {run.label}: valid window (s)", run.window),
                         Quantity(f"run {run.label}: max error/bound", run.max_ratio),
+                        Quantity(f"run {run.label}: peak after settling", run.peak_error),
+                        Quantity(f"run {run.label}: bound / peak", run.conservatism),
                         Quantity(f"run {run.label}: exit", run.exit_reason)]
         plural = "es" if breaches != 1 else ""
         return Presentation(
@@ -681,8 +691,14 @@ class SimulationCheck(Check):
                    Quantity("Breaches", breaches), Quantity("Runs that exit", exits),
                    Quantity("Largest error / bound", worst, "no bound to compare"),
                    Quantity("Longest valid window", longest, "none", suffix=" s"),
-                   Quantity("One time constant 1/(2\u03bb_cert)", r.time_constant,
-                            "no bound", suffix=" s")))
+                   Quantity("One time constant of the bound", r.time_constant,
+                            "no bound", suffix=" s"),
+                   Quantity("Worst observed peak after the settling time", r.peak_error,
+                            "no run settled"),
+                   Quantity("Bound there (headline)", r.headline, "no bound"),
+                   Quantity("Bound / worst peak", r.conservatism, "no run settled",
+                            suffix="x"),
+                   Quantity("Horizon", r.horizon, "not recorded", suffix=" s")))
 
 
 CHECK = SimulationCheck()
