@@ -10,6 +10,9 @@ import numpy as np
 import pytest
 import scipy.linalg
 import torch
+from hypothesis import given
+from hypothesis import settings as settings_h
+from hypothesis import strategies as st
 
 from certify.checks import simulation as simulation_mod
 from certify.checks.bounds import check_bounds
@@ -333,3 +336,24 @@ def test_vdp_starts_stay_valid_five_time_constants(lam_cert):
     assert all(r.time_constants >= 5.0 for r in chosen), [r.window for r in chosen]
     assert res.long_runs >= len(chosen)
     assert all(r.max_noise <= VBAR and r.conservatism >= 1.0 for r in chosen)
+
+
+@settings_h(max_examples=40, deadline=None)
+@given(vbar=st.floats(1e-6, 10.0), seed=st.integers(0, 2**31 - 1),
+       policy=st.sampled_from(["adjoint", "greedy"]))
+def test_switching_noise_is_inside_the_ball_for_any_state(vbar, seed, policy):
+    """Whatever the states (far outside X, equal, huge) and vbar, every value the policy
+    returns has 2-norm <= vbar (numpy's and torch's norms), at the full size where a
+    direction exists."""
+    problem = linear_problem()
+    gen = np.random.default_rng(seed)
+    x = gen.standard_normal((5, 2)) * 10.0 ** gen.integers(-3, 4, size=(5, 1))
+    xhat = x + gen.standard_normal((5, 2)) * 10.0 ** gen.integers(-8, 3, size=(5, 1))
+    xhat[0] = x[0]  # e = 0: no direction, the previous one is kept
+    fb = SwitchingNoise(problem.system, problem.network, np.eye(2), vbar, list(range(5)),
+                        dt=0.01, seed=seed, policy=policy)
+    for k in (0, 2, 4):
+        v = fb(k, x, xhat)
+        assert np.all(np.linalg.norm(v, axis=1) <= vbar)
+        assert float(torch.linalg.vector_norm(torch.from_numpy(v), dim=1).max()) <= vbar
+        assert np.all(np.linalg.norm(v, axis=1) >= vbar * (1 - 1e-12))
