@@ -214,7 +214,8 @@ def test_linear_example_peaks_stay_below_the_known_bound():
     assert 1.0 <= res.conservatism < 1.5  # this bound is nearly tight against switching noise
     assert f"observed peak {worst.peak_error:.3g}" in res.message
     assert f"the bound is {res.conservatism:.3g}x the worst run" in res.message
-    assert res.long_runs == 6 and "6 of 6 runs valid for >= 5 time constants" in res.message
+    assert res.long_runs == 6 and "6 of 6 runs valid >= 5 time constants of 1 s" in res.message
+    assert f"vs bound {bounds.headline:.3g} after t >= {bounds.settle_time:.3g} s" in res.message
     assert not res.horizon_extended and "horizon" not in res.message
     assert from_jsonable(SimulationResult, to_jsonable(res)) == res
 
@@ -234,6 +235,7 @@ def test_dissipation_bound_is_tested_like_the_others():
     assert res.horizon_extended and res.horizon > 10.0
     assert "horizon extended from 10 s to" in res.message and "sim_time was not set" in (
         res.message)
+    assert "5 time constants of the dissipation bound (2 s each)" in res.horizon_note
     bounded = [r for r in res.runs if r.noise == "bounded"]
     assert all(not r.breach and r.conservatism >= 1.0 for r in bounded)
     assert all(r.time_constants >= 5.0 for r in bounded)
@@ -309,7 +311,8 @@ def test_horizon_extended_only_when_sim_time_is_not_set(monkeypatch):
     set_ = check_simulation(problem, slow, settings(sim_time=4.0, sim_initial_conditions=1),
                             certified=True)
     assert not set_.horizon_extended and set_.horizon == pytest.approx(4.0)
-    assert "the horizon sim_time = 4 s is shorter than" in set_.message
+    assert "sim_time 4 s < the" in set_.message
+    assert set_.horizon_note.startswith("the horizon sim_time = 4 s is shorter than")
     monkeypatch.setattr(simulation_mod, "MAX_AUTO_STEPS", 1200)
     capped = check_simulation(problem, slow, settings(sim_initial_conditions=1),
                               certified=True)

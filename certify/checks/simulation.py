@@ -238,6 +238,7 @@ class Horizon:
     extended: bool = False
     note: str = ""
     need: float | None = None  # how long a run should stay valid (s; None: no bound)
+    short: str = ""  # the note in a few words, for the check's message
 
     @property
     def seconds(self) -> float:
@@ -272,16 +273,18 @@ def plan_horizon(bounds: BoundsResult | None, settings: VerifySettings) -> Horiz
            f", {AFTER_SETTLING:g} of them after the settling time T = {settle:.3g} s")
     if settings.sim_time != DEFAULT_SIM_TIME:
         return Horizon(steps, dt, need=need,
+                       short=f"sim_time {settings.sim_time:g} s < the {need:.3g} s needed",
                        note=f"the horizon sim_time = {settings.sim_time:g} s is shorter "
                             f"than {need:.3g} s ({why})")
     want = even_steps(need)
     capped = want > MAX_AUTO_STEPS
     steps = min(want, MAX_AUTO_STEPS - MAX_AUTO_STEPS % 2)
+    cap = f" (capped at {MAX_AUTO_STEPS} steps of {dt:g} s)" if capped else ""
     return Horizon(steps, dt, extended=True, need=need,
+                   short=f"horizon extended from {settings.sim_time:g} s to "
+                         f"{steps * dt:.4g} s{cap} (sim_time was not set)",
                    note=f"horizon extended from {settings.sim_time:g} s to "
-                        f"{steps * dt:.4g} s for {why}; sim_time was not set"
-                        + (f" (capped at {MAX_AUTO_STEPS} steps of {dt:g} s)" if capped
-                           else ""))
+                        f"{steps * dt:.4g} s for {why}; sim_time was not set{cap}")
 
 
 def check_simulation(problem: Problem, bounds: BoundsResult | None,
@@ -542,25 +545,22 @@ def _summary(runs: list[SimulationRun], bounds: BoundsResult | None,
     long_runs = len(long)
     parts: list[str] = []
     if best is not None and bounds is not None and bounds.headline is not None:
+        T = bounds.settle_time or 0.0
         if worst is not None:
             c = worst.conservatism
-            among = (f"over the {len(pool)} runs valid >= {MIN_TIME_CONSTANTS:g} time "
-                     f"constants" if pool is not with_peak
-                     else f"peaks in {len(with_peak)} of {len(bounded)} runs")
             parts.append(f"observed peak {worst.peak_error:.3g} ('{worst.label}') vs bound "
-                         f"{bounds.headline:.3g} after settling: the bound is "
+                         f"{bounds.headline:.3g} after t >= {T:.3g} s: the bound is "
                          + (f"{c:.3g}x the worst run" if c is not None and math.isfinite(c)
-                            else "infinitely far from the worst run (no error)")
-                         + f" ({among})")
+                            else "infinitely far from the worst run (no error)"))
         else:
-            parts.append(f"no run stayed valid past its settling time, so no peak was "
-                         f"compared with the bound {bounds.headline:.3g}")
-        parts.append(f"{long_runs} of {len(bounded)} runs valid for >= "
-                     f"{MIN_TIME_CONSTANTS:g} time constants ({tau:.3g} s, {best.name})")
-    if horizon.note:
-        parts.append(horizon.note)
+            parts.append(f"no run stayed valid past t = {T:.3g} s, so no peak was compared "
+                         f"with the bound {bounds.headline:.3g}")
+        parts.append(f"{long_runs} of {len(bounded)} runs valid >= "
+                     f"{MIN_TIME_CONSTANTS:g} time constants of {tau:.3g} s")
+    if horizon.short:
+        parts.append(horizon.short)
     return Summary(worst=worst, peaks=len(with_peak), long_runs=long_runs,
-                   bounded=len(bounded), text="; ".join(parts), note=horizon.note)
+                   bounded=len(bounded), text="; ".join(parts), note=horizon.short)
 
 
 def _verdict(runs: list[SimulationRun], bounds: BoundsResult | None, have_bound: bool,
@@ -606,12 +606,11 @@ def _verdict(runs: list[SimulationRun], bounds: BoundsResult | None, have_bound:
             f"inconclusive evidence: no breach, but every valid window is shorter than "
             f"{tau_text} ({span}{note}), so the runs compare almost nothing; largest "
             f"error/bound {worst:.3g}. {where}{src_text}")
-    late = (f"; {late_ratio:.3g} after one time constant" if late_ratio is not None else "")
+    late = (f" ({late_ratio:.3g} after one time constant)" if late_ratio is not None else "")
     return Status.PASSED, (
-        f"no breach in {len(compared)} bounded-noise runs (uniform and switching noise, "
-        f"||v|| <= {bounds.vbar if bounds is not None else 0:g}): {summary.text}. Largest "
-        f"error/bound {worst:.3g} (1 at t = 0 by construction{late}); {span}. {where}"
-        f"{src_text} Evidence, not proof.")
+        f"no breach in {len(compared)} runs (uniform and switching noise): "
+        f"{summary.text}. Max error/bound "
+        f"{worst:.3g}{late}. {where}{src_text} Evidence, not proof.")
 
 
 # ----------------------------------------------------------------------------- check protocol
