@@ -280,6 +280,26 @@ class SimulationRun:
     start: str = ""
     #: length of the valid window [0, first exit) in seconds (the horizon if never left)
     window: float | None = None
+    #: "uniform" (random directions of norm vbar, held a few steps), "switching" (chosen
+    #: from the state to push the error up, certify.simulate.noise) or "gaussian"
+    noise_kind: str = ""
+    #: the largest ||v(t)||_2 of the run (<= vbar for bounded noise; None: Gaussian)
+    max_noise: float | None = None
+    #: the valid window in time constants of the best bound (None: no bound)
+    time_constants: float | None = None
+    #: the headline's settling time T (from the worst start in X; seconds): the peak is
+    #: taken after it
+    settle_time: float | None = None
+    #: the largest ||e|| over [settle_time, first exit) (None: the run left the conditions
+    #: before it settled, or no bound), when it happened, and max |e_i| over the same times
+    peak_error: float | None = None
+    peak_time: float | None = None
+    peak_components: list[float] = field(default_factory=list)
+    #: the run's own bound curve at peak_time, and the bound that holds after settling
+    #: (the headline B); conservatism = B / peak_error (>= 1 unless the bound is breached)
+    bound_at_peak: float | None = None
+    bound_after_settling: float | None = None
+    conservatism: float | None = None
 
 
 @dataclass
@@ -290,9 +310,25 @@ class SimulationResult:
     message: str
     runs: list[SimulationRun] = field(default_factory=list)
     seconds: float = 0.0
-    #: one time constant 1/(2 lam_cert) of the bound (None: no bound); a valid window shorter
-    #: than it compares little, and when every window is, the check is inconclusive
+    #: one time constant of the best bound (1/(2 lam_cert) for the ISS bounds, 2/alpha for
+    #: the dissipation bound; None: no bound); a valid window shorter than it compares
+    #: little, and when every window is, the check is inconclusive
     time_constant: float | None = None
+    #: the simulated horizon (s); extended beyond sim_time when it was not set and the
+    #: bound is slow (horizon_note says why, or that a set sim_time is short)
+    horizon: float | None = None
+    horizon_extended: bool = False
+    horizon_note: str = ""
+    #: the bound the runs' peaks are compared with: its name and the headline value B
+    bound_name: str = ""
+    headline: float | None = None
+    #: the largest peak after settling over the bounded runs, its run, and B / that peak
+    peak_error: float | None = None
+    peak_run: str = ""
+    conservatism: float | None = None
+    #: bounded runs that stayed valid for at least `min_time_constants` time constants
+    long_runs: int = 0
+    min_time_constants: float = 5.0
 
 
 @dataclass

@@ -7,8 +7,10 @@ The noise v is held constant over each step (sample and hold), so every RK4 step
 a smooth right-hand side and keeps its fourth order. Two noise models:
 
 - `bounded_noise`: piecewise constant over holds of a few steps, each value a random
-  direction scaled to norm exactly `vbar` (so ||v(t)||_2 <= vbar holds exactly; the largest
-  admissible magnitude, which stresses a bound the most);
+  direction scaled to norm vbar (1 - 1e-14) (so ||v(t)||_2 <= vbar holds however the norm
+  is computed; the largest admissible magnitude, which stresses a bound the most);
+- worst-case-like noise chosen from the states as the run goes (`simulate_doubled`'s
+  `feedback`, `certify.simulate.noise.SwitchingNoise`);
 - `gaussian_noise`: white Gaussian samples of a given standard deviation, one per step (the
   source's protocol; it has no bound vbar).
 
@@ -22,7 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -67,10 +69,11 @@ def bounded_noise(steps: int, batch: int, p: int, vbar: float, dt: float, *,
     m = -(-steps // k)
     d = torch.randn(m, batch, p, generator=gen, dtype=torch.float64)
     d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True).clamp_min(1e-300)
-    v = d * float(vbar)
-    # the rounding of the scaling may exceed vbar by an ulp: clip to the exact bound
+    # norm vbar (1 - 1e-14): the rounding of the scaling, or a norm computed by another
+    # library, may exceed vbar (1 - 1e-14) by a few ulps, never vbar
+    v = d * (float(vbar) * (1 - 1e-14))
     norm = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-    v = torch.where(norm > vbar, v * (vbar / norm) * (1 - 1e-15), v)
+    v = torch.where(norm > vbar, v * (vbar / norm) * (1 - 1e-14), v)
     return v.repeat_interleave(k, dim=0)[:steps]
 
 
@@ -79,6 +82,17 @@ def gaussian_noise(steps: int, batch: int, p: int, std: float, *, seed: int = 0
     """White Gaussian noise of standard deviation `std`, one sample per step -> [steps, B, p]."""
     gen = torch.Generator().manual_seed(int(seed))
     return std * torch.randn(steps, batch, p, generator=gen, dtype=torch.float64)
+
+
+class Feedback(Protocol):
+    """Noise chosen from the states (`simulate_doubled`'s `feedback`): for the runs `rows`
+    of the batch, called at every step index k with k % hold == 0 with their plant and
+    observer states [m, n] at t_k; returns their noise [m, p] for the next `hold` steps."""
+
+    rows: list[int]
+    hold: int
+
+    def __call__(self, k: int, x: np.ndarray, xhat: np.ndarray) -> np.ndarray: ...
 
 
 class _ArrayValueRows(PointCompose):
@@ -211,7 +225,8 @@ def simulate(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: torch.Te
 
 def simulate_doubled(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: torch.Tensor,
                      *, dt: float, steps: int, noise: torch.Tensor | None = None,
-                     doubled: list[int] | None = None, doubled_steps: int = 0
+                     doubled: list[int] | None = None, doubled_steps: int = 0,
+                     feedback: Feedback | None = None
                      ) -> tuple[Trajectories, Trajectories | None]:
     """`simulate`, and the runs `doubled` again at step 2 dt for `doubled_steps` steps.
 
@@ -219,6 +234,14 @@ def simulate_doubled(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: 
     the batch (a step size per row), so the second integration costs no extra right-hand-side
     calls. Their noise is the same signal sampled every second step (held over 2 dt when the
     hold is even, see `hold_steps`). Returns (the dt trajectories, the 2 dt ones or None).
+
+    `feedback` (optional, e.g. `certify.simulate.noise.SwitchingNoise`): the noise of its
+    `rows` is chosen from the states as the run goes: at every step k with k % hold == 0
+    (hold even) it is called with k and those rows' plant and observer states [m, n] and
+    its values [m, p] are held over steps k .. k + hold - 1 (they replace what `noise` had
+    there; the returned `v` is the signal used). A run at 2 dt replays the signal its
+    dt run chose (the same piecewise-constant input), so step doubling still measures the
+    integration error alone.
     """
     n, p = system.n, system.p
     x0 = as_array(x0)
@@ -236,15 +259,19 @@ def simulate_doubled(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: 
     C = len(rows) if c_steps > 0 else 0
     gain = GainFunction(system, net)
     f_and_h = system.array_rows("fh")
-    both = noise if C == 0 else np.concatenate([noise, noise[:, rows]], axis=1)
+    fb_rows = list(feedback.rows) if feedback is not None else []
+    if feedback is not None and (feedback.hold < 2 or feedback.hold % 2):
+        raise ValueError(f"feedback noise must be held an even number of steps >= 2; got "
+                         f"{feedback.hold}")
     width = [B]  # rows of x (then of xhat) in the state now being stepped
+    v_now = [noise[0] if steps > 0 else np.zeros((B, p))]  # the noise of the current step
 
     def rhs(s: np.ndarray, k: int) -> np.ndarray:
         # s [2W, n]: rows of x (first W), then rows of xhat; f and h in one call
         W = width[0]
         fh = f_and_h(s)  # [2W, n + p], a fresh array
         at_x, at_xhat = fh[:W], fh[W:]
-        y = at_x[:, n:] + (noise[k] if W == B else both[k])
+        y = at_x[:, n:] + v_now[0]
         at_xhat[:, :n] += gain(s[W:], y, at_xhat[:, n:])  # f(xhat) + k, in place
         return fh[:, :n]
 
@@ -261,8 +288,13 @@ def simulate_doubled(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: 
     s_f = fine[0]
     with np.errstate(all="ignore"):  # a run that blows up ends as inf/NaN, found later
         for k in range(steps):
+            if fb_rows and k % feedback.hold == 0:  # type: ignore[union-attr]
+                v = feedback(k, s_f[fb_rows], s_f[B:][fb_rows])  # type: ignore[misc]
+                noise[k: k + feedback.hold, fb_rows] = v  # type: ignore[union-attr]
             j = k // 2
+            v_now[0] = noise[k]
             if coarse is not None and k % 2 == 0 and j < c_steps:
+                v_now[0] = np.concatenate([noise[k], noise[k, rows]])
                 s_c = coarse[j]
                 joint = np.concatenate([s_f[:B], s_c[:C], s_f[B:], s_c[C:]])
                 width[0] = B + C

@@ -11,7 +11,11 @@ for every x in K, the observer state stays in X too. So:
    is how long x stays in X and h(x) in Y (Y shrunk by vbar when L is a local bound, so that
    y = h(x) + v stays in Y too), and its room is the smallest P-ellipsoid radius that fits
    in X around x(s) over that window;
-2. the starts with the longest windows (then the most room) are kept, spread apart;
+2. candidates are drawn again around the best ones, closer each round (`REFINE_ROUNDS`:
+   the plant may stay long only near a small set, e.g. close to an unstable equilibrium);
+   the best are kept: the longest windows, then the most room, spread apart; or, when runs
+   must stay valid a given time (`need_time`, five time constants of the bound), those
+   whose window reaches it, then the most room over it, only kept distinct;
 3. each initial error e(0) = x(0) - xhat(0) has W(0) = ||P^(1/2) e(0)|| = half the room, in a
    seeded random direction: small enough that xhat(0) is in X, and, when the bound's radius
    c/(2 lam) also fits in the room, the checkable form holds over the whole window.
@@ -38,6 +42,18 @@ SCREEN_STEPS = 400
 CANDIDATES_PER_RUN = 64
 #: W(0) as a fraction of the room around the start
 ERROR_FRACTION = 0.5
+#: rounds of sampling again around the best candidates (the plant may stay long only near
+#: a small set, e.g. close to an unstable equilibrium), each with this many points per
+#: start kept, spread by REFINE_SPREAD of the box's width times REFINE_SHRINK per round
+REFINE_ROUNDS = 3
+REFINE_PER_START = 16
+REFINE_SPREAD = 0.05
+REFINE_SHRINK = 0.2
+#: the starts kept are this far apart (a fraction of the box's width in each coordinate);
+#: when runs must stay valid a given time, the few places where the plant stays that long
+#: may be small, so the starts are only kept distinct (SPREAD_NEEDED)
+SPREAD = 0.05
+SPREAD_NEEDED = 0.002
 
 
 @dataclass
@@ -80,11 +96,13 @@ def ellipsoid_room(X: np.ndarray, P: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 
 def plant_windows(system: System, P: np.ndarray, x0: torch.Tensor, *, horizon: float,
-                  y_margin: float) -> tuple[np.ndarray, np.ndarray]:
+                  y_margin: float, need: float | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """(window [M], room [M]) of the plant alone from x0 [M, n] over `horizon` (coarse RK4).
 
     window: time until x leaves X or h(x) leaves Y shrunk by `y_margin` (the horizon if never);
-    room: the smallest `ellipsoid_room` of x(s) over that window (0 if it starts outside).
+    room: the smallest `ellipsoid_room` of x(s) over that window, or over its first `need`
+    seconds when given (0 if it starts outside).
     """
     steps = SCREEN_STEPS
     traj = simulate_plant(system, x0, dt=horizon / steps, steps=steps)  # [T, M, n]
@@ -102,18 +120,22 @@ def plant_windows(system: System, P: np.ndarray, x0: torch.Tensor, *, horizon: f
     window = np.minimum(first, T - 1) * (horizon / steps)
     window[first >= T] = horizon
     room = np.where(np.isfinite(x).all(-1), ellipsoid_room(X, P, np.nan_to_num(x)), -np.inf)
-    mask = np.arange(T)[:, None] < np.maximum(first, 1)[None, :]
+    last = first if need is None else np.minimum(first, math.ceil(need / horizon * steps) + 1)
+    mask = np.arange(T)[:, None] < np.maximum(last, 1)[None, :]
     room = np.where(mask, room, np.inf).min(axis=0)
     return window, np.maximum(room, 0.0)
 
 
 def choose_starts(system: System, P: np.ndarray, count: int, seed: int, *, horizon: float,
-                  vbar: float, L_is_local: bool, radius: float | None) -> InitialConditions:
+                  vbar: float, L_is_local: bool, radius: float | None,
+                  need_time: float | None = None) -> InitialConditions:
     """The source's (x0, xhat0) when the spec has one, then `count` - 1 chosen starts.
 
-    `radius`: the bound's ultimate radius c/(2 lam) in the P-norm (None: no bound). See the
-    module docstring for the rule; the notes say, per run, its plant window and room and
-    whether the checkable form of "xhat stays in X" holds.
+    `radius`: the bound's ultimate radius c/(2 lam) in the P-norm (None: no bound).
+    `need_time`: how long (s) a run should stay valid (None: as long as possible); the
+    starts whose plant stays `need_time` seconds are preferred, then the most room over
+    those seconds. See the module docstring for the rule; the notes say, per run, its plant
+    window and room and whether the checkable form of "xhat stays in X" holds.
     """
     labels: list[str] = []
     x0s: list[torch.Tensor] = []
@@ -121,7 +143,7 @@ def choose_starts(system: System, P: np.ndarray, count: int, seed: int, *, horiz
     notes: list[str] = []
     src = source_initial_condition(system)
     if src is not None:
-        labels.append("source x0, bounded noise")
+        labels.append("source x0")
         x0s.append(torch.tensor([src[0]], dtype=torch.float64))
         xh0s.append(torch.tensor([src[1]], dtype=torch.float64))
         notes.append("the spec's [simulation] x0 and xhat0")
@@ -138,10 +160,28 @@ def choose_starts(system: System, P: np.ndarray, count: int, seed: int, *, horiz
         ok = ((hy >= Y[:, 0]) & (hy <= Y[:, 1])).all(dim=1)
         if int(ok.sum()) >= need:  # h(X) barely meets Y: keep unfiltered points
             cand = cand[ok]
-        window, room = plant_windows(system, P, cand, horizon=horizon,
-                                     y_margin=vbar if L_is_local else 0.0)
-        order = np.lexsort((-room, -window))  # longest window first, then most room
-        picked = _spread(cand.numpy()[order], (width.numpy()), need)
+        y_margin = vbar if L_is_local else 0.0
+        need_s = None if need_time is None else min(float(need_time), horizon)
+        window, room = plant_windows(system, P, cand, horizon=horizon, y_margin=y_margin,
+                                     need=need_s)
+        for r in range(REFINE_ROUNDS):  # sample again around the best, closer each round
+            order = _rank(window, room, need_s)
+            top = cand[torch.as_tensor(order[:need].copy())]
+            scale = width * REFINE_SPREAD * REFINE_SHRINK ** r
+            more = top.repeat_interleave(REFINE_PER_START, dim=0)
+            more = more + scale * torch.randn(more.shape, generator=gen, dtype=torch.float64)
+            more = torch.minimum(torch.maximum(more, X[:, 0]), X[:, 1])
+            hy = system.h(more)
+            more = more[((hy >= Y[:, 0]) & (hy <= Y[:, 1])).all(dim=1)]
+            if len(more) == 0:
+                break
+            w2, r2 = plant_windows(system, P, more, horizon=horizon, y_margin=y_margin,
+                                   need=need_s)
+            cand = torch.cat([cand, more])
+            window, room = np.concatenate([window, w2]), np.concatenate([room, r2])
+        order = _rank(window, room, need_s)
+        picked = _spread(cand.numpy()[order], (width.numpy()), need,
+                         apart=SPREAD if need_s is None else SPREAD_NEEDED)
         idx = order[picked]
         W0 = ERROR_FRACTION * room[idx]
         u = torch.randn(len(idx), system.n, generator=gen, dtype=torch.float64).numpy()
@@ -168,9 +208,21 @@ def choose_starts(system: System, P: np.ndarray, count: int, seed: int, *, horiz
                              notes=notes)
 
 
-def _spread(ranked: np.ndarray, width: np.ndarray, k: int) -> np.ndarray:
+def _rank(window: np.ndarray, room: np.ndarray, need: float | None) -> np.ndarray:
+    """Candidate indices, best first: without `need`, the longest window first, then the
+    most room; with it, those whose window reaches `need` first, then the most room (over
+    the first `need` seconds), then the longest window."""
+    if need is None:
+        return np.lexsort((-room, -window))
+    long = window >= need * (1 - 1e-9)
+    return np.lexsort((-window, -room, ~long))
+
+
+def _spread(ranked: np.ndarray, width: np.ndarray, k: int, apart: float = 0.05
+            ) -> np.ndarray:
     """Indices of `k` ranked points [M, n], best first: each pick removes the points within
-    5% of the box of it (filled up from the rest, in rank order, when too few are apart)."""
+    `apart` of the box of it (filled up from the rest, in rank order, when too few are
+    apart)."""
     scaled = ranked / np.where(width > 0, width, 1.0)
     free = np.ones(len(ranked), dtype=bool)
     kept: list[int] = []
@@ -179,7 +231,7 @@ def _spread(ranked: np.ndarray, width: np.ndarray, k: int) -> np.ndarray:
             break
         i = int(np.argmax(free))  # the best remaining (ranked order)
         kept.append(i)
-        free &= np.max(np.abs(scaled - scaled[i]), axis=1) > 0.05
+        free &= np.max(np.abs(scaled - scaled[i]), axis=1) > apart
     rest = np.ones(len(ranked), dtype=bool)
     rest[kept] = False  # the others, in rank order (np.setdiff1d would import numpy.ma)
     return np.concatenate([np.array(kept, dtype=np.int64), np.flatnonzero(rest)])[:k]
