@@ -149,14 +149,15 @@ def simulation_rows(cert: Certificate) -> list[list[str]]:
         rows.append([run.label, fmt_vec(run.x0), fmt_vec(run.xhat0),
                      run.noise if run.within_conditions else f"{run.noise} (outside)",
                      fmt(window, 3) + (" (whole run)" if run.exit_time is None else ""),
-                     exit_words(run), fmt(run.max_ratio, 3),
+                     exit_words(run), fmt(run.max_ratio, 3), fmt(run.peak_error, 3),
+                     fmt(run.conservatism, 3),
                      "BREACH" if run.breach else "no", fmt(run.mse, 3)])
     return rows
 
 
 SIM_HEADER = ["Run", "x(0)", "x\u0302(0)", "Noise", "Valid window (s)", "What ended it",
-              "Max e/b", "Breach", "MSE"]
-SIM_WIDTHS = [1.25, 0.95, 0.95, 0.8, 0.7, 2.3, 0.55, 0.7, 0.55]
+              "Max e/b", "Peak after T", "Bound/peak", "Breach", "MSE"]
+SIM_WIDTHS = [1.25, 0.85, 0.85, 0.7, 0.6, 1.85, 0.5, 0.55, 0.55, 0.55, 0.5]
 
 
 def simulation_starts(cert: Certificate) -> list[str]:
@@ -364,7 +365,7 @@ def sections(cert: Certificate) -> list[Section]:
     s = result(cert, "simulation")
     if s is not None:
         exits = [run for run in s.runs if run.exit_time is not None]
-        tau = (f" One time constant of the bound, 1/(2\u03bb_cert), is "
+        tau = (f" One time constant of the bound (1/rate of the bound it is compared with) is "
                f"{fmt(s.time_constant, 3)} s: a window shorter than it compares little."
                if s.time_constant else "")
         sec.paragraphs.append(

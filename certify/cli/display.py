@@ -234,8 +234,10 @@ def run_table(cert: Any) -> tuple[list[str], list[list[str]]]:
         label = run.label if run.within_conditions else f"{run.label.split(' (')[0]}*"
         window = run.window if run.window is not None else run.exit_time
         rows.append([label, fmt(window, 3) + ("" if run.exit_time is not None else " (all)"),
-                     exit_words(run), fmt(run.max_ratio, 3), "BREACH" if run.breach else ""])
-    return ["run", "valid window (s)", "what ended it", "max e/b", "breach"], rows
+                     exit_words(run), fmt(run.max_ratio, 3), fmt(run.peak_error, 3),
+                     fmt(run.conservatism, 3), "BREACH" if run.breach else ""])
+    return ["run", "valid window (s)", "what ended it", "max e/b", "peak after T", "bound/peak",
+            "breach"], rows
 
 
 def _unicode_ok(out: TextIO) -> bool:
