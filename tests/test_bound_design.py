@@ -184,6 +184,33 @@ def test_min_rate_with_another_preset_is_refused(tmp_path, capsys) -> None:
     assert not out.exists()
 
 
+@pytest.mark.parametrize("extra, word", [(["--min-rate", "1", "--lam", "1"], "--min-rate"),
+                                         (["--metric", "[[1,0],[0,1]]"], "--metric")])
+def test_bound_preset_refuses_conflicting_options(tmp_path, capsys, extra, word) -> None:
+    from certify.cli.main import main
+
+    out = tmp_path / "x.ckpt"
+    assert main(["train", "vdp", "--preset", "bound", *extra, "-o", str(out)]) == 2
+    assert word in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_search_pairs_each_point_with_the_most_dangerous_gain() -> None:
+    from training.bound import worst_pair_eigs
+
+    system = scalar_system(1.0)
+    d = design_bound_observer(system, alpha=2.0, margin=1e-7)
+    from training.bound import linear_network
+    from training.presets import make_config
+
+    net = linear_network(system, d, make_config(system, "bound", hidden=(4,)))
+    x = torch.linspace(-1, 1, 7, dtype=torch.float64)[:, None]
+    got = worst_pair_eigs(system, net, d.P, d.alpha, 3.0, x, x)
+    P, K = float(d.P[0, 0]), float(d.K[0, 0])
+    want = P * (1.0 - K) + 0.5 * d.alpha * P + (P * K) ** 2 / 6.0  # D(alpha/4) + (PK)^2/(2 mu)
+    assert torch.allclose(got, torch.full_like(got, want), rtol=1e-9)
+
+
 @pytest.mark.slow
 def test_bound_preset_writes_a_checkpoint_whose_contraction_is_proved(tmp_path) -> None:
     from certify.model import checkpoint

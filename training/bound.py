@@ -17,8 +17,9 @@
    the most dangerous sampled gains, `worst_pair_eigs`). It is returned only when its
    sampled bound (`certify.design.bound.sampled_bound`, all pairs of A and B on a
    common sample) is below the linear design's on the same sample (by more than
-   `BEAT_TOLERANCE`) AND the prover proves its
-   contraction; otherwise the run says so in one line and writes the linear design.
+   `BEAT_TOLERANCE`), the prover proves its contraction AND its certificate's best error
+   bound (`certify.verify`, whatever bounds this version proves) beats the linear design's;
+   otherwise the run says so in one line and writes the linear design.
 
 Nothing here is trusted for the certificate: `certify run` re-verifies the checkpoint.
 """
@@ -109,12 +110,14 @@ class LearnedAttempt:
     rounds: list[dict[str, Any]] = field(default_factory=list)
     seconds: float = 0.0
     final: GainNetwork | None = None  # the last round's network (returned or not)
+    certified: dict[str, Any] | None = None  # both certificates' bounds, when compared
 
     def record(self) -> dict[str, Any]:
         return {"sampled_bound_learned_per_unit_noise": _finite(self.sampled_learned),
                 "sampled_bound_linear_per_unit_noise": _finite(self.sampled_linear),
                 "mu_target": self.mu_target, "beat": self.beat, "proved": self.proved,
-                "message": self.message, "rounds": self.rounds, "seconds": self.seconds}
+                "message": self.message, "rounds": self.rounds, "seconds": self.seconds,
+                "certified": self.certified}
 
 
 @dataclass
@@ -153,6 +156,10 @@ class BoundTrainResult:
             out["config"]["lam"] = self.lam
             out["seed"] = self.config.seed
         return out
+
+
+def _fmt(v: float | None) -> str:
+    return "none" if v is None else f"{v:.4g}"
 
 
 def _finite(v: float | None) -> float | None:
@@ -297,6 +304,24 @@ def prove_contraction(system: System, net: GainNetwork, lam: float, P: np.ndarra
             "seconds": time.perf_counter() - t0}
 
 
+def certified_bound(system: System, net: GainNetwork, lam: float, P: np.ndarray
+                    ) -> dict[str, Any]:
+    """`certify.verify` on (net, lam, P) without simulation or figures, at REPORT_VBAR: the
+    verdict and the error-bound check's best ultimate bound (None when none is proved).
+    Whatever bounds the verifier proves (the joint dissipation certificate among them where
+    this version has it) decide; the comparison reads only the result's fields."""
+    from certify.model.checkpoint import Checkpoint
+    from certify.model.problem import Problem
+    from certify.settings import VerifySettings
+    from certify.verify import verify
+
+    ck = Checkpoint(problem=Problem(system, net, lam, P), path="", sha256="")
+    cert = verify(ck, VerifySettings(noise=REPORT_VBAR, skip=("simulation",)), figures=False)
+    b = cert.checks.get("bounds")
+    return {"verdict": cert.verdict, "ultimate": getattr(b, "ultimate", None),
+            "best": getattr(b, "best", None)}
+
+
 def min_alpha_for(min_rate: float | None) -> float | None:
     """The alpha floor whose checkpoint rate LAM_FRACTION * alpha / 4 is >= min_rate."""
     return None if min_rate is None else 4.0 * float(min_rate) / LAM_FRACTION
@@ -308,8 +333,10 @@ def train_bound(system: System, config: TrainConfig, *, min_rate: float | None =
                 log: Any = None) -> BoundTrainResult:
     """Run the bound recipe (module doc). `min_rate`: the checkpoint's lam is at least this;
     `rate`: design at exactly this lam (alpha = 4 rate / LAM_FRACTION). The learned attempt
-    runs when config.adam_iters > 0 (or `learn` is given with steps > 0). Raises CertifyError
-    when no linear design is found."""
+    runs when config.adam_iters > 0 (or `learn` is given with steps > 0). `prove=False` skips
+    the proofs and certificates (tests of the loop only: a learned gain that beats the linear
+    one at samples is then returned unproved). Raises CertifyError when no linear design is
+    found."""
     t0 = time.perf_counter()
     say = log or (lambda _m: None)
     alpha = None if rate is None else 4.0 * float(rate) / LAM_FRACTION
@@ -338,12 +365,23 @@ def train_bound(system: System, config: TrainConfig, *, min_rate: float | None =
         if attempt.beat and attempt.network is not None:
             proof = prove_contraction(system, attempt.network, lam, P) if prove else {}
             attempt.proved = proof.get("status") == Status.PROVED.value
-            if attempt.proved or not prove:
+            if attempt.proved:
+                mine = certified_bound(system, attempt.network, lam, P)
+                theirs = certified_bound(system, lin, lam, P)
+                attempt.certified = {"learned": mine, "linear": theirs}
+                a, b = mine["ultimate"], theirs["ultimate"]
+                if a is not None and (b is None or a < b * (1.0 - BEAT_TOLERANCE)):
+                    chosen, returned = attempt.network, "learned"
+                    attempt.message += (f"; its contraction is PROVED at lam {lam:.4g} and its "
+                                        f"certified bound {a:.4g} ({mine['best']}) beats the "
+                                        f"linear design's {_fmt(b)}")
+                else:
+                    attempt.message += (f"; but its certified bound {_fmt(a)} does not beat "
+                                        f"the linear design's {_fmt(b)}; returning the linear "
+                                        "design")
+                    proof = {}
+            elif not prove:
                 chosen, returned = attempt.network, "learned"
-                attempt.message += ("; its contraction is PROVED at lam "
-                                    f"{lam:.4g}; the joint dissipation certificate itself "
-                                    "is for `certify run` to prove"
-                                    if prove else "")
             else:
                 attempt.message += (f"; but its contraction was not proved ({proof['status']})"
                                     "; returning the linear design")
