@@ -217,7 +217,8 @@ def learn_bound_gain(system: System, design: BoundDesign, start: GainNetwork,
                      log: Any = None) -> LearnedAttempt:
     """Train `start` (a copy; float64) against the joint inequality at mu_target and compare
     its sampled bound with the linear design's on a common sample (see the module doc).
-    The attempt's network is the round with the smallest sampled bound."""
+    `network` is the round's network with the smallest sampled bound when that beats the
+    linear design by more than BEAT_TOLERANCE, else None; `final` is the last round's."""
     t0 = time.perf_counter()
     ls = settings or LearnSettings(steps=config.adam_iters, lr=config.adam_lr,
                                    seed=config.seed)
