@@ -1,15 +1,22 @@
-"""Paper preset vs certified LMI baseline vs certified learned gain on vdp (issue 5, item 5).
+"""Every design of the project on vdp, lorenz and vdp2, compared on the certified error bound.
 
-For each lam: (a) the paper preset (P = I, the source method), (b) the LMI observer
-k0 = K (y - h(xhat)) (`training.baseline`), (c) the certified preset (`training.certified`).
-Each checkpoint is verified with `certify.verify.verify`; the table shows the verdict, the
-proved lam_cert, the sound L and eps_bar, the ISS ultimate bound at vbar = 0.15,
-sqrt(kappa(P)) (eps_bar + L vbar) / (2 lam_cert), and the mean squared error of the source's
-simulation protocol (x(0) = (-1, 2.5), xhat(0) = 0, Gaussian noise std 0.15, RK4 dt 1e-3 over
-10 s; outside the bound's conditions, as METHOD §3.7 says). Checkpoints are cached in --out
-and reused (delete them to retrain).
+Designs (each written once into --out and reused; delete a checkpoint to retrain):
+- paper: the source method (P = I; vdp only),
+- lmi: the LMI observer k0 = K (y - h(xhat)) at the rate lam (`training.baseline`),
+- certified: the certified preset at lam (`training.certified`, CEGIS),
+- bound: the linear observer designed for the error bound (`training.bound`, rate free),
+- learned: the bound preset's learned attempt (the network it trained, whether or not the
+  preset returned it).
+Each checkpoint is verified with `certify.verify.verify` (simulation skipped); the table reads
+the error-bound check's result generically: the best applicable bound (`best`), its ultimate
+value, the headline ||e|| <= B after t >= T, the per-component bounds and whether the bound
+is useful or vacuous (larger than the box's half-diagonal), at vbar = 0.15. For the bound
+designs it also shows the bound the design aimed at (vertex SDP) and its sampled value
+(`certify.design.bound.sampled_bound`). The last column is the mean squared error of the
+source's simulation protocol (Gaussian noise std 0.15, outside the bounds' conditions).
 
-Run: python bench/compare.py [--out out/compare] [--quick] [--lams 2.5,4,5]
+Run: python bench/compare.py [--out out/compare] [--systems vdp,lorenz,vdp2]
+       [--designs paper,lmi,certified,bound,learned] [--lams 2.5] [--quick]
 Prints a Markdown table, then one JSON line per row.
 """
 
@@ -28,7 +35,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from certify.checks.bounds import metric_constants, ultimate_bound_per_unit_noise  # noqa: E402
 from certify.errors import CertifyError  # noqa: E402
 from certify.model import checkpoint  # noqa: E402
 from certify.settings import VerifySettings  # noqa: E402
@@ -38,6 +44,9 @@ from certify.verify import verify  # noqa: E402
 
 VBAR = 0.15
 SIM_DT, SIM_T, SIM_SEED = 1e-3, 10.0, 0
+DESIGNS = ("paper", "lmi", "certified", "bound", "learned")
+SYSTEMS = ("vdp", "lorenz", "vdp2")
+RATE_DESIGNS = ("paper", "lmi", "certified")  # designed at a given rate lam
 
 
 def _tag(lam: float) -> str:
@@ -59,6 +68,7 @@ def make_lmi(path: Path, system: Any, lam: float) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     info, how = None, ""
+    last: Exception | None = None
     for gain_max in (1e3, 1e4, None):  # the default bound ||PK|| <= 1e3 is too tight at
         try:                            # high rates; an unbounded gain is needlessly large
             info = save_lmi_baseline(path, system, lam, gain_max=gain_max)
@@ -67,6 +77,7 @@ def make_lmi(path: Path, system: Any, lam: float) -> dict[str, Any]:
         except CertifyError as exc:
             last = exc
     if info is None:
+        assert last is not None
         raise last
     return {"train_seconds": time.perf_counter() - t0, "lmi": how,
             "gain_norm": info["gain_norm"]}
@@ -80,20 +91,51 @@ def make_certified(path: Path, system: Any, lam: float, quick: bool) -> dict[str
     cs = cegis_settings(config, DEFAULT_CEGIS,
                         budget_seconds=90.0 if quick else DEFAULT_CEGIS.budget_seconds)
     res = train_certified(system, config, settings=cs,
-                          log=lambda m: print(f"  [certified lam {lam:g}] {m}",
+                          log=lambda m: print(f"  [certified {system.name} lam {lam:g}] {m}",
                                               file=sys.stderr, flush=True))
     save_certified(path, system, res)
     return {"train_seconds": res.seconds, "loop": res.status.value,
             "rounds": len(res.cegis.rounds)}
 
 
+def make_bound(paths: dict[str, Path], system: Any, quick: bool) -> dict[str, Any]:
+    """The bound preset once: the linear design to paths["bound"], the learned attempt's
+    network (returned or not) to paths["learned"]."""
+    from training.bound import LearnSettings, save_bound, train_bound
+    from training.presets import make_config
+
+    config = make_config(system, "bound")
+    learn = LearnSettings(rounds=2 if quick else LearnSettings.rounds,
+                          steps=config.adam_iters, lr=config.adam_lr, seed=config.seed)
+    res = train_bound(system, config, learn=learn,
+                      log=lambda m: print(f"  [bound {system.name}] {m}", file=sys.stderr,
+                                          flush=True))
+    att = res.attempt
+    linear = res if res.returned == "linear" else None
+    if linear is None:  # the learned gain was returned: write the linear design beside it
+        linear = train_bound(system, make_config(system, "bound", adam_iters=0), prove=False)
+    save_bound(paths["bound"], system, linear)
+    info = {"train_seconds": res.seconds, "returned": res.returned,
+            "learned_outcome": None if att is None else att.message}
+    if att is not None and att.final is not None:
+        learned = res if res.returned == "learned" else None
+        if learned is None:
+            rec = res.record()
+            rec["returned"] = "learned attempt (not returned by the preset)"
+            checkpoint.save(paths["learned"], system=system, network=att.final, lam=res.lam,
+                            P=res.P, training=rec)
+        else:
+            save_bound(paths["learned"], system, learned)
+    return info
+
+
 def source_mse(problem: Any) -> float:
-    """Mean over [0, 10] of ||x - xhat||^2 under the source protocol (inf if it blows up)."""
+    """Mean over [0, T] of ||x - xhat||^2 under the source protocol (inf if it blows up)."""
     system = problem.system
     sim = system.simulation or {}
-    x0 = torch.tensor([sim.get("x0", [-1.0, 2.5])], dtype=torch.float64)
+    x0 = torch.tensor([sim.get("x0", [0.0] * system.n)], dtype=torch.float64)
     xh0 = torch.tensor([sim.get("xhat0", [0.0] * system.n)], dtype=torch.float64)
-    steps = int(round(SIM_T / SIM_DT))
+    steps = int(round(float(sim.get("t_final", SIM_T)) / SIM_DT))
     noise = gaussian_noise(steps, 1, system.p, VBAR, seed=SIM_SEED)
     tr = simulate(system, problem.network, x0, xh0, dt=SIM_DT, steps=steps, noise=noise)
     e2 = ((tr.x - tr.xhat) ** 2).sum(-1)
@@ -101,92 +143,151 @@ def source_mse(problem: Any) -> float:
     return v if math.isfinite(v) else math.inf
 
 
+def bound_fields(bounds: Any) -> dict[str, Any]:
+    """The error-bound check's headline fields, read generically (None where absent)."""
+    if bounds is None:
+        return {"bounds_status": None}
+    out: dict[str, Any] = {"bounds_status": getattr(bounds.status, "value", str(bounds.status))}
+    for key in ("best", "ultimate", "headline", "settle_time", "per_component", "vacuous",
+                "box_half_diagonal", "vbar"):
+        out[key] = getattr(bounds, key, None)
+    each = {}
+    listing = bounds.bounds() if hasattr(bounds, "bounds") else []
+    for b in listing:
+        each[b.name] = b.bias if b.applicable else None
+    out["bounds"] = each
+    return out
+
+
 def evaluate(path: Path, settings: VerifySettings) -> dict[str, Any]:
     ck = checkpoint.load(path)
-    cert = verify(ck, settings)
+    cert = verify(ck, settings, figures=False)
     c = cert.checks
     rate = c.get("rate")
-    lam_cert = rate.proved_lower if rate is not None else None
-    eps = c["residual"].upper if "residual" in c else None
-    L = c["lipschitz"].value if "lipschitz" in c else None
-    kappa = metric_constants(ck.problem.P)[2]
-    ub = ultimate_bound_per_unit_noise(lam_cert=lam_cert, eps_bar=eps, L=L, vbar=VBAR,
-                                       kappa_P=kappa)
-    return {"verdict": cert.verdict, "mpdi": c["mpdi"].status.value,
-            "lam_cert": lam_cert, "lam_cert_sampled": rate.sampled_upper if rate else None,
-            "L": L, "L_which": c["lipschitz"].which if "lipschitz" in c else None,
-            "eps_bar": eps, "kappa_P": kappa, "ultimate_bound": ub,
-            "mse_source": source_mse(ck.problem), "verify_seconds": cert.timings["total"]}
+    row = {"verdict": cert.verdict, "mpdi": c["mpdi"].status.value,
+           "lam": ck.problem.lam, "lam_cert": getattr(rate, "proved_lower", None),
+           "L": getattr(c.get("lipschitz"), "value", None),
+           "eps_bar": getattr(c.get("residual"), "upper", None),
+           "kappa_P": float(np.linalg.cond(np.asarray(ck.problem.P))),
+           **bound_fields(c.get("bounds")),
+           "mse_source": source_mse(ck.problem), "verify_seconds": cert.timings["total"]}
+    tr = ck.training or {}
+    if tr.get("preset") == "bound":
+        per = tr.get("bound_per_unit_noise")
+        row["designed_bound"] = None if per is None else VBAR * per
+        row["alpha"], row["mu"], row["lam_min_P"] = (tr.get("alpha"), tr.get("mu"),
+                                                     tr.get("lam_min_P"))
+        row["sampled_bound"] = _sampled(ck, tr.get("alpha"))
+        learned = tr.get("learned") or {}
+        row["learned_outcome"] = learned.get("message")
+    return row
+
+
+def _sampled(ck: Any, alpha: float | None) -> float | None:
+    if alpha is None:
+        return None
+    from certify.design.bound import sampled_bound
+
+    got = sampled_bound(ck.problem.system, ck.problem.network, np.asarray(ck.problem.P),
+                        float(alpha))
+    v = got["per_unit_noise"]
+    return VBAR * v if math.isfinite(v) else math.inf
 
 
 def _f(v: Any, fmt: str = ".4g") -> str:
     if v is None:
         return "—"
+    if isinstance(v, bool):
+        return str(v)
     if isinstance(v, float) and math.isinf(v):
         return "inf"
     return format(v, fmt) if isinstance(v, float) else str(v)
 
 
+def _headline(r: dict[str, Any]) -> str:
+    if r.get("headline") is None:
+        return "—"
+    word = "vacuous" if r.get("vacuous") else "useful"
+    return f"<= {r['headline']:.3g} after t >= {_f(r.get('settle_time'), '.3g')} s ({word})"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/compare", help="checkpoint cache folder")
-    ap.add_argument("--lams", default=None, help="comma-separated rates (default 2.5,4,5)")
+    ap.add_argument("--systems", default=",".join(SYSTEMS), help="comma-separated systems")
+    ap.add_argument("--designs", default=",".join(DESIGNS),
+                    help=f"comma-separated designs out of {','.join(DESIGNS)} (paper: vdp "
+                         "only)")
+    ap.add_argument("--lams", default=None,
+                    help="comma-separated rates of the rate designs (default: each system's)")
     ap.add_argument("--quick", action="store_true",
-                    help="lam 2.5 only, smaller verification and training budgets")
+                    help="smaller verification and training budgets")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)  # one thread: on a shared 2-core machine two are slower
-    lams = [float(v) for v in (args.lams or ("2.5" if args.quick else "2.5,4,5")).split(",")]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    system = load_system("vdp")
+    designs = [d for d in args.designs.split(",") if d]
+    unknown = sorted(set(designs) - set(DESIGNS))
+    if unknown:
+        ap.error(f"unknown design(s) {', '.join(unknown)}")
     settings = VerifySettings(grid_points=50_000 if args.quick else 200_000,
-                              proof_seconds=20.0 if args.quick else 60.0,
+                              proof_seconds=30.0 if args.quick else 60.0,
                               lipschitz_seconds=5.0 if args.quick else 10.0,
                               residual_seconds=5.0 if args.quick else 10.0,
                               adversarial_starts=32, noise=VBAR, skip=("simulation",))
     rows: list[dict[str, Any]] = []
-    for lam in lams:
-        for design in ("paper", "lmi", "certified"):
-            path = out / f"vdp_{design}_lam{_tag(lam)}.ckpt"
-            row: dict[str, Any] = {"lam": lam, "design": design, "checkpoint": str(path)}
+    for name in [s for s in args.systems.split(",") if s]:
+        system = load_system(name)
+        lams = [float(v) for v in args.lams.split(",")] if args.lams else [float(system.lam)]
+        jobs: list[tuple[str, float | None, Path]] = []
+        for design in designs:
+            if design == "paper" and name != "vdp":
+                continue
+            if design in RATE_DESIGNS:
+                jobs += [(design, lam, out / f"{name}_{design}_lam{_tag(lam)}.ckpt")
+                         for lam in lams]
+            else:
+                jobs.append((design, None, out / f"{name}_{design}.ckpt"))
+        bound_paths = {"bound": out / f"{name}_bound.ckpt",
+                       "learned": out / f"{name}_learned.ckpt"}
+        for design, lam, path in jobs:
+            row: dict[str, Any] = {"system": name, "design": design, "checkpoint": str(path)}
             try:
                 if not path.exists():
-                    print(f"training {design} at lam {lam:g} -> {path}", file=sys.stderr,
-                          flush=True)
+                    print(f"training {name} {design} -> {path}", file=sys.stderr, flush=True)
                     if design == "paper":
                         row.update(make_paper(path, system, lam))
                     elif design == "lmi":
                         row.update(make_lmi(path, system, lam))
-                    else:
+                    elif design == "certified":
                         row.update(make_certified(path, system, lam, args.quick))
+                    else:
+                        row.update(make_bound(bound_paths, system, args.quick))
                 else:
                     row["cached"] = True
+                if not path.exists():
+                    raise CertifyError(f"{design} wrote no checkpoint")
                 print(f"verifying {path}", file=sys.stderr, flush=True)
                 row.update(evaluate(path, settings))
             except CertifyError as exc:
                 row.update({"verdict": "ERROR", "error": str(exc)})
             rows.append(row)
-    print("| lam | design | verdict | lam_cert (proved) | L (sound) | eps_bar (sound) | "
-          "kappa(P) | ultimate bound at vbar=0.15 | MSE, source protocol |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print(f"| system | design | verdict | lam (proved) | best bound | ultimate | ||e|| at "
+          f"vbar={VBAR:g} | per component | box half-diagonal | designed (SDP) | sampled | "
+          "MSE, source protocol |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['lam']:g} | {r['design']} | {r.get('verdict')} | {_f(r.get('lam_cert'))} "
-              f"| {_f(r.get('L'))} | {_f(r.get('eps_bar'))} | {_f(r.get('kappa_P'))} | "
-              f"{_f(r.get('ultimate_bound'))} | {_f(r.get('mse_source'))} |")
+        comp = r.get("per_component")
+        comp_s = "—" if not comp else ", ".join(f"{v:.3g}" for v in comp)
+        print(f"| {r['system']} | {r['design']} | {r.get('verdict')} | "
+              f"{_f(r.get('lam'))} ({_f(r.get('lam_cert'))}) | {r.get('best') or '—'} | "
+              f"{_f(r.get('ultimate'))} | {_headline(r)} | {comp_s} | "
+              f"{_f(r.get('box_half_diagonal'))} | {_f(r.get('designed_bound'))} | "
+              f"{_f(r.get('sampled_bound'))} | {_f(r.get('mse_source'))} |")
     print()
-    for lam in lams:
-        by = {r["design"]: r for r in rows if r["lam"] == lam}
-        a, b = by.get("certified", {}).get("ultimate_bound"), by.get("lmi", {}).get(
-            "ultimate_bound")
-        if a is not None and b is not None:
-            word = "beats" if a < b else "does NOT beat"
-            print(f"lam {lam:g}: the certified learned gain {word} the LMI baseline on the "
-                  f"certified ultimate bound ({a:.4g} vs {b:.4g}, ratio {a / b:.3f}); "
-                  f"L {by['certified']['L']:.4g} vs {by['lmi']['L']:.4g}, kappa(P) "
-                  f"{by['certified']['kappa_P']:.4g} vs {by['lmi']['kappa_P']:.4g}")
-        else:
-            print(f"lam {lam:g}: no comparison of certified bounds (certified: {_f(a)}, "
-                  f"LMI: {_f(b)})")
+    for r in rows:
+        if r.get("learned_outcome") and r["design"] == "bound":
+            print(f"{r['system']}: {r['learned_outcome']}")
     print()
     for r in rows:
         print(json.dumps({k: (None if isinstance(v, float) and not math.isfinite(v) else v)

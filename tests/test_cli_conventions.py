@@ -117,7 +117,8 @@ def test_bash_completion_completes_commands_and_check_lists(tmp_path, capsys):
         [c for c in CHECK_NAMES if c != "mpdi"]
     assert complete("certify", "run", "x.ckpt", "--skip", "rate,m") == []
     assert complete("certify", "completion", "") == ["bash", "zsh", "fish"]
-    assert complete("certify", "train", "vdp", "--preset", "") == ["paper", "tiny", "certified"]
+    assert complete("certify", "train", "vdp", "--preset", "") == ["paper", "tiny", "certified",
+                                                                    "bound"]
     assert "bashcompinit" in generate("zsh")
     fish = generate("fish")
     assert ("__fish_seen_subcommand_from run' -l require -x -a "

@@ -7,6 +7,7 @@ values raise `CertifyError` subclasses, which the CLI turns into one line and ex
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -69,6 +70,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         dest="curvature_radius",
                         help="that term's pair distance, a fraction of each box side "
                              "(default 0.02)")
+    parser.add_argument("--min-rate", type=float, default=None, dest="min_rate",
+                        help="preset bound only: the smallest contraction rate lam the design "
+                             "may choose (default: the rate is free; --lam fixes it)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -164,6 +168,15 @@ def run_train(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
     if output.exists() and output.is_dir():
         raise CertifyError(f"--output {output} is a directory; give a file name like "
                            f"{system.name}.ckpt")
+    min_rate = getattr(args, "min_rate", None)
+    if min_rate is not None and (config.preset != "bound" or not math.isfinite(min_rate)
+                                 or min_rate <= 0):
+        raise SettingsError(f"training: --min-rate must be a finite number > 0 and applies to "
+                            f"preset bound only; got {min_rate!r} with preset {config.preset}")
+    if config.preset == "bound":  # designed for the error bound (training.bound)
+        from training.bound import run_bound
+
+        return run_bound(args, system, config, out)
     if config.preset == "certified":  # counterexample-guided loop (training.certified)
         from training.certified import run_certified
 

@@ -39,6 +39,7 @@ FLAGS = {
     "hidden": "--hidden", "adam_iters": "--adam-iters", "lbfgs_iters": "--lbfgs-iters",
     "preset": "--preset", "activation": "--activation",
     "curvature_weight": "--curvature-weight", "curvature_radius": "--curvature-radius",
+    "min_rate": "--min-rate",
 }
 
 
@@ -206,10 +207,23 @@ def _certified(system: System) -> dict[str, Any]:
             "curvature_weight": CERTIFIED_CURVATURE_WEIGHT}
 
 
+def _bound(system: System) -> dict[str, Any]:
+    """a linear observer designed for the certified error bound (vertex SDP; rate free, or
+    floored by --min-rate, or fixed by --lam), then a learned gain trained against the same
+    certificate, returned only if it beats the linear design
+
+    `training.bound`: adam_iters are Adam steps per round of the learned attempt (0: the
+    linear design only); points, hidden, seed and activation are the learned attempt's."""
+    return {"preset": "bound", "points": 2000, "hidden": (8, 8), "adam_iters": 150,
+            "adam_lr": 1e-3, "lbfgs_iters": 0, "loss": "eigen", "structure": "structural",
+            "mu1": 1.0, "mu2": 0.0}
+
+
 # name -> function(system) giving the preset's field values; the first paragraph of each
 # function's docstring is what `certify train --help` says of it (`preset_summary`)
 PRESETS: dict[str, Callable[[System], dict[str, Any]]] = {"paper": _paper, "tiny": _tiny,
-                                                          "certified": _certified}
+                                                          "certified": _certified,
+                                                          "bound": _bound}
 
 
 def preset_summary(name: str) -> str:

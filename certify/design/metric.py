@@ -105,7 +105,7 @@ def enclosure_vertices(system: System, lo: torch.Tensor, hi: torch.Tensor,
         raise ValueError(f"{d} Jacobian entries vary over X: too many for vertex enumeration "
                          f"(limit {MAX_VERTEX_BITS})")
     base = np.where(rel, Jlo, 0.5 * (Jlo + Jhi))  # relevant constant entries: lo == hi
-    bits = np.array(list(itertools.product((0, 1), repeat=d)), dtype=bool).reshape(-1, d)
+    bits = np.array(list(itertools.product((0, 1), repeat=d)), dtype=bool).reshape(2 ** d, d)
     B = Jlo.shape[0]
     V = np.repeat(base[:, None], len(bits), axis=1)  # [B, 2^d, n, n]
     for k, (i, j) in enumerate(ij):

@@ -1,5 +1,5 @@
 """Semidefinite programs through cvxpy + Clarabel: the solver interface, metric synthesis, the
-LMI observers.
+LMI observers (for a rate, and for the dissipation bound).
 
 The package's cvxpy interface (`certify.design.lipsdp` uses it too). Every problem returns an
 `SdpResult`; the solver's native outcome is mapped onto `Status` and anything inaccurate or
@@ -19,7 +19,8 @@ import numpy as np
 
 from certify.results import Status
 
-__all__ = ["SdpResult", "solve", "metric_sdp", "observer_sdp"]
+__all__ = ["SdpResult", "solve", "metric_sdp", "observer_sdp", "DissipationSdp",
+           "dissipation_sdp"]
 
 
 class _OnFirstUse:
@@ -183,3 +184,59 @@ def observer_sdp(vertices: np.ndarray, C: np.ndarray, lam: float, *, margin: flo
                          "kappa": float(kappa.value)}
         res.value = float(kappa.value)
     return res
+
+
+class DissipationSdp:
+    """The linear observer for the noise-to-error bound, built once for a set of vertices and
+    solved at any rate alpha: minimise mu over (P, Y = P K, mu) subject to P >= I and, at
+    every vertex J,
+
+        [[J^T P + P J - C^T Y^T - Y C + alpha P, -Y], [-Y^T, -mu I]] <= -margin I.
+
+    With e' = (J - K C) e - K v and V = e^T P e this is V' <= -alpha V + mu ||v||^2 for every
+    J in the vertices' convex hull (the block is affine in J), so ||e|| tends to at most
+    vbar sqrt(mu / (alpha lam_min(P))). P >= I fixes the scale (P, Y, mu are homogeneous), so
+    minimising mu minimises mu / lam_min(P). vertices [V, n, n], C [p, n]; ||Y||_2 <=
+    gain_max when given. alpha is a cvxpy parameter (alpha P is parameter-affine), so the
+    problem is compiled once and each `solve` only re-solves. Variables of an answer: P, Y,
+    K = P^-1 Y, mu; value mu.
+    """
+
+    def __init__(self, vertices: np.ndarray, C: np.ndarray, *, margin: float,
+                 gain_max: float | None = None) -> None:
+        V, n, _ = vertices.shape
+        p = C.shape[0]
+        self.n, self.p = n, p
+        self.P = cp.Variable((n, n), symmetric=True, name="P")
+        self.Y = cp.Variable((n, p), name="Y")
+        self.mu = cp.Variable(name="mu")
+        self.alpha = cp.Parameter(nonneg=True, name="alpha")
+        P, Y, mu = self.P, self.Y, self.mu
+        cons = [P >> np.eye(n)]
+        if gain_max is not None:
+            cons.append(cp.sigma_max(Y) <= gain_max)
+        eye = np.eye(n + p)
+        for J in vertices:
+            top = 2.0 * _sym(P @ J - Y @ C) + self.alpha * P
+            M = cp.bmat([[top, -Y], [-Y.T, -mu * np.eye(p)]])
+            cons.append(-_sym(M) - margin * eye >> 0)
+        self.problem = cp.Problem(cp.Minimize(mu), cons)
+
+    def solve(self, alpha: float) -> SdpResult:
+        t0 = time.perf_counter()
+        self.alpha.value = float(alpha)
+        status, _, res = solve(self.problem, t0)
+        P, Y, mu = self.P, self.Y, self.mu
+        if status is Status.PROVED and P.value is not None and Y.value is not None:
+            Pv = 0.5 * (P.value + P.value.T)
+            Yv = np.asarray(Y.value).reshape(self.n, self.p)
+            res.variables = {"P": Pv, "Y": Yv, "K": np.linalg.solve(Pv, Yv),
+                             "mu": float(mu.value)}
+            res.value = float(mu.value)
+        return res
+
+
+def dissipation_sdp(vertices: np.ndarray, C: np.ndarray, alpha: float, *, margin: float,
+                    gain_max: float | None = None) -> SdpResult:
+    """`DissipationSdp` solved at one rate alpha."""
+    return DissipationSdp(vertices, C, margin=margin, gain_max=gain_max).solve(alpha)
