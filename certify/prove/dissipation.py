@@ -54,7 +54,11 @@ POLYGON_SIDES = 8
 #: polytope's (one proof per vertex)
 BALL_ALLOWANCE = 1.03
 #: mu of the sampled optimum times these factors, tried in turn (bound ~ sqrt(mu))
-MU_GROWTH = (1.02, 1.3, 2.0)
+MU_GROWTH = (1.02, 1.1, 1.3, 2.0)
+#: rates alpha sampled (geometric, up to 4x the fastest sampled rate), then golden-section
+#: steps around the best
+ALPHA_GRID = 24
+ALPHA_REFINE = 14
 #: an enclosure narrower than this relative to its centre is a point up to rounding: one
 #: centre and a ball (one proof) rather than a polytope
 NARROW = 1e-6
@@ -253,34 +257,60 @@ def _plan(problem: Problem, cover: Cover, eps_P: float, vbar: float, samples: in
     lam_s = -pencil / 2.0
     if not lam_s > 0:
         return []
-    out = []
-    for alpha in 4.0 * lam_s * np.geomspace(0.02, 0.98, 24):
+    nP2 = float(np.linalg.norm(P2, 2))
+
+    def at(alpha: float) -> dict | None:
+        """The best (mu_b, eta, mu_r) at this alpha and its sampled bound (None: none)."""
         D = D0 + 0.5 * alpha * P  # 2 (alpha / 4) P
-        margin = float(np.linalg.eigvalsh(D)[:, -1].max())  # < 0
-        extras = [(0.0, 0.0)]  # (eta, mu_r) choices
-        for frac_r in ((0.02,) if not problem.structural else (0.0,)):
-            for frac_b in ((0.0,) if cover.delta == 0 else (1e-6, 1e-3, 0.05, 0.2, 0.5)):
-                extras.append((frac_b, frac_r))
+        margin = float(np.linalg.eigvalsh(D)[:, -1].max())  # < 0 where alpha is feasible
+        if not margin < 0:
+            return None
+        fracs_r = (0.02,) if not problem.structural else (0.0,)
+        fracs_b = (0.0,) if cover.delta == 0 else (1e-6, 1e-3, 0.05, 0.2, 0.5)
         best = None
-        for frac_b, frac_r in extras[1:] if len(extras) > 1 else extras:
-            # each extra term takes a fraction of the margin -lam_max(D): c P^2 <= frac |margin|
-            nP2 = float(np.linalg.norm(P2, 2))
-            eta = cover.delta ** 2 * nP2 / (2 * frac_b * -margin) if frac_b else 0.0
-            mu_r = nP2 / (2 * frac_r * -margin) if frac_r else 0.0
-            Deff = D.copy()
-            if eta:
-                Deff = Deff + cover.delta ** 2 * P2 / (2 * eta)
-            if mu_r:
-                Deff = Deff + P2 / (2 * mu_r)
-            mu_b = float(_mu_needed(Deff, PB).max())
-            if not math.isfinite(mu_b):
-                continue
-            num = (mu_b + eta) * vbar ** 2 + mu_r * eps_P ** 2
-            bound = math.sqrt(num / alpha)
-            if best is None or bound < best["bound"]:
-                best = dict(alpha=float(alpha), mu_b=mu_b, eta=eta, mu_r=mu_r, bound=bound)
-        if best is not None:
-            out.append(best)
+        for frac_r in fracs_r:
+            for frac_b in fracs_b:
+                # each extra term takes a fraction of the margin: its P^2 term <= frac |margin|
+                eta = cover.delta ** 2 * nP2 / (2 * frac_b * -margin) if frac_b else 0.0
+                mu_r = nP2 / (2 * frac_r * -margin) if frac_r else 0.0
+                Deff = D.copy()
+                if eta:
+                    Deff = Deff + cover.delta ** 2 * P2 / (2 * eta)
+                if mu_r:
+                    Deff = Deff + P2 / (2 * mu_r)
+                mu_b = float(_mu_needed(Deff, PB).max())
+                if not math.isfinite(mu_b):
+                    continue
+                num = (mu_b + eta) * vbar ** 2 + mu_r * eps_P ** 2
+                bound = math.sqrt(num / alpha)
+                if best is None or bound < best["bound"]:
+                    best = dict(alpha=float(alpha), mu_b=mu_b, eta=eta, mu_r=mu_r, bound=bound)
+        return best
+
+    grid = 4.0 * lam_s * np.geomspace(0.02, 0.98, ALPHA_GRID)
+    out = [c for c in (at(float(a)) for a in grid) if c is not None]
+    if out:  # golden-section refinement in log alpha between the best point's neighbours
+        k = int(np.argmin([c["bound"] for c in out]))
+        i = int(np.searchsorted(grid, out[k]["alpha"]))
+        lo, hi = math.log(grid[max(i - 1, 0)]), math.log(grid[min(i + 1, len(grid) - 1)])
+        g = (math.sqrt(5.0) - 1.0) / 2.0
+
+        def value(u: float) -> float:
+            c = at(math.exp(u))
+            if c is not None:
+                out.append(c)
+            return c["bound"] if c is not None else math.inf
+        a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+        fa, fb = value(a), value(b)
+        for _ in range(ALPHA_REFINE):
+            if fa <= fb:
+                hi, b, fb = b, a, fa
+                a = hi - g * (hi - lo)
+                fa = value(a)
+            else:
+                lo, a, fa = a, b, fb
+                b = lo + g * (hi - lo)
+                fb = value(b)
     return sorted(out, key=lambda c: c["bound"])
 
 
