@@ -17,7 +17,7 @@ from certify.arith.taylor import TM
 from certify.enclose.taylor import tm_lam_upper
 from tests.mp_reference import exact_lam_max
 
-from .soak import examples
+from ..soak import examples
 
 F64 = torch.float64
 

@@ -17,7 +17,7 @@ from certify.arith.eigen import (
 from certify.arith.intervals import Interval
 from tests.mp_reference import exact_lam_max
 
-from .soak import examples
+from ..soak import examples
 
 F64 = torch.float64
 

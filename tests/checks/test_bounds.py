@@ -22,7 +22,7 @@ from certify.model.problem import Problem
 from certify.results import BoundsResult, Status, from_jsonable, to_jsonable
 from certify.spec.system import load_system
 
-from .soak import examples
+from ..soak import examples
 
 REL = 1e-10
 

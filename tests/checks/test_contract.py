@@ -35,7 +35,7 @@ from certify.results import (
 from certify.settings import CHECK_NAMES, VerifySettings
 from certify.verify import verify
 
-from .conftest import random_network
+from ..conftest import random_network
 
 SETTINGS = VerifySettings(grid_points=4000, adversarial_starts=6, adversarial_steps=20,
                           proof_seconds=5, rate_seconds=3, residual_seconds=3,
@@ -72,7 +72,7 @@ def _run_all(problem):
 def results(request):
     from certify.spec.system import System
 
-    from .conftest import SPEC_3X2
+    from ..conftest import SPEC_3X2
 
     system = System.from_text(SPEC_3X2, origin="contract spec")
     return {s: _run_all(_problem(system, s)) for s in ("direct", "structural")}

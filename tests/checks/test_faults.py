@@ -16,7 +16,7 @@ import certify.verify as verify_mod
 from certify.certificate import Certificate
 from certify.results import CheckFailure, SimulationResult, Status, decide_verdict
 
-from .cli_helpers import FAST_POLICY, run_cli, save_linear
+from ..cli_helpers import FAST_POLICY, run_cli, save_linear
 
 
 @pytest.fixture
@@ -155,11 +155,7 @@ def test_policy_required_error_is_inconclusive_even_when_unknown_is_allowed():
 
 
 def test_certificate_schema_v1_is_read_and_unknown_versions_refused(tmp_path):
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    import fixtures_certificates as F
+    from .. import fixtures_certificates as F
 
     data = F.certified_certificate().to_dict()
     data["schema_version"] = 1

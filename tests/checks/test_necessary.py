@@ -12,7 +12,7 @@ from certify.errors import SpecError
 from certify.results import NecessaryResult, Status, from_jsonable, to_jsonable
 from certify.spec.system import System, load_system
 
-from .conftest import SPEC_3X2
+from ..conftest import SPEC_3X2
 
 
 def test_vdp_identity_metric_fails_with_known_numbers():

@@ -12,8 +12,8 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from .cli_helpers import FAST_POLICY, A, C, K, run_cli, save_problem
-from .planted import linear_problem
+from ..cli_helpers import FAST_POLICY, A, C, K, run_cli, save_problem
+from ..planted import linear_problem
 
 
 @pytest.fixture

@@ -11,8 +11,8 @@ import pytest
 from certify.model import checkpoint
 from certify.spec.system import load_system
 
-from .cli_helpers import FAST_POLICY, A, C, K, run_cli, save_problem
-from .planted import lam_cert_linear, linear_problem, planted_problem
+from ..cli_helpers import FAST_POLICY, A, C, K, run_cli, save_problem
+from ..planted import lam_cert_linear, linear_problem, planted_problem
 
 
 @pytest.fixture
@@ -135,7 +135,7 @@ def test_console_script_runs():
 def test_paper_preset_vdp_not_certified_with_reports(workdir, capsys):
     from pathlib import Path
 
-    example = Path(__file__).resolve().parents[1] / "examples" / "vdp.ckpt"
+    example = Path(__file__).resolve().parents[2] / "examples" / "vdp.ckpt"
     code, out, _ = run_cli(capsys, "run", str(example), "--json", "r.json", "--junit", "r.xml",
                            "--html", "r.html", "--skip", "simulation")
     assert code == 1

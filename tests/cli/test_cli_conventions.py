@@ -17,8 +17,8 @@ import pytest
 from certify.cli.main import main
 from certify.settings import CHECK_NAMES
 
-from .cli_helpers import FAST_POLICY, ROOT, probe, run_cli, save_linear
-from .conftest import LINEAR_SPEC
+from ..cli_helpers import FAST_POLICY, ROOT, probe, run_cli, save_linear
+from ..conftest import LINEAR_SPEC
 
 EXAMPLE = str(ROOT / "examples" / "vdp_certified.ckpt")
 

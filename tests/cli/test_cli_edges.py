@@ -28,7 +28,7 @@ from certify.settings import (
     max_local_workers,
 )
 
-from .cli_helpers import FAST_POLICY, ROOT, fresh_env, probe, run_cli, save_linear
+from ..cli_helpers import FAST_POLICY, ROOT, fresh_env, probe, run_cli, save_linear
 
 VDP = ROOT / "examples" / "vdp.ckpt"  # the paper preset: the MPDI is VIOLATED on 100% of X x Y
 SPEC = """name = "lin"

@@ -14,7 +14,7 @@ import pytest
 from certify.cli.display import ProgressDisplay
 from certify.settings import CHECK_NAMES
 
-from .cli_helpers import FAST_POLICY, run_cli, save_linear
+from ..cli_helpers import FAST_POLICY, run_cli, save_linear
 
 STEP_LINE = re.compile(r"^\[\d\d:\d\d:\d\d\] (\S+) +(\S+) +(\d+\.\d\d) s$")
 

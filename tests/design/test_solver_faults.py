@@ -14,8 +14,8 @@ from certify.design import lipsdp
 from certify.model.problem import Problem
 from certify.results import Status
 
-from .cli_helpers import FAST_POLICY, A, C, K, run_cli, save_problem
-from .planted import linear_problem
+from ..cli_helpers import FAST_POLICY, A, C, K, run_cli, save_problem
+from ..planted import linear_problem
 
 # the Lipschitz check beside the MPDI, which always runs (it is the certificate) on a short
 # budget: the verdict is the MPDI's, the Lipschitz result is what these tests read

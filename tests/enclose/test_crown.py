@@ -24,7 +24,7 @@ from certify.model.network import GainNetwork
 from certify.model.problem import Problem
 from certify.spec.system import load_system
 
-from .soak import examples
+from ..soak import examples
 
 F64 = torch.float64
 SETTINGS = settings(max_examples=examples(8), deadline=None)

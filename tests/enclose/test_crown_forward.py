@@ -18,7 +18,7 @@ from certify.model import activations
 from certify.model.gain.taylor import tm_activation
 from certify.model.network import GainNetwork
 
-from .soak import examples
+from ..soak import examples
 from .test_crown import _boxes, _net, _points
 
 F64 = torch.float64

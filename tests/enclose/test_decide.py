@@ -15,7 +15,7 @@ from certify.arith.taylor import TM
 from certify.enclose.decide import decide_affine_family, vertex_test
 from certify.enclose.taylor import tm_lam_upper
 
-from .soak import examples
+from ..soak import examples
 
 F64 = torch.float64
 

@@ -34,7 +34,7 @@ from certify.spec.expr import DERIVED_FUNCTIONS, FUNCTIONS
 from certify.spec.interval_rules import INTERVAL, RULES, enclose_function
 from certify.spec.system import System, load_system
 
-from .soak import examples
+from ..soak import examples
 
 SETTINGS = settings(max_examples=examples(20), deadline=None)
 ACT_SETTINGS = settings(max_examples=examples(4), deadline=None)  # per activation

@@ -22,7 +22,7 @@ from certify.model import activations
 from certify.model.kernels import closed_loop_jacobian
 from certify.spec.system import load_system
 
-from .soak import examples
+from ..soak import examples
 from .test_crown import _boxes, _net, _points
 from .test_preconditioner_choice import _problem
 

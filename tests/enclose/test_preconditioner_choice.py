@@ -23,8 +23,8 @@ from certify.model.problem import Problem
 from certify.prove.mpdi import prove_mpdi
 from certify.results import Status
 
-from .planted import lam_cert_linear, linear_problem, linear_system
-from .soak import examples
+from ..planted import lam_cert_linear, linear_problem, linear_system
+from ..soak import examples
 
 F64 = torch.float64
 
@@ -173,7 +173,7 @@ def test_ties_in_closed_probes_go_to_the_smaller_bound() -> None:
 
     from certify.model import checkpoint
 
-    path = Path(__file__).parents[1] / "examples" / "vdp2_lmi.ckpt"
+    path = Path(__file__).parents[2] / "examples" / "vdp2_lmi.ckpt"
     prob = checkpoint.load(str(path)).problem
     pc = choose_preconditioner(prob, prob.lam)
     assert pc.kind == "none"

@@ -24,7 +24,7 @@ from certify.enclose.relax import (
 )
 from certify.model import activations
 
-from .soak import examples
+from ..soak import examples
 
 F64 = torch.float64
 SETTINGS = settings(max_examples=examples(40), deadline=None)

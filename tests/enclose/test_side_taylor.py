@@ -22,7 +22,7 @@ from certify.model.problem import Problem
 from certify.prove.side import bound_dk_dy
 from certify.spec.system import load_system
 
-from .soak import examples
+from ..soak import examples
 
 F64 = torch.float64
 

@@ -33,7 +33,7 @@ from certify.prove.mpdi import prove_mpdi
 from certify.results import Status
 
 from ..soak import examples
-from ..test_preconditioner_choice import _problem
+from .test_preconditioner_choice import _problem
 
 F64 = torch.float64
 

@@ -16,7 +16,7 @@ from certify.enclose.structured import entrywise, loewner_upper
 from certify.enclose.taylor import tm_lam_upper
 from certify.model import activations
 
-from .soak import examples
+from ..soak import examples
 from .test_crown import _boxes, _net, _points
 from .test_mixed_rows import mixed_case, sampled_D
 from .test_preconditioner_choice import _problem

@@ -16,7 +16,7 @@ from certify.enclose.system_taylor import jacobian_tm, quadratic_enclosure
 from certify.spec.enclosures import hessian_f_enclosure, jacobian_f_enclosure, pad_y
 from certify.spec.system import System, load_system
 
-from .soak import examples
+from ..soak import examples
 
 F64 = torch.float64
 SETTINGS = settings(max_examples=examples(20), deadline=None)

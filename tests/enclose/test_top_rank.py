@@ -22,8 +22,8 @@ from certify.model import activations
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
 
-from .planted import linear_system
-from .soak import examples
+from ..planted import linear_system
+from ..soak import examples
 from .test_mixed_rows import mixed_case
 from .test_preconditioner_choice import _metric
 from .test_structured import boxes_and_level, decided

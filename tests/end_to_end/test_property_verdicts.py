@@ -22,7 +22,7 @@ from certify.cli.main import main
 from certify.model import checkpoint
 from certify.spec.system import System
 
-from .mp_reference import (
+from ..mp_reference import (
     dk_dy_norm,
     lam_max_D,
     manifold_q,
@@ -31,7 +31,7 @@ from .mp_reference import (
     random_spec,
     residual_norm,
 )
-from .soak import examples
+from ..soak import examples
 
 POLICY = """
 [tool.certify]

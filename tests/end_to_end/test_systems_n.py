@@ -14,7 +14,7 @@ import torch
 from certify.model.kernels import mpdi_lam_max
 from certify.spec.system import builtin_names, load_system
 
-from .cli_helpers import run_cli
+from ..cli_helpers import run_cli
 
 NEW = {"lorenz": (3, 1), "vdp2": (4, 2), "vdp3": (6, 3)}
 
@@ -83,7 +83,7 @@ def test_shipped_lorenz_example_is_certified(capsys):
     path closes."""
     from pathlib import Path
 
-    path = Path(__file__).parents[1] / "examples" / "lorenz_lmi.ckpt"
+    path = Path(__file__).parents[2] / "examples" / "lorenz_lmi.ckpt"
     code, out, err = run_cli(capsys, "run", str(path), *SMALL_RUN, "--proof-seconds", "30",
                              "--skip", "simulation,lipschitz,bounds", "--quiet")
     assert code == 0, out + err

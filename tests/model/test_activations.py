@@ -19,7 +19,7 @@ from certify.arith.intervals import Interval
 from certify.model.activations import get, names
 from certify.model.activations.base import Activation
 
-from .soak import examples
+from ..soak import examples
 
 mp.mp.dps = 50
 F64 = torch.float64

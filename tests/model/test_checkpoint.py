@@ -14,7 +14,7 @@ from certify.errors import CheckpointError
 from certify.model import checkpoint
 from certify.spec.system import System, load_system
 
-from .conftest import SPEC_3X2, random_network
+from ..conftest import SPEC_3X2, random_network
 
 
 @pytest.fixture

@@ -9,7 +9,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from .cli_helpers import run_cli, save_linear
+from ..cli_helpers import run_cli, save_linear
 
 INTERNALS = ("miniz", "(101)", "PytorchStreamReader", "Traceback", "central directory")
 

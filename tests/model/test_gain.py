@@ -25,7 +25,7 @@ from training.collocation import collocation_points
 from training.objective import Objective
 from training.presets import make_config
 
-from .cli_helpers import FAST_POLICY, run_cli
+from ..cli_helpers import FAST_POLICY, run_cli
 
 NAMES = activations.names()
 F64 = torch.float64

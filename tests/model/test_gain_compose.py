@@ -46,7 +46,7 @@ from certify.spec.enclosures import (
 )
 from certify.spec.system import System
 
-from .soak import examples
+from ..soak import examples
 
 F64 = torch.float64
 

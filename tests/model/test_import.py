@@ -18,8 +18,8 @@ from certify.model.importers.result import supported_activations
 from certify.model.network import GainNetwork
 from certify.spec.system import System
 
-from .cli_helpers import FAST_POLICY, run_cli
-from .conftest import SPEC_3X2
+from ..cli_helpers import FAST_POLICY, run_cli
+from ..conftest import SPEC_3X2
 
 TORCH_ACTIVATIONS = {"tanh": nn.Tanh, "sigmoid": nn.Sigmoid, "softplus": nn.Softplus,
                      "silu": nn.SiLU, "elu": nn.ELU, "gelu": nn.GELU}

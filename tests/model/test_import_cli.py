@@ -14,8 +14,8 @@ from torch import nn
 
 from certify.model import checkpoint
 
-from .cli_helpers import run_cli, save_linear
-from .conftest import LINEAR_SPEC
+from ..cli_helpers import run_cli, save_linear
+from ..conftest import LINEAR_SPEC
 from .test_import import export, mlp
 
 Z = (torch.zeros(1, 3, dtype=torch.float64),)  # the linear spec: n = 2, p = 1

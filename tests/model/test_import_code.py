@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .conftest import LINEAR_SPEC
+from ..conftest import LINEAR_SPEC
 from .test_import import mlp
 
 MARK = "RAN-CODE-FROM-THE-FILE"

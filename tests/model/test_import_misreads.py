@@ -24,7 +24,7 @@ from certify.model.importers.torch_model import read_state_dict, read_torchscrip
 from certify.model.network import GainNetwork
 from certify.spec.system import System
 
-from .cli_helpers import FAST_POLICY, run_cli
+from ..cli_helpers import FAST_POLICY, run_cli
 from .test_import import LINEAR_SPEC, export, near_linear_gain
 
 onnx = pytest.importorskip("onnx")

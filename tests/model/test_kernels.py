@@ -15,7 +15,7 @@ from certify.model.kernels import (
 )
 from certify.model.network import GainNetwork
 
-from .conftest import random_network
+from ..conftest import random_network
 
 
 def _points(system, m=9, seed=0):

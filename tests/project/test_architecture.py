@@ -13,7 +13,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("certify", "training", "reports")
 ORDER = ("arith", "spec", "model", "enclose", "search", "prove", "design", "simulate",
          "checks")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from .soak import examples
+from ..soak import examples
 
 
 def test_examples_scale_by_the_soak_factor(monkeypatch) -> None:

@@ -18,7 +18,7 @@ from certify.arith.device import PROOF_BATCH, proof_batch
 from certify.enclose.options import Technique
 from certify.prove.mpdi import _mpdi_remote, prove_mpdi, prove_rate
 
-from .test_preconditioner_choice import _problem
+from ..enclose.test_preconditioner_choice import _problem
 
 
 @contextlib.contextmanager
@@ -97,7 +97,7 @@ def test_mpdi_check_grid_ascent_and_proof_follow_the_device(above: bool) -> None
     from certify.model.problem import Problem
     from certify.settings import VerifySettings
 
-    from .planted import lam_cert_linear, linear_problem
+    from ..planted import lam_cert_linear, linear_problem
     from .test_prover import P_METRIC, A, C, K
 
     truth = lam_cert_linear(A, C, K, P_METRIC)
@@ -120,7 +120,7 @@ def test_side_proofs_make_every_tensor_on_their_problems_device(structure: str) 
     from certify.model.problem import Problem
     from certify.prove.side import bound_dk_dy, bound_residual
 
-    from .conftest import random_network
+    from ..conftest import random_network
 
     base = _problem(2, 2, 8.0)
     net = random_network(2, 1, structure=structure, seed=4, scale=0.5)

@@ -12,7 +12,7 @@ import scipy.linalg
 
 from certify.prove.rate import raise_rate
 
-from .planted import lam_cert_linear, linear_problem
+from ..planted import lam_cert_linear, linear_problem
 
 A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -2.0, -2.0]])
 C = np.array([[1.0, 0.0, 0.0]])
@@ -49,7 +49,7 @@ def test_rate_check_on_vdp2_lmi_proves_above_the_design_rate() -> None:
     from certify.results import MpdiResult, Status
     from certify.settings import VerifySettings
 
-    path = Path(__file__).parents[1] / "examples" / "vdp2_lmi.ckpt"
+    path = Path(__file__).parents[2] / "examples" / "vdp2_lmi.ckpt"
     prob = checkpoint.load(str(path)).problem
     mpdi = MpdiResult(Status.PROVED, "proved at the design rate", -0.5, -0.39)
     for known in (mpdi, None):  # without a proved design rate the ladder starts from 0
@@ -66,7 +66,7 @@ def test_rate_proof_gives_up_below_a_rate_already_proved() -> None:
     from certify.model import checkpoint
     from certify.prove.mpdi import prove_rate
 
-    path = Path(__file__).parents[1] / "examples" / "vdp2_lmi.ckpt"
+    path = Path(__file__).parents[2] / "examples" / "vdp2_lmi.ckpt"
     prob = checkpoint.load(str(path)).problem
     kw = dict(seconds=60.0, max_boxes=8192, batch=512)
     stopped = prove_rate(prob, give_up=(2048, 1.0), **kw)
@@ -89,7 +89,7 @@ def test_ladder_climbs_as_far_when_the_machine_slows_down(monkeypatch) -> None:
     import certify.prove.rate as rate_ladder
     from certify.model import checkpoint
 
-    path = Path(__file__).parents[1] / "examples" / "vdp2_lmi.ckpt"
+    path = Path(__file__).parents[2] / "examples" / "vdp2_lmi.ckpt"
     prob = checkpoint.load(str(path)).problem
     args = (prob, 1.10, 1.1188308628907166)
     kw = dict(seconds=300.0, rel_tol=2e-3)

@@ -20,9 +20,9 @@ from certify.arith.intervals import Interval
 from certify.model.kernels import mpdi_lam_max
 from certify.search.witness import mpdi_lower, rayleigh_lower
 
-from .cli_helpers import FAST_POLICY, run_cli, save_problem
-from .planted import linear_problem
-from .soak import examples
+from ..cli_helpers import FAST_POLICY, run_cli, save_problem
+from ..planted import linear_problem
+from ..soak import examples
 
 # D = He{A} + 2 lam I with lam = 1/2 is [[d1, b], [b, d2]] exactly (every constant is a double
 # and d2 - 1 + 1 is exact); det D = d1 d2 - b^2 >= 0, so lam_max(D) = -1.1e-17 <= 0 exactly,
@@ -159,7 +159,7 @@ def test_witness_bounds_are_below_the_40_digit_values(seed, n, cond):
     from certify.search.witness import dk_dy_norm_lower, manifold_lower, residual_lower
     from certify.spec.system import System
 
-    from .mp_reference import lam_max_D, manifold_q, network_layers, random_network, random_spec
+    from ..mp_reference import lam_max_D, manifold_q, network_layers, random_network, random_spec
 
     rng = np.random.default_rng(seed)
     spec = random_spec(rng, n, 1, cond)
@@ -233,7 +233,7 @@ def test_a_lying_float32_screen_never_decides(monkeypatch, which):
     import certify.checks.mpdi as mpdi_module
     from certify.settings import VerifySettings
 
-    from .planted import planted_problem
+    from ..planted import planted_problem
 
     monkeypatch.setattr(mpdi_module, "GridKernel", _LyingScreen)
     problem = _tie_problem() if which == "tie" else planted_problem("corner")

@@ -8,17 +8,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import sys
-from pathlib import Path
 
 import matplotlib
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-sys.path.insert(0, str(Path(__file__).parent))
-import fixtures_certificates as F  # noqa: E402
 
 from certify.certificate import Certificate, format_json  # noqa: E402
 from certify.checks.simulation import MAX_SAMPLES, keep_samples  # noqa: E402
@@ -35,7 +30,8 @@ from reports import figures as figmod  # noqa: E402
 from reports.figures import drawn  # noqa: E402
 from reports.render import render_reports  # noqa: E402
 
-from .cli_helpers import FAST_POLICY, run_cli, save_linear  # noqa: E402
+from .. import fixtures_certificates as F  # noqa: E402
+from ..cli_helpers import FAST_POLICY, run_cli, save_linear  # noqa: E402
 
 finite = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False)
 

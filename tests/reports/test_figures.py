@@ -4,19 +4,16 @@ title), titles are not cut off, and each caption names exactly what the figure d
 from __future__ import annotations
 
 import dataclasses
-import sys
-from pathlib import Path
 
 import matplotlib
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-import fixtures_certificates as F  # noqa: E402
-
 from certify.results import Counterexample  # noqa: E402
 from reports import figures as figmod  # noqa: E402
 from reports.figures import drawn  # noqa: E402
+
+from .. import fixtures_certificates as F  # noqa: E402
 
 SPECS = {spec.key: spec for spec in figmod.FIGURES}
 

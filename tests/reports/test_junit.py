@@ -8,14 +8,10 @@ checked with lxml's XML Schema validator.
 from __future__ import annotations
 
 import dataclasses
-import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
-
-sys.path.insert(0, str(Path(__file__).parent))
-import fixtures_certificates as F  # noqa: E402
 
 from certify.results import (
     Status,  # noqa: E402
@@ -23,8 +19,10 @@ from certify.results import (
 )
 from reports.junit import render_internal_error, render_junit  # noqa: E402
 
+from .. import fixtures_certificates as F  # noqa: E402
+
 etree = pytest.importorskip("lxml.etree", reason="lxml validates against junit-10.xsd")
-SCHEMA = Path(__file__).parent / "data" / "junit-10.xsd"
+SCHEMA = Path(__file__).parents[1] / "data" / "junit-10.xsd"
 
 
 def _schema():

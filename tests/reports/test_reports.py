@@ -14,7 +14,6 @@ import os
 import re
 import shutil
 import subprocess
-import sys
 import warnings
 import xml.etree.ElementTree as ET
 from html.parser import HTMLParser
@@ -22,15 +21,14 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-import fixtures_certificates as F  # noqa: E402
-
 from certify.certificate import Certificate  # noqa: E402
 from certify.figuredata import FigureData, GridMap  # noqa: E402
 from certify.results import Status  # noqa: E402
 from reports import content as C  # noqa: E402
 from reports import figures as figmod  # noqa: E402
 from reports import render_html, render_junit, render_reports, write_reports  # noqa: E402
+
+from .. import fixtures_certificates as F  # noqa: E402
 
 NAMES = list(F.ALL)
 _CACHE: dict[str, tuple[Certificate, dict[str, bytes], list[str]]] = {}

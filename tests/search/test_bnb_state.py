@@ -16,7 +16,7 @@ from certify.search.bnb import BranchAndBound, ClosingRule, Leaves, branch_and_b
 from certify.search.distributed.executor import SerialExecutor
 from certify.search.evaluation import BoxEval, add_counts, join
 
-from ..test_bnb_rounds import ChunkedSerial, _small_vdp
+from .test_bnb_rounds import ChunkedSerial, _small_vdp
 
 F64 = torch.float64
 

@@ -162,7 +162,7 @@ def test_an_executors_round_not_back_by_the_deadline_is_cancelled() -> None:
 
 def test_a_run_the_budget_does_not_bind_is_the_run_without_a_clock() -> None:
     """The same boxes, bounds and verdict bit for bit as with an unlimited budget."""
-    from tests.test_bnb_rounds import _small_vdp
+    from tests.search.test_bnb_rounds import _small_vdp
 
     prob = _small_vdp()
     budgeted = prove_mpdi(prob, seconds=120.0, max_boxes=3000, batch=16)
@@ -177,7 +177,7 @@ def test_a_tiny_budget_on_a_cheap_problem_still_bounds_its_first_round() -> None
     """The set-up and a first round of at most a few seconds run whatever the budget: a
     budget of a millisecond gives the first round's bound, not none."""
     from certify.prove.side import bound_dk_dy
-    from tests.test_bnb_rounds import _small_vdp
+    from tests.search.test_bnb_rounds import _small_vdp
 
     prob = _small_vdp()
     out = prove_mpdi(prob, seconds=1e-3)
@@ -212,7 +212,7 @@ def test_a_three_second_proof_budget_holds_on_a_slow_network() -> None:
 def test_the_tree_estimate_keeps_its_time_limit() -> None:
     from certify.prove.mpdi import mpdi_decision
     from certify.search.tree_estimate import estimate_tree
-    from tests.test_bnb_rounds import _small_vdp
+    from tests.search.test_bnb_rounds import _small_vdp
 
     problem = _small_vdp()
     s = mpdi_decision(problem, float(problem.lam))

@@ -24,8 +24,8 @@ from certify.search.distributed.executor import (
 )
 from certify.settings import VerifySettings
 
-from .cli_helpers import run_cli, save_linear
-from .conftest import random_network
+from ..cli_helpers import run_cli, save_linear
+from ..conftest import random_network
 
 
 def slow_square(x: int) -> int:
@@ -196,7 +196,7 @@ def _vdp_certified():
 
     from certify.model import checkpoint
 
-    return checkpoint.load(str(Path(__file__).parents[1] / "examples" / "vdp_certified.ckpt"))
+    return checkpoint.load(str(Path(__file__).parents[2] / "examples" / "vdp_certified.ckpt"))
 
 
 #: a box budget that ends the vdp_certified proof before it closes (it needs about 3300)

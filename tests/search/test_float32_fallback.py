@@ -26,7 +26,7 @@ from certify.search.grid import GridKernel, float32_misfit, float32_screen
 from certify.settings import VerifySettings
 from certify.spec.system import System
 
-from .cli_helpers import FAST_POLICY, run_cli
+from ..cli_helpers import FAST_POLICY, run_cli
 
 SPEC = """
 name = "huge"

@@ -89,7 +89,7 @@ def _same(a, b) -> None:
 def _vdp_problem():
     from certify.model import checkpoint
 
-    path = Path(__file__).parents[1] / "examples" / "vdp_certified.ckpt"
+    path = Path(__file__).parents[2] / "examples" / "vdp_certified.ckpt"
     return checkpoint.load(str(path)).problem
 
 

@@ -21,7 +21,7 @@ from certify.errors import SpecError
 from certify.spec.expr import TORCH, compile_torch, compile_torch_rows, evaluate, parse_expression
 from certify.spec.system import load_system
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 REFERENCE = json.loads((ROOT / "tests" / "data" / "expr_reference.json").read_text())
 X, Y, Z = sympy.symbols("x y z", real=True)
 NAMES = {"x": X, "y": Y, "z": Z}

@@ -17,8 +17,8 @@ from certify.errors import SpecError
 from certify.spec.parse import LIMITS, parse_expression
 from certify.spec.system import System
 
-from .cli_helpers import run_cli
-from .soak import examples
+from ..cli_helpers import run_cli
+from ..soak import examples
 
 X_BAD = "[[-1.0, 1.0], [-1.0, 1.0]]"
 X_GOOD = "[[0.5, 1.0], [-1.0, 1.0]]"
@@ -131,7 +131,7 @@ def test_enclosure_slack_is_refined_not_refused():
 def test_undefined_spec_refused_by_run_with_system(tmp_path, capsys):
     from pathlib import Path
 
-    example = Path(__file__).resolve().parents[1] / "examples" / "vdp.ckpt"
+    example = Path(__file__).resolve().parents[2] / "examples" / "vdp.ckpt"
     path = tmp_path / "s.toml"
     path.write_text(spec(["exp(log(x1))", "-x2"]))
     code, _, err = run_cli(capsys, "run", str(example), "--system", str(path))
@@ -159,7 +159,7 @@ def test_long_sums_and_products_are_flat_not_deep():
 def test_accepted_specs_are_finite_everywhere_and_undefined_ones_refused(seed, n, hostile):
     """Acceptance is sound: f and Jf are finite at every sampled point of X; a spec with a
     term undefined somewhere on X is refused."""
-    from .mp_reference import random_spec
+    from ..mp_reference import random_spec
 
     rng = np.random.default_rng(seed)
     rs = random_spec(rng, n, 1, 2.0, allow_undefined=hostile)

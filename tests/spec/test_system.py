@@ -8,7 +8,7 @@ import torch
 from certify.errors import SpecError
 from certify.spec.system import System, builtin_names, load_system
 
-from .conftest import SPEC_3X2
+from ..conftest import SPEC_3X2
 
 
 def test_builtins_listed_and_loaded():

@@ -22,7 +22,7 @@ from training.cegis_objective import CertObjective
 from training.optim import Adam
 from training.presets import make_config
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 # f = x, h = x on [-1, 1]: unstable, fully observed. With the zero gain,
 # D = He{1 + dk/dxhat} + 2 lam = 2 > 0 at lam = 0.5 everywhere: a planted violation that a

@@ -15,7 +15,7 @@ from certify.results import Status
 from tests.planted import linear_system
 from training.cegis import CegisSettings, cegis, unproved_points, warm_start_network
 
-from .conftest import random_network
+from ..conftest import random_network
 
 
 def _problem(system3) -> Problem:

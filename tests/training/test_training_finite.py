@@ -26,7 +26,7 @@ from training.optim import Adam
 from training.presets import make_config
 from training.train import train
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 # ----- the penalty at zero ------------------------------------------------------------------
