@@ -14,6 +14,8 @@ from certify.prove.mpdi import prove_mpdi
 from certify.results import Status
 from certify.search.distributed.executor import DaskExecutor, SerialExecutor
 
+from .test_executor import wait_for_workers
+
 #: a box budget that ends the vdp_certified proof before it closes (it needs about 2100), in
 #: about 20 rounds of batch 64 (a batch the frontier fills, so rounds go in flight)
 BUDGET = 1400
@@ -117,11 +119,11 @@ def test_killed_worker_with_rounds_in_flight_changes_nothing(clusters):
     kw = {"max_boxes": BUDGET, "batch": BATCH}
     serial = prove_mpdi(problem, seconds=1e9, executor=SerialExecutor(), **kw)
     two = clusters[1]
-    two.client.wait_for_workers(2, timeout=60)
+    wait_for_workers(two.client, 2)
     victim = list(two.worker_pids().values())[0]
     killer = KillWithRoundsInFlight(two, victim, at=8)
     remote = prove_mpdi(problem, seconds=1e9, executor=killer, **kw)
     assert killer.in_flight_at_kill == 1 and killer.rounds > 8  # mid-proof, pipelined
     _same(serial, remote)
-    two.client.wait_for_workers(2, timeout=60)
+    wait_for_workers(two.client, 2)
     assert victim not in two.worker_pids().values()  # it really died
