@@ -72,7 +72,13 @@ def test_plain_lines_never_go_silent_during_a_long_step():
     d.start_step("mpdi")
     d.start("mpdi proof", total=1.0)
     d.update("mpdi proof", 0.0, proved=0.4512, boxes=12_345)
-    threading.Event().wait(0.6)  # a long stretch with no event from the check
+    # a long stretch with no event from the check: wait for the heartbeat's line itself (the
+    # event), however late a busy machine schedules its thread; 60 s only catches a heartbeat
+    # that never comes (it is due after 0.1 s)
+    for _ in range(600):
+        if "running" in out.getvalue():
+            break
+        threading.Event().wait(0.1)
     d.finish_step("mpdi", "PROVED", 0.6)
     d.close()
     status = [line for line in out.getvalue().splitlines() if "running" in line]

@@ -175,16 +175,17 @@ def test_prover_entry_points_bound_every_sampled_value_for_any_activation(act):
     net = _net(system, act)
     problem = Problem(system, net, 1.0, np.eye(2))
     x, y = _points(system, 20, 3)
-    out = prover.prove_mpdi(problem, seconds=2.0, max_boxes=200)
+    # each proof ends on its 200 boxes; the time limit is only a safety net
+    out = prover.prove_mpdi(problem, seconds=600.0, max_boxes=200)
     sampled = mpdi_lam_max(system, net, problem.P_t, 1.0, x, y)
     assert out.status.value in ("PROVED", "VIOLATED", "UNKNOWN")
     assert math.isfinite(out.upper) and out.upper >= float(sampled.max())
-    dky = side_proofs.bound_dk_dy(problem, seconds=2.0, max_boxes=200)
+    dky = side_proofs.bound_dk_dy(problem, seconds=600.0, max_boxes=200)
     assert dky is not None and dky >= float(dk_dy_norms(problem, torch.cat([x, y], 1)).max())
-    res, _, _ = side_proofs.bound_residual(problem, seconds=2.0, max_boxes=200)
+    res, _, _ = side_proofs.bound_residual(problem, seconds=600.0, max_boxes=200)
     k_on = gain_terms(system, net, x, system.h(x), with_dy=False).k
     assert res >= float(torch.linalg.vector_norm(k_on, dim=-1).max())
-    rate = prover.prove_rate(problem, seconds=2.0, max_boxes=200)
+    rate = prover.prove_rate(problem, seconds=600.0, max_boxes=200)
     pointwise = pointwise_rate(system, net, problem.P_t, x, y)
     assert rate.lower is not None and rate.lower <= float(pointwise.min())
 
