@@ -106,6 +106,7 @@ def test_theorem3_not_applicable_at_or_below_two(lam):
 @settings(max_examples=examples(200), deadline=None)
 @given(lam=st.floats(2.0001, 60.0), eps=st.floats(0.0, 10.0), L=st.floats(0.0, 50.0),
        vbar=st.floats(0.0, 2.0), e0=st.floats(0.0, 10.0))
+@pytest.mark.slow
 def test_iss_never_larger_than_theorem3(lam, eps, L, vbar, e0):
     r = check_bounds(problem(), lam_cert=lam, eps_bar=eps, L=L, vbar=vbar)
     assert r.theorem3.applicable and r.iss.applicable

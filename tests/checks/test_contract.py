@@ -80,6 +80,7 @@ def results(request):
 
 @pytest.mark.parametrize("structure", ["direct", "structural"])
 @pytest.mark.parametrize("name", sorted(RESULT_TYPES.keys() - {"metric"}))
+@pytest.mark.slow
 def test_result_type_and_json_round_trip(results, structure, name):
     result = results[structure][name]
     assert isinstance(result, RESULT_TYPES[name])
@@ -89,11 +90,13 @@ def test_result_type_and_json_round_trip(results, structure, name):
     assert to_jsonable(back) == to_jsonable(result)
 
 
+@pytest.mark.slow
 def test_structural_residual_is_exactly_zero(results):
     res = results["structural"]["residual"]
     assert res.structural and res.upper == 0.0 and res.status == Status.PROVED
 
 
+@pytest.mark.slow
 def test_sampled_side_never_exceeds_proved_side(results):
     for per in results.values():
         m = per["mpdi"]
@@ -110,6 +113,7 @@ def test_sampled_side_never_exceeds_proved_side(results):
             assert res.sampled <= res.upper + 1e-12
 
 
+@pytest.mark.slow
 def test_nan_weights_are_never_proved(system3):
     problem = _problem(system3, nan=True)
     for name, result in _run_all(problem).items():
@@ -118,6 +122,7 @@ def test_nan_weights_are_never_proved(system3):
         assert result.status != Status.PROVED, (name, result.message)
 
 
+@pytest.mark.slow
 def test_same_seed_same_certificate(tmp_path, system3):
     path = tmp_path / "c.ckpt"
     problem = _problem(system3)
@@ -169,6 +174,7 @@ def _plain(value) -> bool:
 
 @pytest.mark.parametrize("structure", ["direct", "structural"])
 @pytest.mark.parametrize("name", CHECK_NAMES)
+@pytest.mark.slow
 def test_every_registered_check_presents_its_result_as_plain_data(results, structure, name):
     """Each check object declares its result type and settings, and its presenter returns
     pure data (labels, numbers, reasons): the reports format it, nothing here imports them."""
@@ -210,6 +216,7 @@ def test_failure_record_presents_and_round_trips():
     assert ("Exception", "ValueError") in [(q.label, q.value) for q in pres.facts]
 
 
+@pytest.mark.slow
 def test_maps_are_computed_only_when_asked(tmp_path, system3):
     path = tmp_path / "c.ckpt"
     problem = _problem(system3)

@@ -36,6 +36,7 @@ def _junit_cases(path) -> dict[str, ET.Element]:
     return {c.get("name"): c for c in root.iter("testcase")}
 
 
+@pytest.mark.slow
 def test_required_check_that_raises_is_error_others_run_exit_3(workdir, capsys, monkeypatch):
     monkeypatch.setattr(lipschitz_mod, "check_lipschitz", _overflow)
     path = save_linear(workdir / "lin.ckpt")
@@ -69,6 +70,7 @@ def test_required_check_that_raises_is_error_others_run_exit_3(workdir, capsys, 
     assert back.checks["lipschitz"].error_type == "OverflowError"
 
 
+@pytest.mark.slow
 def test_error_in_a_check_that_is_not_required_does_not_decide(workdir, capsys, monkeypatch):
     monkeypatch.setattr(lipschitz_mod, "check_lipschitz", _overflow)
     path = save_linear(workdir / "lin.ckpt")
@@ -77,6 +79,7 @@ def test_error_in_a_check_that_is_not_required_does_not_decide(workdir, capsys, 
     assert out.startswith("CERTIFIED") and "not required, ended in ERROR: lipschitz" in out
 
 
+@pytest.mark.slow
 def test_check_whose_needs_failed_is_not_applicable(workdir, capsys, monkeypatch):
     monkeypatch.setattr(bounds_mod, "check_bounds", _overflow)
     path = save_linear(workdir / "lin.ckpt")
@@ -91,6 +94,7 @@ def test_check_whose_needs_failed_is_not_applicable(workdir, capsys, monkeypatch
     assert "not established: simulation" in cert["summary"]
 
 
+@pytest.mark.slow
 def test_simulation_breach_of_a_proved_bound_is_never_certified(workdir, capsys, monkeypatch):
     def breach(problem, bounds, settings, *, progress=None, certified):
         assert certified  # everything the bound needs was proved
@@ -105,6 +109,7 @@ def test_simulation_breach_of_a_proved_bound_is_never_certified(workdir, capsys,
 
 
 @pytest.mark.parametrize("debug", [False, True])
+@pytest.mark.slow
 def test_escape_outside_every_check_is_exit_4_in_one_line(workdir, capsys, monkeypatch, debug):
     def boom(*args, **kwargs):
         raise ValueError("figure grid has the wrong shape")
@@ -131,6 +136,7 @@ def test_escape_outside_every_check_is_exit_4_in_one_line(workdir, capsys, monke
     assert cases["figures"].find("failure") is None
 
 
+@pytest.mark.slow
 def test_escape_while_writing_reports_names_the_step(workdir, capsys, monkeypatch):
     import reports.render
 

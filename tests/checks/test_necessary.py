@@ -15,6 +15,7 @@ from certify.spec.system import System, load_system
 from ..conftest import SPEC_3X2
 
 
+@pytest.mark.slow
 def test_vdp_identity_metric_fails_with_known_numbers():
     lam = 2.5
     r = check_necessary(load_system("vdp"), np.eye(2), lam)
@@ -28,6 +29,7 @@ def test_vdp_identity_metric_fails_with_known_numbers():
     assert from_jsonable(NecessaryResult, to_jsonable(r)).q_max == r.q_max
 
 
+@pytest.mark.slow
 def test_duffing_identity_metric_fails():
     r = check_necessary(load_system("duffing"), np.eye(2), 2.5)
     assert r.status is Status.VIOLATED
@@ -36,6 +38,7 @@ def test_duffing_identity_metric_fails():
     assert r.residual_price == pytest.approx(5.0, rel=1e-6)
 
 
+@pytest.mark.slow
 def test_vdp_with_synthesised_metric_is_proved():
     system = load_system("vdp")
     m = synthesize_metric(system, 2.5)
@@ -51,6 +54,7 @@ def test_vertex_bound_is_an_upper_bound():
     assert ub >= 6.0  # the true max q
 
 
+@pytest.mark.slow
 def test_three_states_two_outputs():
     """ker C = span(e_b); with P = I, q = df_b/db + 2 lam = -0.5 + 2 lam everywhere."""
     system = System.from_text(SPEC_3X2, origin="test")  # h linear: ker C = span(e_b)
@@ -65,6 +69,7 @@ def test_three_states_two_outputs():
     assert good.q_max == pytest.approx(-0.1, abs=1e-9)
 
 
+@pytest.mark.slow
 def test_three_states_nonlinear_output():
     """h = (a + 0.2 b^2, c): ker dh = span((-0.4 b, 1, 0)); at b = 0 it is e_b again, where
     q = -0.5 + 2 lam = 0.5 > 0 (P = I, lam = 0.5): a witness must be found."""

@@ -23,6 +23,7 @@ def workdir(tmp_path, monkeypatch):
     return tmp_path
 
 
+@pytest.mark.slow
 def test_vacuous_bound_on_the_verdict_line_in_json_and_table_of_runs(workdir, capsys):
     """X = [-1, 1]^2 (half-diagonal 1.41); with vbar = 4 the proved ISS bound is larger."""
     path = save_problem(workdir / "lin.ckpt", linear_problem(A, C, K, lam=0.3))

@@ -56,6 +56,7 @@ def test_pyproject_policy_errors(workdir, capsys):
     assert code == 2 and "unknown key(s) max_boxs" in err
 
 
+@pytest.mark.slow
 def test_linear_ground_truth_certified_exit_0(workdir, capsys):
     lam = 0.3
     problem = linear_problem(A, C, K, lam=lam)
@@ -77,6 +78,7 @@ def test_linear_ground_truth_certified_exit_0(workdir, capsys):
 
 
 @pytest.mark.parametrize("kind", ["corner", "blob"])
+@pytest.mark.slow
 def test_planted_violation_exit_1(workdir, capsys, kind):
     path = save_problem(workdir / f"{kind}.ckpt", planted_problem(kind))
     code, out, _ = run_cli(capsys, "run", path, "--json", "cert.json", "--skip",
@@ -89,6 +91,7 @@ def test_planted_violation_exit_1(workdir, capsys, kind):
     assert "NOT CERTIFIED" in out
 
 
+@pytest.mark.slow
 def test_inconclusive_exit_3_and_allow_unknown(workdir, capsys):
     from training.baseline import save_lmi_baseline
 
@@ -115,6 +118,7 @@ def test_inconclusive_exit_3_and_allow_unknown(workdir, capsys):
     assert code == 0  # with the default budget the same gain is proved
 
 
+@pytest.mark.slow
 def test_train_tiny_then_run(workdir, capsys):
     code, _, err = run_cli(capsys, "train", "vdp", "--preset", "tiny", "-o", "tiny.ckpt",
                            "--quiet")
@@ -132,6 +136,7 @@ def test_console_script_runs():
     assert proc.returncode == 0 and "vdp" in proc.stdout
 
 
+@pytest.mark.slow
 def test_paper_preset_vdp_not_certified_with_reports(workdir, capsys):
     from pathlib import Path
 

@@ -55,6 +55,7 @@ def test_output_paths_are_checked_before_any_work(tmp_path, argv, words):
     assert not (tmp_path / "a").exists()
 
 
+@pytest.mark.slow
 def test_json_to_stdout_and_everything_else_to_stderr(workdir, capsys):
     path = save_linear(workdir / "lin.ckpt")
     code, out, err = run_cli(capsys, "run", path, "--json", "-", "--html", "r.html")
@@ -124,6 +125,7 @@ def test_bash_completion_completes_commands_and_check_lists(tmp_path, capsys):
             f"'(__certify_checks {' '.join(CHECK_NAMES)})'") in fish
 
 
+@pytest.mark.slow
 def test_check_exit_codes_follow_the_spec_as_given(tmp_path, capsys):
     spec = tmp_path / "linear.toml"
     spec.write_text(LINEAR_SPEC)

@@ -157,6 +157,7 @@ def test_a_policy_without_the_mpdi_is_refused(workdir, capsys, flags, table, wor
     assert not (workdir / "c.json").exists() and not (workdir / "c.html").exists()
 
 
+@pytest.mark.slow
 def test_a_violated_mpdi_is_not_certified_by_any_accepted_policy(workdir, capsys):
     code, out, _ = run_cli(capsys, "run", str(VDP), "--require", "mpdi,necessary",
                            "--allow-unknown", "--skip", "simulation,lipschitz,rate,residual",
@@ -174,6 +175,7 @@ def test_library_settings_refuse_dropping_the_mpdi(values):
                           for k, v in values.items()})
 
 
+@pytest.mark.slow
 def test_verify_never_certifies_a_violated_mpdi_even_with_an_mpdi_less_policy():
     """The library path: settings that bypassed validation (no required check at all, UNKNOWN
     allowed) still give NOT CERTIFIED on the violated example, with the MPDI required."""
@@ -197,6 +199,7 @@ STATUSES = [Status.PROVED, Status.VIOLATED, Status.UNKNOWN, Status.ERROR, Status
 @given(statuses=st.dictionaries(st.sampled_from(CHECK_NAMES), st.sampled_from(STATUSES)),
        required=st.lists(st.sampled_from(CHECK_NAMES), unique=True),
        allow_unknown=st.booleans())
+@pytest.mark.slow
 def test_certified_always_means_the_mpdi_was_proved(statuses, required, allow_unknown):
     from certify.results import decide_verdict
 
@@ -228,6 +231,7 @@ def _readme_pendulum() -> str:
     return block.group(1)
 
 
+@pytest.mark.slow
 def test_readme_pendulum_spec_is_the_shipped_example_and_passes(tmp_path, capsys):
     import tomllib
 
@@ -290,6 +294,7 @@ def test_device_help_agrees_with_the_readme_and_the_code(capsys):
     (["run", "missing.ckpt"], set(), "checkpoint missing.ckpt not found"),
     (["run", "missing.onnx", "--system", "vdp"], set(), "model missing.onnx not found"),
 ])
+@pytest.mark.slow
 def test_systems_and_cheap_errors_do_not_import_torch(tmp_path, argv, heavy_ok, words):
     code, out, err, imported = probe(*argv, cwd=tmp_path)
     assert imported is not None and set(imported) <= heavy_ok, imported
@@ -368,6 +373,7 @@ sys.exit(main(argv))
 
 @pytest.mark.parametrize("where", ["check", "check-finaliser", "render", "render-finaliser",
                                    "stage", "commit"])
+@pytest.mark.slow
 def test_an_interrupt_at_any_point_exits_130_and_leaves_no_partial_report(tmp_path, where):
     (tmp_path / "pyproject.toml").write_text(FAST_POLICY)
     save_linear(tmp_path / "lin.ckpt")
@@ -407,6 +413,7 @@ def test_interrupt_handling_leaves_the_callers_handler_alone(capsys):
 # ----- scheduler, workers, closed pipes --------------------------------------------------------
 @pytest.mark.parametrize("address", ["notanaddress", "tcp://", "http://host:8786",
                                      "tcp://host:99999", "tcp://host:abc", "tcp://:8786"])
+@pytest.mark.slow
 def test_a_malformed_scheduler_is_one_line_before_anything_connects(tmp_path, address):
     code, out, err, imported = probe("run", str(VDP), "--scheduler", address, "--json",
                                      "c.json", cwd=tmp_path)
@@ -418,6 +425,7 @@ def test_a_malformed_scheduler_is_one_line_before_anything_connects(tmp_path, ad
 
 
 @pytest.mark.parametrize("address", ["inproc://elsewhere/1/2", "tls://127.0.0.1:1"])
+@pytest.mark.slow
 def test_a_scheduler_that_cannot_be_used_is_one_line_without_an_ignored_traceback(tmp_path,
                                                                                   address):
     """Well-formed, but refused by the client as it connects (an in-process address of
@@ -430,6 +438,7 @@ def test_a_scheduler_that_cannot_be_used_is_one_line_without_an_ignored_tracebac
     assert "Exception ignored" not in err
 
 
+@pytest.mark.slow
 def test_a_malformed_scheduler_in_the_policy_file_is_refused(workdir, capsys):
     (workdir / "pyproject.toml").write_text(FAST_POLICY + 'scheduler = "host-without-port"\n')
     code, _, err = run_cli(capsys, "run", str(VDP))
@@ -454,6 +463,7 @@ def test_workers_are_capped_with_one_line(workdir, capsys):
 
 @pytest.mark.parametrize("argv", [["systems"], ["systems", "vdp"], ["completion", "bash"],
                                   ["run", "lin.ckpt", "--json", "-", "--quiet"]])
+@pytest.mark.slow
 def test_a_closed_stdout_is_the_readers_choice_not_a_crash(tmp_path, argv):
     """The reader went away before certify wrote (deterministic: its end is closed before
     the process starts): exit 141, as a Unix tool killed by SIGPIPE, and nothing on

@@ -26,6 +26,7 @@ def workdir(tmp_path, monkeypatch):
     return tmp_path
 
 
+@pytest.mark.slow
 def test_step_times_shown_equal_certificate_and_junit(workdir, capsys):
     path = save_linear(workdir / "lin.ckpt")
     code, _, err = run_cli(capsys, "run", path, "--json", "c.json", "--junit", "c.xml")

@@ -61,6 +61,7 @@ def test_lipsdp_between_sampled_and_naive_and_recheck_passes(hidden, seed):
     assert all(np.all(t >= 0) for t in res.variables["t"])
 
 
+@pytest.mark.slow
 def test_lipsdp_5x30_within_budget_and_bounds():
     net = random_network(2, 1, hidden=(30,) * 5, seed=4)
     pr = _problem(net)
@@ -96,6 +97,7 @@ def test_lipsdp_with_linear_skip_beats_triangle_inequality():
     assert lower <= joint * (1 + 1e-9)
 
 
+@pytest.mark.slow
 def test_ipm_agrees_with_clarabel_chordal_form():
     net = random_network(2, 1, hidden=(8, 6, 5), seed=6, scale=1.5)
     Ws, Wo = mlp_in_y(net.double(), 2)
@@ -127,6 +129,7 @@ def test_lipsdp_refuses_nonfinite_weights():
     assert res.status is Status.ERROR and res.value is None
 
 
+@pytest.mark.slow
 def test_check_lipschitz_direct_and_structural():
     pr = _problem(random_network(2, 1, hidden=(6, 5), seed=8))
     r = check_lipschitz(pr, sample_points=2000)
@@ -244,6 +247,7 @@ def test_enclosure_vertices_contain_sampled_jacobians():
     assert len(v.pruned) <= len(v.all)
 
 
+@pytest.mark.slow
 def test_observer_lmi_vdp_and_three_state(system3):
     r = observer_lmi(load_system("vdp"), 2.5)
     assert r.status is Status.PROVED and r.K is not None
@@ -259,6 +263,7 @@ def test_metric_refuses_bad_lam():
 
 # ----- the certified LMI baseline ------------------------------------------------------
 
+@pytest.mark.slow
 def test_lmi_baseline_network_and_checkpoint(tmp_path):
     from training.baseline import make_lmi_baseline, save_lmi_baseline
 

@@ -48,6 +48,7 @@ def _network_problem(output_scale: float | None) -> Problem:
     return Problem(pr.system, net, pr.lam, pr.P)
 
 
+@pytest.mark.slow
 def test_zero_output_layer_gives_the_exact_constant_and_certifies(workdir, capsys):
     path = save_problem(workdir / "zero.ckpt", _network_problem(None))
     code, out, err = run_cli(capsys, "run", path, "--json", "c.json", "--skip", "simulation")
@@ -58,6 +59,7 @@ def test_zero_output_layer_gives_the_exact_constant_and_certifies(workdir, capsy
     assert exact <= lip["lipsdp"] <= exact * (1 + 1e-12)
 
 
+@pytest.mark.slow
 def test_huge_output_layer_does_not_overflow(workdir, capsys):
     path = save_problem(workdir / "huge.ckpt", _network_problem(1e155))
     code, out, err = run_cli(capsys, "run", path, "--json", "c.json", *ONLY_LIPSCHITZ)
@@ -68,6 +70,7 @@ def test_huge_output_layer_does_not_overflow(workdir, capsys):
     assert "scaled by" in lip["solver"]["message"]
 
 
+@pytest.mark.slow
 def test_ipm_failure_falls_back_to_clarabel_and_is_rechecked(workdir, capsys, monkeypatch):
     def broken(*args, **kwargs):
         raise torch.linalg.LinAlgError("linalg.eigh: The algorithm failed to converge")
@@ -81,6 +84,7 @@ def test_ipm_failure_falls_back_to_clarabel_and_is_rechecked(workdir, capsys, mo
     assert lip["solver"]["solver"] == "CLARABEL" and "fallback after" in lip["solver"]["message"]
 
 
+@pytest.mark.slow
 def test_both_solvers_failing_is_a_reason_not_a_crash(workdir, capsys, monkeypatch):
     def broken(*args, **kwargs):
         raise RuntimeError("simulated solver fault")

@@ -168,6 +168,7 @@ def test_hertz_bound_is_sound_and_never_above_centre_plus_radius(seed: int, n: i
 @settings(max_examples=examples(2), deadline=None)
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-6, 1e-2, 0.1, 0.5]),
        g=st.sampled_from([1.0, 3.0]))
+@pytest.mark.slow
 def test_side_bounds_with_crown_contain_points(act: str, seed: int, scale: float,
                                                g: float) -> None:
     from certify.enclose.side import dk_dy_box_upper_crown, residual_box_upper_crown
@@ -199,6 +200,7 @@ def test_side_bounds_with_crown_contain_points(act: str, seed: int, scale: float
 
 @settings(max_examples=examples(12), deadline=None)
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-4, 1e-2, 0.1, 0.5]))
+@pytest.mark.slow
 def test_residual_norm_bound_holds_at_every_vertex_and_beats_the_entrywise_bound(
         seed: int, scale: float) -> None:
     """The residual's linear-bound norm is the vertex maximum of its linear part

@@ -149,6 +149,7 @@ def _assert_identical(new: ForwardBounds, ref: ForwardBounds) -> None:
 @pytest.mark.parametrize("act", activations.names())
 @pytest.mark.parametrize("cols", [None, [1], []])
 @pytest.mark.parametrize("crown", [True, False])
+@pytest.mark.slow
 def test_forward_bounds_bit_identical(act: str, cols: list[int] | None, crown: bool) -> None:
     net = _net(3, 4, 3, 6, 1.5, act)
     lo, hi = _boxes(5, 5, 4, 0.2)
@@ -192,6 +193,7 @@ def test_forward_bounds_bit_identical_composed_first_layer(act: str, cols: list[
 @given(seed=st.integers(0, 10_000), act=st.sampled_from(activations.names()),
        scale=st.sampled_from([0.01, 0.1, 0.5]), crown=st.booleans(), taylor=st.booleans(),
        cols=st.sampled_from([None, [0, 1], [2]]))
+@pytest.mark.slow
 def test_forward_ranges_contain_sampled_values(seed: int, act: str, scale: float,
                                                crown: bool, taylor: bool,
                                                cols: list[int] | None) -> None:
@@ -249,6 +251,7 @@ def test_ranges_without_taylor_models_are_as_tight_as_with_them(act: str) -> Non
 @given(seed=st.integers(0, 10_000), act=st.sampled_from(activations.names()),
        scale=st.sampled_from([0.0, 1e-3, 0.1, 0.5]), depth=st.integers(2, 3),
        cols=st.sampled_from([None, [0, 2], []]))
+@pytest.mark.slow
 def test_second_layer_closed_form_matches_the_backward_pass(seed: int, act: str, scale: float,
                                                             depth: int,
                                                             cols: list[int] | None) -> None:

@@ -174,6 +174,7 @@ def test_tanh_derivatives(lo: float, w: float) -> None:
 @pytest.mark.parametrize("name", ["vdp", "duffing", "three"])
 @SETTINGS
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-6, 1e-2, 0.3, 1.0]))
+@pytest.mark.slow
 def test_system_enclosures(name: str, seed: int, scale: float) -> None:
     s = three_state() if name == "three" else load_system(name)
     lo, hi, x = _boxes(seed, 64, s.X[:, 0], s.X[:, 1], scale)
@@ -303,6 +304,7 @@ def test_activation_taylor_models_contain_f_and_df(act: str, seed: int, centre: 
 @given(seed=st.integers(0, 10_000), structure=st.sampled_from(["direct", "structural"]),
        scale=st.sampled_from([1e-6, 1e-3, 0.05, 0.3]), three=st.booleans(),
        metric=st.booleans(), taylor=st.sampled_from([True, "interval", False]))
+@pytest.mark.slow
 def test_mpdi_box_bound_is_sound(act: str, seed: int, structure: str, scale: float,
                                  three: bool, metric: bool, taylor: object) -> None:
     prob = random_problem(seed, structure, three_state() if three else None, metric=metric,

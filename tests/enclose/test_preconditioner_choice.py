@@ -5,6 +5,7 @@ its closed form says."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import scipy.linalg
 import torch
 from hypothesis import given, settings
@@ -54,6 +55,7 @@ def _problem(seed: int, n: int, cond: float) -> Problem:
 @settings(max_examples=examples(10), deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(2, 4), cond=st.sampled_from([1.5, 8.0, 60.0]),
        scale=st.sampled_from([0.0, 1e-3, 0.05, 0.3]))
+@pytest.mark.slow
 def test_every_candidate_bounds_lam_max_of_D_over_boxes(seed: int, n: int, cond: float,
                                                         scale: float) -> None:
     prob = _problem(seed, n, cond)

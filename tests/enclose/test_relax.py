@@ -50,6 +50,7 @@ def _check(relax, f, lo: torch.Tensor, hi: torch.Tensor) -> None:
 @SETTINGS
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-12, 1e-4, 0.1, 1.0, 4.0, 20.0]),
        centre=st.floats(-8, 8))
+@pytest.mark.slow
 def test_tanh_and_dtanh_relaxations_are_sound(seed: int, scale: float, centre: float) -> None:
     g = torch.Generator().manual_seed(seed)
     a = centre + scale * torch.randn(64, generator=g, dtype=F64)

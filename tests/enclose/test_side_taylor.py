@@ -85,6 +85,7 @@ def test_taylor_dk_dy_bound_is_second_order_where_intervals_are_first() -> None:
     assert excess_t[2] < 0.1 * excess_i[2]
 
 
+@pytest.mark.slow
 def test_structural_dk_dy_proof_is_sound_and_closes() -> None:
     s = load_system("vdp")
     net = _net("structural", "tanh", 5, 2.0, True)

@@ -58,6 +58,7 @@ def _boxes(s: System, seed: int, B: int, scale: float):
 @pytest.mark.parametrize("which", ["f", "h"])
 @SETTINGS
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-6, 1e-2, 0.1, 0.5]))
+@pytest.mark.slow
 def test_jacobian_tm_contains_sampled_jacobians(name: str, which: str, seed: int,
                                                scale: float) -> None:
     s = _system(name)

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
@@ -53,6 +54,7 @@ def _chain(seed: int, n: int, hidden: tuple[int, ...], act: str, gain: float = 2
 @given(seed=st.integers(0, 10_000), act=st.sampled_from(activations.names()),
        depth=st.integers(1, 3), n=st.integers(2, 4),
        scale=st.sampled_from([0.0, 1e-3, 0.05, 0.3]), level=st.sampled_from([0.0, 2.0]))
+@pytest.mark.slow
 def test_rank_model_bounds_every_sampled_quadratic_form(seed: int, act: str, depth: int,
                                                         n: int, scale: float,
                                                         level: float) -> None:

@@ -59,6 +59,7 @@ CASES = st.fixed_dictionaries({
 @given(case=CASES)
 @example(case={"n": 2, "p": 1, "seed": 11, "cond": 6.0, "net": "zero", "hostile": True})
 @example(case={"n": 3, "p": 2, "seed": 7, "cond": 6.0, "net": "saturated", "hostile": False})
+@pytest.mark.slow
 def test_verdicts_agree_with_a_40_digit_reference(case, tmp_path_factory, capsys):
     rng = np.random.default_rng(case["seed"])
     n, p = case["n"], min(case["p"], case["n"] - 1)

@@ -32,6 +32,7 @@ def test_builtin_shape_and_listing(name, capsys):
 
 
 @pytest.mark.parametrize("name", sorted(NEW))
+@pytest.mark.slow
 def test_spec_metric_passes_the_preflight(name, capsys):
     """The design (lam, P) in the spec passes the necessary condition with a sound bound."""
     code, out, _ = run_cli(capsys, "check", name, "--no-synthesis")
@@ -39,6 +40,7 @@ def test_spec_metric_passes_the_preflight(name, capsys):
     assert "PROVED: q <=" in out and "passes the pre-flight" in out
 
 
+@pytest.mark.slow
 def test_lorenz_identity_metric_fails_above_its_rate_cap(capsys):
     """With P = I the unmeasured block of D is diag(-1, -8/3) + 2 lam I: lam = 1 must fail
     (witness on the manifold) and the rate cap printed must be 1/2."""
@@ -49,6 +51,7 @@ def test_lorenz_identity_metric_fails_above_its_rate_cap(capsys):
 
 
 @pytest.mark.parametrize("name", sorted(NEW))
+@pytest.mark.slow
 def test_train_tiny_then_run(name, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     ckpt = tmp_path / f"{name}.ckpt"
@@ -77,6 +80,7 @@ def test_train_tiny_then_run(name, tmp_path, capsys, monkeypatch):
         assert value > 0 and value == pytest.approx(cex["value"], rel=1e-9, abs=1e-12)
 
 
+@pytest.mark.slow
 def test_shipped_lorenz_example_is_certified(capsys):
     """examples/lorenz_lmi.ckpt, the joint-LMI observer on the Lorenz attractor box (a linear
     gain in a learned checkpoint's format), is CERTIFIED by `certify run`: the n = 3 prover

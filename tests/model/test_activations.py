@@ -112,6 +112,7 @@ def _check_enclosures(act: Activation, lo: torch.Tensor, hi: torch.Tensor, seed:
 @pytest.mark.parametrize("name", NAMES)
 @SETTINGS
 @given(seed=st.integers(0, 10**6), scale=st.sampled_from([0.0, 1e-9, 1e-3, 0.5, 3.0, 30.0]))
+@pytest.mark.slow
 def test_enclosures_contain_sampled_values(name: str, seed: int, scale: float) -> None:
     _check_enclosures(get(name), *_intervals(seed, 48, scale), seed=seed)
 
@@ -215,6 +216,7 @@ def test_global_slope_and_third_derivative_bounds(name: str) -> None:
 
 @pytest.mark.parametrize("name", NAMES)
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.slow
 def test_point_values_module_and_autograd(name: str, dtype: torch.dtype) -> None:
     act = get(name)
     x = torch.linspace(-7, 7, 301, dtype=dtype).requires_grad_(True)

@@ -164,6 +164,7 @@ def test_relu_checkpoint_and_config_are_refused_with_the_reason(tmp_path):
 
 
 @pytest.mark.parametrize("act", ["silu", "elu"])
+@pytest.mark.slow
 def test_prover_entry_points_bound_every_sampled_value_for_any_activation(act):
     """The prover reads the activation: every entry point runs on a non-tanh network and its
     sound upper bounds lie above the sampled values (mpdi, ||dk/dy||, ||k(x, h(x))||)."""
@@ -210,6 +211,7 @@ def test_lipsdp_in_the_activation_sector_bounds_every_sampled_gradient(act):
         assert lo < 0 < 1 < hi
 
 
+@pytest.mark.slow
 def test_train_silu_then_run_end_to_end(tmp_path, capsys, monkeypatch):
     """`certify train --activation silu --preset tiny`, then `certify run`: the certificate
     names silu, its verdict and exit code agree, and its worst point is a real violation of

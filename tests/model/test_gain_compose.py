@@ -263,6 +263,7 @@ def test_taylor_models_through_propagate_and_compose_are_the_old_ones(act: str,
 
 
 @pytest.mark.parametrize("structure", ["direct", "structural"])
+@pytest.mark.slow
 def test_second_order_compose_at_points_matches_autograd(structure: str) -> None:
     """`compose_second` in the point arithmetic is d2k_i / dxhat_j dz_m of k written plainly
     (an independent check of the formula the interval enclosure uses)."""

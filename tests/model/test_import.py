@@ -69,6 +69,7 @@ def reference_jacobian(model: nn.Module, z: torch.Tensor) -> torch.Tensor:
 
 @pytest.mark.parametrize("how", EXPORTERS)
 @pytest.mark.parametrize("activation", ACTIVATIONS)
+@pytest.mark.slow
 def test_imported_gain_equals_torch(tmp_path, activation, how):
     model = mlp(activation)
     z0 = torch.zeros(1, 5, dtype=torch.float64)
@@ -175,6 +176,7 @@ def _numbers(path) -> dict:
 
 
 @pytest.mark.parametrize("activation", ACTIVATIONS)
+@pytest.mark.slow
 def test_certificate_numbers_equal_native_checkpoint(tmp_path, monkeypatch, capsys,
                                                      activation):
     monkeypatch.chdir(tmp_path)

@@ -126,6 +126,7 @@ def test_run_needs_system_for_a_model_and_not_for_a_checkpoint(workdir, capsys):
     assert "needs --system SPEC" in refused(capsys, "import", path, "-o", "x.ckpt")
 
 
+@pytest.mark.slow
 def test_refusal_from_a_real_process(workdir):
     path = export(relu_mlp(), "relu.onnx", "onnx17", Z)
     proc = subprocess.run([sys.executable, "-m", "certify", "run", path, "--system",

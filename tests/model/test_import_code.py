@@ -20,6 +20,8 @@ from torch import nn
 from ..conftest import LINEAR_SPEC
 from .test_import import mlp
 
+pytestmark = pytest.mark.slow
+
 MARK = "RAN-CODE-FROM-THE-FILE"
 STATE = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, bool]
 

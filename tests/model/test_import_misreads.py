@@ -249,6 +249,7 @@ class YFirst(nn.Module):
         return self.l2(torch.tanh(self.l1(torch.cat([y, xhat], dim=1))))
 
 
+@pytest.mark.slow
 def test_a_misreadable_model_gets_the_verdict_of_what_it_computes(workdir, capsys):
     """The stored weights are a CERTIFIED gain; the model applies them to (y, xhat), which
     violates the MPDI. certify must give the verdict of the function the model computes (the

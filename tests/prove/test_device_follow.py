@@ -41,6 +41,7 @@ def _summary(out) -> tuple:
     (2, {"taylor": False}),  # plain intervals
     (2, {"taylor": "interval"}),
 ])
+@pytest.mark.slow
 def test_prover_makes_every_tensor_on_its_problems_device(n: int, kwargs: dict) -> None:
     prob = _problem(3, n, 8.0)
     seeds = torch.zeros(2, n + 1, dtype=torch.float64)
@@ -52,6 +53,7 @@ def test_prover_makes_every_tensor_on_its_problems_device(n: int, kwargs: dict) 
     assert _summary(followed) == _summary(plain)
 
 
+@pytest.mark.slow
 def test_prover_reports_a_violation_found_on_its_device() -> None:
     """The counterexample's float value and sound lower bound are computed on the problem's
     device too (a rate far too high: the proof finds a violation at once)."""
@@ -64,6 +66,7 @@ def test_prover_reports_a_violation_found_on_its_device() -> None:
     assert followed.counterexample.sound_bound == plain.counterexample.sound_bound > 0
 
 
+@pytest.mark.slow
 def test_rate_proof_makes_every_tensor_on_its_problems_device() -> None:
     prob = _problem(1, 2, 8.0)
     plain = prove_rate(prob, seconds=1e9, max_boxes=1500)
@@ -90,6 +93,7 @@ def test_a_gpu_problem_is_bounded_in_process_and_in_larger_rounds() -> None:
 
 
 @pytest.mark.parametrize("above", [False, True], ids=["proved", "violated"])
+@pytest.mark.slow
 def test_mpdi_check_grid_ascent_and_proof_follow_the_device(above: bool) -> None:
     """The whole check (grid sweep, ascent, sound re-check of candidates, proof) on a linear
     ground truth: PROVED just below lam_cert, VIOLATED just above, alike under `meta`."""
@@ -114,6 +118,7 @@ def test_mpdi_check_grid_ascent_and_proof_follow_the_device(above: bool) -> None
 
 
 @pytest.mark.parametrize("structure", ["direct", "structural"])
+@pytest.mark.slow
 def test_side_proofs_make_every_tensor_on_their_problems_device(structure: str) -> None:
     """The residual and dk/dy bounds (`certify.prove.side`, on settings.device in `certify
     run`): the same bounds under `meta`, with seeds for the residual as the check gives."""

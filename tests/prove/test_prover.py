@@ -57,6 +57,7 @@ def test_linear_ground_truth_mpdi(P: np.ndarray | None) -> None:
 
 
 @pytest.mark.parametrize("kind", ["corner", "edge", "blob"])
+@pytest.mark.slow
 def test_planted_violations_are_found(kind: str) -> None:
     prob = planted_problem(kind)
     out = prove_mpdi(prob, seconds=20.0)  # speed is measured in bench/prove.py, not here
@@ -124,6 +125,7 @@ lam = 0.1
 
 
 @pytest.mark.parametrize("structure", ["direct", "structural"])
+@pytest.mark.slow
 def test_three_states_two_outputs_through_everything(structure: str) -> None:
     s = System.from_text(SPEC3, origin="test three")
     torch.manual_seed(1)

@@ -22,6 +22,8 @@ from certify.model.problem import Problem
 from ..cli_helpers import FAST_POLICY, run_cli, save_problem
 from ..planted import lam_cert_linear, linear_system
 
+pytestmark = pytest.mark.slow
+
 A = np.array([[0.0, 1.0], [-2.0, -3.0]])
 C = np.array([[1.0, 0.0]])
 K = np.array([[1.0], [-2.0]])

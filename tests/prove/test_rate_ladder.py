@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 import scipy.linalg
 
 from certify.prove.rate import raise_rate
@@ -21,6 +22,7 @@ K = np.array([[3.0], [4.0], [1.0]])
 P = np.round(scipy.linalg.solve_continuous_lyapunov((A - K @ C).T, -np.eye(3)), 3)
 
 
+@pytest.mark.slow
 def test_ladder_climbs_to_the_closed_form_and_never_past_it() -> None:
     true = lam_cert_linear(A, C, K, P)
     assert true > 0
@@ -40,6 +42,7 @@ def test_ladder_stops_at_the_budget() -> None:
     assert out.attempts == [] and out.lower == 0.5 * true
 
 
+@pytest.mark.slow
 def test_rate_check_on_vdp2_lmi_proves_above_the_design_rate() -> None:
     """The maximisation alone ended at the design rate 1.0 after its whole 20 s budget; with
     the ladder the check proves more than 1.05 on a 6 s budget (sampled upper 1.119), with the
@@ -58,6 +61,7 @@ def test_rate_check_on_vdp2_lmi_proves_above_the_design_rate() -> None:
         assert res.proved_lower > 1.05 and res.proved_lower <= res.sampled_upper
 
 
+@pytest.mark.slow
 def test_rate_proof_gives_up_below_a_rate_already_proved() -> None:
     """`prove_rate(give_up=(N, rate))` on examples/vdp2_lmi.ckpt (whose maximisation proves
     less than the design rate 1.0 in its first thousands of boxes): asked to beat 1.0 it
@@ -78,6 +82,7 @@ def test_rate_proof_gives_up_below_a_rate_already_proved() -> None:
     assert went_on.stats.boxes_processed >= 8192
 
 
+@pytest.mark.slow
 def test_ladder_climbs_as_far_when_the_machine_slows_down(monkeypatch) -> None:
     """The ladder's caps are boxes, not seconds: on examples/vdp2_lmi.ckpt the same targets
     are tried with the same outcomes when the clock runs 5x faster from the end of the first

@@ -8,6 +8,7 @@ boxes than the unseeded one for the same gap on a genuinely nonlinear network.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from certify.model.kernels import pointwise_rate
@@ -31,6 +32,7 @@ def _problem() -> Problem:
     return Problem(system=s, network=net.double(), lam=0.1, P=np.eye(2))
 
 
+@pytest.mark.slow
 def test_seeded_rate_proof_is_sound_and_needs_fewer_boxes() -> None:
     problem = _problem()
     n = problem.n

@@ -82,6 +82,7 @@ def test_the_rate_proof_refuses_a_shift():
 
 
 @pytest.mark.slow
+@pytest.mark.slow
 def test_dask_workers_see_the_shift():
     pytest.importorskip("distributed")
     from certify.search.distributed.executor import DaskExecutor

@@ -53,6 +53,7 @@ def workdir(tmp_path, monkeypatch):
     return tmp_path
 
 
+@pytest.mark.slow
 def test_tie_is_never_violated_through_the_cli(workdir, capsys):
     path = save_problem(workdir / "tie.ckpt", _tie_problem())
     code, out, err = run_cli(capsys, "run", path, "--json", "c.json", "--skip",
@@ -68,6 +69,7 @@ def test_tie_is_never_violated_through_the_cli(workdir, capsys):
     assert "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_planted_violation_found_with_sound_bound(workdir, capsys):
     A = np.array([[0.25, 1.0], [-1.0, -2.0]])  # He{A} + I has lam_max >= 1.25 > 0 everywhere
     path = save_problem(workdir / "bad.ckpt", linear_problem(A, C_TIE, np.zeros((2, 1)),
@@ -123,6 +125,7 @@ def test_spec_overflowing_inside_the_box_is_refused(workdir, capsys):
     assert code == 2 and "is not finite" in err and "x1 in [" in err
 
 
+@pytest.mark.slow
 def test_overflowing_network_is_never_proved(workdir, capsys):
     """Weights x1e307: D, k and ||dk/dy|| overflow somewhere; nothing is PROVED from Inf and
     any VIOLATED stands on a finite sound bound."""
@@ -152,6 +155,7 @@ def test_overflowing_network_is_never_proved(workdir, capsys):
 
 @settings(max_examples=examples(15), deadline=None, derandomize=True)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 4), cond=st.floats(0.0, 6.0))
+@pytest.mark.slow
 def test_witness_bounds_are_below_the_40_digit_values(seed, n, cond):
     from certify.checks.lipschitz import dk_dy_norms
     from certify.checks.residual import residual_norm

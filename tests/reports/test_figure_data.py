@@ -59,6 +59,7 @@ json_data = st.recursive(
 
 @settings(max_examples=60, deadline=None)
 @given(json_data)
+@pytest.mark.slow
 def test_format_json_reads_back_and_keeps_lines_short(data) -> None:
     text = format_json(data)
     assert json.loads(text) == data
@@ -121,6 +122,7 @@ def test_a_single_positive_cell_between_coarse_points_stays_positive_on_the_figu
     assert "two signs" in d and d["range"][1] == 3e-7
 
 
+@pytest.mark.slow
 def test_every_counterexample_is_drawn_after_the_round_trip() -> None:
     cert = F.violated_vdp_certificate()
     X = cert.system["X"]
@@ -205,6 +207,7 @@ def test_thinning_keeps_the_first_non_finite_step() -> None:
 
 # ----------------------------------------------------------------------------- the whole run
 
+@pytest.mark.slow
 def test_small_run_writes_a_small_json_that_re_renders_the_same_reports(tmp_path, monkeypatch,
                                                                         capsys) -> None:
     """`certify run` of a small problem: the JSON is small, has no states unless asked, and
@@ -236,6 +239,7 @@ def test_small_run_writes_a_small_json_that_re_renders_the_same_reports(tmp_path
     assert code == 0 and 'id="fig-simulation"' not in (tmp_path / "t.html").read_text()
 
 
+@pytest.mark.slow
 def test_states_are_written_only_with_trajectories() -> None:
     cert = F.certified_certificate()
     assert all(run.x for run in cert.checks["simulation"].runs)

@@ -15,6 +15,8 @@ from reports.figures import drawn  # noqa: E402
 
 from .. import fixtures_certificates as F  # noqa: E402
 
+pytestmark = pytest.mark.slow
+
 SPECS = {spec.key: spec for spec in figmod.FIGURES}
 
 

@@ -121,6 +121,7 @@ def test_check_rows_cover_every_check_and_missing_required() -> None:
 # ----------------------------------------------------------------------------- HTML
 
 @pytest.mark.parametrize("name", NAMES)
+@pytest.mark.slow
 def test_html_parses_and_shows_verdict_and_every_number(name: str) -> None:
     cert, data, _ = rendered(name)
     doc = data["html"].decode("utf-8")
@@ -193,6 +194,7 @@ def test_html_sections_present() -> None:
     assert "Boxes per second" in text and "184,733" in text
 
 
+@pytest.mark.slow
 def test_missing_figure_data_is_skipped() -> None:
     cert = F.violated_vdp_certificate()
     # malformed: 1 value for a 2 x 1 grid
@@ -206,6 +208,7 @@ def test_missing_figure_data_is_skipped() -> None:
     assert 'id="fig-lipschitz"' in doc and 'id="fig-mpdi_map"' not in doc
 
 
+@pytest.mark.slow
 def test_round_trip_through_json_gives_the_same_html() -> None:
     cert, data, _ = rendered("inconclusive")  # has NaN in a figure map
     again = Certificate.from_dict(json.loads(cert.to_json()))
@@ -345,6 +348,7 @@ def test_junit_unknown_policy_error_and_skipped_and_error_statuses() -> None:
 
 # ----------------------------------------------------------------------------- files
 
+@pytest.mark.slow
 def test_write_reports_writes_all_four(tmp_path: Path) -> None:
     cert = F.inconclusive_certificate()
     cert.figures, cert.checks["simulation"].runs = FigureData(), []  # fewer figures: quicker
@@ -374,6 +378,7 @@ def _broken_figures(exc: BaseException) -> tuple:
 
 
 @pytest.mark.parametrize("exc", [RuntimeError("figure failed"), KeyboardInterrupt()])
+@pytest.mark.slow
 def test_failing_render_leaves_no_file(exc: BaseException, tmp_path: Path,
                                        monkeypatch: pytest.MonkeyPatch) -> None:
     cert = F.violated_vdp_certificate()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from certify.model.network import GainNetwork
@@ -38,6 +39,7 @@ def _small_vdp() -> Problem:
     return Problem(load_system("vdp"), net, 1.1, P)
 
 
+@pytest.mark.slow
 def test_chunked_rounds_match_the_serial_run() -> None:
     prob = _small_vdp()
     serial = prove_mpdi(prob, seconds=60.0, max_boxes=3000, executor=SerialExecutor(), batch=16)

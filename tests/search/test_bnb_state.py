@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
 from certify.arith.boxes import Box
@@ -84,6 +85,7 @@ def test_counts_are_joined_and_added_name_by_name() -> None:
     assert add_counts({}, None) == {}
 
 
+@pytest.mark.slow
 def test_stage_counts_of_a_chunked_run_are_those_of_the_serial_run() -> None:
     """The box bound's counts travel with each chunk's evaluation and are summed as the
     rounds merge: a chunked executor reports what the serial run does."""

@@ -15,6 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import wait as futures_wait
 
 import numpy as np
+import pytest
 import torch
 
 from certify.model.network import GainNetwork
@@ -160,6 +161,7 @@ def test_an_executors_round_not_back_by_the_deadline_is_cancelled() -> None:
     pool.shutdown(wait=False, cancel_futures=True)
 
 
+@pytest.mark.slow
 def test_a_run_the_budget_does_not_bind_is_the_run_without_a_clock() -> None:
     """The same boxes, bounds and verdict bit for bit as with an unlimited budget."""
     from tests.search.test_bnb_rounds import _small_vdp
@@ -173,6 +175,7 @@ def test_a_run_the_budget_does_not_bind_is_the_run_without_a_clock() -> None:
     assert budgeted.boxes == unlimited.boxes
 
 
+@pytest.mark.slow
 def test_a_tiny_budget_on_a_cheap_problem_still_bounds_its_first_round() -> None:
     """The set-up and a first round of at most a few seconds run whatever the budget: a
     budget of a millisecond gives the first round's bound, not none."""

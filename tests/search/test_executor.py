@@ -90,6 +90,7 @@ def test_serial_is_the_default():
     assert current_executor() is not ex
 
 
+@pytest.mark.slow
 def test_dask_map_keeps_order(dask2):
     assert dask2.workers == 2
     items = list(range(-40, 0))
@@ -98,6 +99,7 @@ def test_dask_map_keeps_order(dask2):
                                                                             []]
 
 
+@pytest.mark.slow
 def test_killed_worker_changes_nothing(dask2):
     """SIGKILL one worker process while the tasks run: Dask re-runs its tasks elsewhere (and
     the nanny restarts it); the results are the same, in order."""
@@ -129,6 +131,7 @@ def test_problem_payload_rebuilds_the_same_problem(system3):
     assert problem_from_payload(payload) is problem_from_payload(payload)  # built once
 
 
+@pytest.mark.slow
 def test_mpdi_grid_on_dask_equals_serial(system3, dask2):
     """The MPDI falsifier's grid sweep on 2 Dask workers finds the same points and values
     and counts the same violations as in this process."""
@@ -234,6 +237,7 @@ def _same(a, b) -> None:
     assert a.boxes == b.boxes
 
 
+@pytest.mark.slow
 def test_mpdi_proof_on_dask_equals_serial(dask2, serial_proof):
     """Same box budget, serial vs 2 Dask workers: the same verdict, the same proved upper
     bound and best point value, the same boxes (a budget-ended proof, so the bound is an
@@ -270,6 +274,7 @@ class _KillDuringRound:
         return self.inner.submit_chunks(fn, payload, items)
 
 
+@pytest.mark.slow
 def test_killed_worker_mid_proof_changes_nothing(dask2, serial_proof):
     """SIGKILL a worker while a round of the MPDI proof runs on 2 workers: the same outcome."""
     from certify.prove.mpdi import prove_mpdi
@@ -324,6 +329,7 @@ def test_round_batch_fills_the_workers_and_keeps_small_runs_serial():
     assert round_batch(Remote(64), 10**6) == 10**6  # never smaller than asked
 
 
+@pytest.mark.slow
 def test_cli_workers_2_gives_the_serial_certificate(tmp_path, capsys):
     """`certify run --workers 2` end to end: the same exit code, verdict and proved numbers
     as the serial run (the grid and the MPDI rounds run on a local Dask cluster)."""

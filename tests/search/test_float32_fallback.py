@@ -74,6 +74,7 @@ def _run(workdir, capsys, problem: Problem, *extra: str) -> tuple[int, dict]:
     return code, json.loads((workdir / "cert.json").read_text())
 
 
+@pytest.mark.slow
 def test_the_float32_overflow_spec_is_certified_and_no_check_errs(workdir, capsys):
     code, cert = _run(workdir, capsys, huge_problem())
     assert code == 0, cert["checks"]["mpdi"]["message"]
@@ -98,6 +99,7 @@ def test_values_beyond_float32_are_certified(workdir, capsys, f, h, weight):
     assert cert["checks"]["mpdi"]["status"] == "PROVED"
 
 
+@pytest.mark.slow
 def test_what_float64_cannot_resolve_is_unknown_never_an_error(workdir, capsys):
     """Entries of 1e39 that cancel to the system's -0.5 (x-dependent): no float64 value or
     interval bound resolves the sign; the run says UNKNOWN (exit 3) instead of crashing."""
@@ -155,6 +157,7 @@ _scaled = st.builds(lambda m, e: m * 10.0**e, st.floats(-1.0, 1.0),
 
 @settings(max_examples=400, deadline=None)
 @given(_scaled, _scaled, _scaled)
+@pytest.mark.slow
 def test_the_sound_two_by_two_bound_holds_at_every_scale(a, b, c):
     t = torch.tensor([a], dtype=torch.float64)
     ub = float(_lam2_upper(t, torch.tensor([abs(b)], dtype=torch.float64),
@@ -164,6 +167,7 @@ def test_the_sound_two_by_two_bound_holds_at_every_scale(a, b, c):
 
 @settings(max_examples=300, deadline=None)
 @given(_scaled, _scaled, _scaled)
+@pytest.mark.slow
 def test_the_point_two_by_two_eigenvalue_is_accurate_at_every_scale(a, b, c):
     S = torch.tensor([[[a, b], [b, c]]], dtype=torch.float64)
     got = mpmath.mpf(float(lam_max(S)[0]))

@@ -16,6 +16,8 @@ from certify.search.distributed.executor import DaskExecutor, SerialExecutor
 
 from .test_executor import wait_for_workers
 
+pytestmark = pytest.mark.slow
+
 #: a box budget that ends the vdp_certified proof before it closes (it needs about 2100), in
 #: about 20 rounds of batch 64 (a batch the frontier fills, so rounds go in flight)
 BUDGET = 1400

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import pytest
 import torch
 
 from bench.instances import InstanceSpec, make_instance
@@ -16,6 +17,7 @@ from certify.search.bnb import branch_and_bound
 from certify.search.tree_estimate import leaf_depths, summarize
 
 
+@pytest.mark.slow
 def test_random_descents_end_in_the_proofs_own_leaves() -> None:
     problem, _ = make_instance(InstanceSpec(2, 10, 2.0, 2, 0.02, 0))
     setup = mpdi_decision(problem, float(problem.lam))
@@ -54,6 +56,7 @@ def test_stuck_points_are_left_out_of_the_estimate() -> None:
     assert none.stuck == 2 and math.isnan(none.boxes)
 
 
+@pytest.mark.slow
 def test_an_unknown_proof_reports_how_many_boxes_a_complete_one_takes() -> None:
     problem, _ = make_instance(InstanceSpec(2, 10, 2.0, 2, 0.02, 0))
     cut = prove_mpdi(problem, max_boxes=200, seconds=60.0)
@@ -66,6 +69,7 @@ def test_an_unknown_proof_reports_how_many_boxes_a_complete_one_takes() -> None:
     assert "complete proof" in cut.message
 
 
+@pytest.mark.slow
 def test_the_mpdi_check_says_how_far_an_unfinished_proof_is() -> None:
     """The MPDI check with a box budget too small: UNKNOWN, and its message and reported
     numbers carry the estimate."""
@@ -81,6 +85,7 @@ def test_the_mpdi_check_says_how_far_an_unfinished_proof_is() -> None:
     assert labels["boxes a complete proof needs (estimate)"] == res.proof.estimated_boxes > 256
 
 
+@pytest.mark.slow
 def test_more_descents_follow_until_the_target_or_a_budget_in_boxes() -> None:
     """Batches of descents follow while the standard error is above the target; the caps are
     in descents and box evaluations (never seconds), so the estimate is reproducible."""

@@ -369,6 +369,7 @@ def test_all_windows_shorter_than_a_time_constant_is_inconclusive():
     assert res2.status == Status.PASSED and res2.time_constant == pytest.approx(1.0)
 
 
+@pytest.mark.slow
 def test_vdp_certified_runs_stay_valid_beyond_a_time_constant():
     """Issue 8.5: on the certified VdP observer the old random starts left the conditions
     within 0.03-0.07 s; chosen starts stay valid for more than one time constant."""

@@ -91,6 +91,7 @@ def _random_specs(seed: int, count: int, rows: int):
         yield exprs, values
 
 
+@pytest.mark.slow
 def test_random_specs_rows_equal_single_expressions_and_the_tree_walk() -> None:
     """Random whitelisted expressions and their derivatives (sign, general powers): one tape
     for all rows gives the bits of one tape per expression, and both agree with the plain
@@ -139,6 +140,7 @@ def test_constant_base_power_evaluates() -> None:
                                                  dtype=torch.float64), rtol=1e-15, atol=0)
 
 
+@pytest.mark.slow
 def test_no_eval_or_exec_in_the_package() -> None:
     """Spec text never reaches eval/exec: none is called anywhere in the package (the
     evaluators are built from the parsed tree); sympify is not called either."""

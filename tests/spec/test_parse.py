@@ -138,6 +138,7 @@ def test_undefined_spec_refused_by_run_with_system(tmp_path, capsys):
     assert code == 2 and "log of 'x1', which can be <= 0" in err and err.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_long_sums_and_products_are_flat_not_deep():
     """300 terms are one flat sum (no recursion per term), and evaluate to the right value."""
     text = " + ".join(f"{k % 7 - 3}*x1*x2" for k in range(300)) + " - x2/x1/2"
@@ -156,6 +157,7 @@ def test_long_sums_and_products_are_flat_not_deep():
 
 @settings(max_examples=examples(40), deadline=None, derandomize=True)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 4), hostile=st.booleans())
+@pytest.mark.slow
 def test_accepted_specs_are_finite_everywhere_and_undefined_ones_refused(seed, n, hostile):
     """Acceptance is sound: f and Jf are finite at every sampled point of X; a spec with a
     term undefined somewhere on X is refused."""

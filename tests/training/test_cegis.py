@@ -39,6 +39,7 @@ def _tiny_settings(**kw: object) -> CegisSettings:
     return CegisSettings(**base)  # type: ignore[arg-type]
 
 
+@pytest.mark.slow
 def test_eigen_loss_drives_a_planted_violation_away():
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -74,6 +75,7 @@ def _planted_violation_goes_away() -> None:
     assert float(v.max()) < 0
 
 
+@pytest.mark.slow
 def test_loop_adds_the_counterexamples_it_finds():
     system = linear_system(**TINY)
     net = warm_start_network(system, (4,), seed=0)
@@ -90,6 +92,7 @@ def test_loop_adds_the_counterexamples_it_finds():
     assert float(vals.max()) == pytest.approx(rnd.max_lam_found, abs=1e-12)
 
 
+@pytest.mark.slow
 def test_tiny_certified_run_ends_proved():
     system = linear_system(**TINY)
     net = warm_start_network(system, (4,), seed=0)
@@ -104,6 +107,7 @@ def test_tiny_certified_run_ends_proved():
     assert out.status is Status.PROVED
 
 
+@pytest.mark.slow
 def test_cegis_is_deterministic():
     system = linear_system(**TINY)
     a = cegis(system, warm_start_network(system, (4,)), np.eye(1), 0.5, points=100,
@@ -115,6 +119,7 @@ def test_cegis_is_deterministic():
         assert ka == kb and torch.equal(va, vb)
 
 
+@pytest.mark.slow
 def test_warm_start_is_exactly_the_lmi_gain():
     from training.baseline import make_lmi_baseline
 
@@ -144,6 +149,7 @@ def test_certified_preset_is_registered_and_paper_untouched():
     assert (p.structure, p.loss, p.hidden, p.points) == ("direct", "minors", (30,) * 5, 4000)
 
 
+@pytest.mark.slow
 def test_shipped_certified_example_proves():
     ck = checkpoint.load(ROOT / "examples" / "vdp_certified.ckpt")
     pb = ck.problem

@@ -209,6 +209,7 @@ def test_short_training_lowers_the_loss_and_records_history():
     assert set(result.timings) >= {"setup", "adam", "lbfgs", "total"}
 
 
+@pytest.mark.slow
 def test_same_seed_same_weights_and_other_seed_differs():
     system = load_system("vdp")
     runs = [train(system, make_config(system, "tiny", seed=s)).network for s in (3, 3, 4)]

@@ -148,6 +148,7 @@ def test_cegis_stops_on_a_nan_gradient_as_an_internal_error(monkeypatch):
 
 # ----- through the command line ------------------------------------------------------------
 
+@pytest.mark.slow
 def test_cli_train_overflow_exits_2_with_one_line_and_no_checkpoint(tmp_path):
     out = tmp_path / "x.ckpt"
     spec = tmp_path / "stiff.toml"

@@ -49,6 +49,7 @@ def test_six_state_lmi_is_memory_bounded_and_really_certifies():
     assert float(values.detach().max()) <= -margin * (1 - 1e-9)
 
 
+@pytest.mark.slow
 def test_round0_tries_the_next_margin_until_the_warm_start_proves(monkeypatch):
     """When the warm start's round-0 proof ends without PROVED (here the first one is made to
     end UNKNOWN, as a budget-ended proof does), the LMI is solved at the next margin and that
