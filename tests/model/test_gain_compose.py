@@ -171,7 +171,7 @@ def _frozen_jcl_taylor(system, net, lo, hi, net_tms=None):
         return Interval(torch.cat([iv.lo, z], -1), torch.cat([iv.hi, z], -1))
 
     # the system's Jacobian models: `certify.enclose.system_taylor` (second-order form since
-    # issue 9; tested in tests/test_system_taylor.py), not part of what is frozen here
+    # issue 9; tested in tests/enclose/test_system_taylor.py), not part of what is frozen here
     jf = jacobian_tm(system, "f", lo, hi, r)
     K = net.K.to(torch.float64)
     has_K = bool(torch.any(K != 0))
