@@ -1,4 +1,5 @@
-"""Developer sessions: `nox -s tests` (the CI command) and `nox -s lint`."""
+"""Developer sessions: `nox -s tests` (the CI command: the whole suite), `nox -s quick` (the
+quick loop: the suite without the end-to-end tests marked `slow`) and `nox -s lint`."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ nox.options.reuse_existing_virtualenvs = True
 # Any recent torch works: elsewhere, install it from PyTorch's CPU index
 # (--index-url https://download.pytorch.org/whl/cpu). The project's requirement is a range.
 TORCH_PIN = "torch==2.13.0"
+#: one BLAS thread per pytest worker (the workers are the parallelism)
+TEST_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
 @nox.session
@@ -20,7 +23,18 @@ def tests(session: nox.Session) -> None:
     session.install(TORCH_PIN)
     session.install("-e", ".[test]")
     args = session.posargs or ["-n", "2", "--dist", "loadfile", "-q", "--durations=15"]
-    session.run("pytest", *args, env={"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
+    session.run("pytest", *args, env=TEST_ENV)
+
+
+@nox.session
+def quick(session: nox.Session) -> None:
+    """The quick loop: every test not marked `slow` (no training, no verification of a real
+    checkpoint, no Dask cluster, no CLI subprocess doing real work); extra pytest arguments
+    after `--` are added."""
+    session.install(TORCH_PIN)
+    session.install("-e", ".[test]")
+    session.run("pytest", "-m", "not slow", "-n", "2", "--dist", "loadfile", "-q",
+                *session.posargs, env=TEST_ENV)
 
 
 @nox.session

@@ -4,11 +4,18 @@ from __future__ import annotations
 
 import pytest
 import torch
+from hypothesis import HealthCheck, settings
 
 from certify.model.network import GainNetwork
 from certify.spec.system import System
 
 torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
+
+# Property tests assert on values, never on time: no per-example deadline and no "too slow"
+# health check (both read the wall clock, so a busy machine would turn them red), for every
+# test whatever its own settings say about example counts.
+settings.register_profile("certify", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("certify")
 
 SPEC_3X2 = """
 name = "three"

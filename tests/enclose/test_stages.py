@@ -33,7 +33,7 @@ from certify.prove.mpdi import prove_mpdi
 from certify.results import Status
 
 from ..soak import examples
-from ..test_preconditioner_choice import _problem
+from .test_preconditioner_choice import _problem
 
 F64 = torch.float64
 
@@ -92,6 +92,7 @@ def _sampled_max(prob, lo: torch.Tensor, hi: torch.Tensor, seed: int) -> torch.T
        kind=st.sampled_from(["cholesky", "none"]), technique=st.sampled_from(list(Technique)),
        crown=st.booleans(), screen=st.sampled_from([None, 0.0]), decide=st.booleans(),
        scale=st.sampled_from([0.0, 1e-3, 0.05, 0.3]))
+@pytest.mark.slow
 def test_every_stage_bounds_the_boxes_it_selects(seed: int, n: int, kind: str,
                                                   technique: Technique, crown: bool,
                                                   screen: float | None, decide: bool,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
 from certify.arith.boxes import Box
@@ -16,7 +17,7 @@ from certify.search.bnb import BranchAndBound, ClosingRule, Leaves, branch_and_b
 from certify.search.distributed.executor import SerialExecutor
 from certify.search.evaluation import BoxEval, add_counts, join
 
-from ..test_bnb_rounds import ChunkedSerial, _small_vdp
+from .test_bnb_rounds import ChunkedSerial, _small_vdp
 
 F64 = torch.float64
 
@@ -84,6 +85,7 @@ def test_counts_are_joined_and_added_name_by_name() -> None:
     assert add_counts({}, None) == {}
 
 
+@pytest.mark.slow
 def test_stage_counts_of_a_chunked_run_are_those_of_the_serial_run() -> None:
     """The box bound's counts travel with each chunk's evaluation and are summed as the
     rounds merge: a chunked executor reports what the serial run does."""
