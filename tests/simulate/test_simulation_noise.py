@@ -24,7 +24,8 @@ from certify.settings import VerifySettings
 from certify.simulate.integrate import bounded_noise, simulate_doubled
 from certify.simulate.noise import SwitchingNoise, clip_to_ball
 from certify.spec.system import System, load_system
-from tests.conftest import random_network
+
+from ..conftest import random_network
 
 # x' = A x, y = x1, k = K (y - h(xhat)) with K = (1, 0): e' = (A - K C) e - K v with
 # He{A - K C} = -I, so lam_cert = 1/2 (P = I), eps_bar = 0, L = 1; and with V = |e|^2,

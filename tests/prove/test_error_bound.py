@@ -20,8 +20,9 @@ from certify.prove.dissipation import dk_dy_cover, prove_dissipation, upper_shif
 from certify.prove.side import bound_dk_dy, bound_residual
 from certify.prove.weighted import weighting
 from certify.results import DissipationResult, Status
-from tests.conftest import random_network
-from tests.planted import linear_system
+
+from ..conftest import random_network
+from ..planted import linear_system
 
 A2 = np.array([[0.0, 1.0], [-2.0, -1.0]])
 C2 = np.array([[1.0, 0.0]])

@@ -25,7 +25,7 @@ from reports.html import render_html
 from reports.junit import render_junit
 from reports.pdf import render_pdf
 
-from .fixtures_certificates import (
+from ..fixtures_certificates import (
     certified_certificate,
     inconclusive_certificate,
     violated_vdp_certificate,
