@@ -101,7 +101,7 @@ class ErrorHeadline:
     With a bound (`proved`): ||e(t)|| <= `bound` for noise ||v|| <= `noise` for every
     t >= `after` (seconds) from any start with x, xhat in X, under the validity conditions of
     the bounds check; `components` are (state name, bound on |e_i| over the same times);
-    `vacuous`: the bound's limit `ultimate` exceeds `half_diagonal`, the half-diagonal of X
+    `vacuous`: the headline `bound` exceeds `half_diagonal`, the half-diagonal of X
     (true, but it says little); `source` names the bound it comes from (`BOUND_TITLES`).
     `after` is None for a certificate that recorded no settle time: then `bound` is the
     ultimate bound, reached as t -> infinity. Without a bound, `reason` says why, in words

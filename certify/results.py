@@ -213,7 +213,7 @@ class BoundsResult:
     L_is_local: bool = False  # L holds only for y in Y: condition (d) applies
     #: half the diagonal of X (Euclidean): an error bound above it says little
     box_half_diagonal: float | None = None
-    #: the best proved ultimate bound exceeds `box_half_diagonal`: valid but vacuous
+    #: the headline bound exceeds `box_half_diagonal`: valid but vacuous
     vacuous: bool = False
     #: the joint dissipation bound (`certify.checks.dissipation`): V' <= -alpha V + mu |v|^2
     dissipation: BoundResult | None = None

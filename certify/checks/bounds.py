@@ -362,7 +362,7 @@ def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | N
     if applicable:
         _headline(r, P, np.asarray(problem.system.X, dtype=np.float64))
         assert r.ultimate is not None and r.headline is not None
-        r.vacuous = r.ultimate > half_diagonal
+        r.vacuous = r.headline > half_diagonal  # what the headline says, not its limit
         t3 = (f"applicable, ultimate bound {theorem3.bias:.4g}" if theorem3.applicable
               else f"not applicable ({theorem3.reason})")
         size = (f"valid but vacuous: larger than the box, whose half-diagonal is "

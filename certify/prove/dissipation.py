@@ -58,6 +58,9 @@ MU_GROWTH = (1.02, 1.1, 1.3, 2.0)
 #: rates alpha sampled (geometric, up to 4x the fastest sampled rate), then golden-section
 #: steps around the best
 ALPHA_GRID = 24
+#: a candidate's sampled bound may exceed the best one's by this factor when its rate is
+#: slower (more room for the proof)
+ROOM = 1.03
 ALPHA_REFINE = 14
 #: an enclosure narrower than this relative to its centre is a point up to rounding: one
 #: centre and a ball (one proof) rather than a polytope
@@ -365,7 +368,10 @@ def prove_dissipation(problem: Problem, *, vbar: float, eps_P: float = 0.0,
     P = np.asarray(problem.P, dtype=np.float64)
     tried: list[dict] = []
     boxes = 0
-    cand = plan[0]
+    # the slowest rate whose sampled bound is within ROOM of the best: the MPDI at alpha/4 then
+    # keeps more margin for the prover, for little bound
+    cand = min((c for c in plan if c["bound"] <= ROOM * plan[0]["bound"]),
+               key=lambda c: c["alpha"])
     for attempt, grow in enumerate(MU_GROWTH):
         # each attempt gets an equal share of what is left; a failed one (a point where the
         # shifted D is not negative definite, or out of time) is retried with more room
