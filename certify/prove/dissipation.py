@@ -65,7 +65,7 @@ ALPHA_REFINE = 14
 #: an enclosure narrower than this relative to its centre is a point up to rounding: one
 #: centre and a ball (one proof) rather than a polytope
 NARROW = 1e-6
-TINY_SCALE = 1e-300
+TINY_SCALE = 1e-9
 
 
 @dataclass(frozen=True)
@@ -179,6 +179,14 @@ def ellipsoid_cover(cover: Cover) -> Cover | None:
     m, n = pts.shape
     if np.linalg.matrix_rank(pts) < n:
         return None
+    try:
+        return _mvee(pts)
+    except np.linalg.LinAlgError:  # numerically degenerate vertices: no ellipsoid
+        return None
+
+
+def _mvee(pts: np.ndarray) -> Cover:
+    m, n = pts.shape
     u = np.full(m, 1.0 / m)
     for _ in range(500):
         M = (pts.T * u) @ pts
@@ -327,8 +335,13 @@ def _shifts(P: np.ndarray, cover: Cover, mu_b: float, eta: float, mu_r: float
     out = []
     for b in cover.vertices:
         Pb, Ab = P @ b, A @ np.abs(b)
-        Q = Pb @ Pb.T / (2.0 * mu_b)
-        mag = Ab @ Ab.T / (2.0 * mu_b)
+        if mu_b > 0:
+            Q = Pb @ Pb.T / (2.0 * mu_b)
+            mag = Ab @ Ab.T / (2.0 * mu_b)
+        elif not np.any(b):  # dk/dy = 0: the noise does not enter, mu = 0 is exact
+            Q, mag = np.zeros_like(P), np.zeros_like(P)
+        else:
+            raise ValueError("mu = 0 with a nonzero dk/dy")
         if eta:
             Q = Q + cover.delta ** 2 * P2 / (2.0 * eta)
             mag = mag + cover.delta ** 2 * A2 / (2.0 * eta)
@@ -352,12 +365,18 @@ def prove_dissipation(problem: Problem, *, vbar: float, eps_P: float = 0.0,
     cover = dk_dy_cover(problem)
     if cover is None:
         return DissipationOutcome(Status.UNKNOWN, "dk/dy has no finite enclosure on X x Y")
-    plan = _plan(problem, cover, eps_P, vbar, samples, seed)
+    try:
+        plan = _plan(problem, cover, eps_P, vbar, samples, seed)
+    except np.linalg.LinAlgError:
+        plan = []
     if len(cover.vertices) > 1:  # one proof (an ellipsoid or a ball) if nearly as good
         for one in (ellipsoid_cover(cover), dk_dy_cover(problem, ball=True)):
             if one is None:
                 continue
-            plan_1 = _plan(problem, one, eps_P, vbar, samples, seed)
+            try:
+                plan_1 = _plan(problem, one, eps_P, vbar, samples, seed)
+            except np.linalg.LinAlgError:
+                continue
             if plan_1 and (not plan or plan_1[0]["bound"] <= BALL_ALLOWANCE * plan[0]["bound"]):
                 cover, plan = one, plan_1
                 break

@@ -45,7 +45,7 @@ def test_vacuous_bound_on_the_verdict_line_in_json_and_table_of_runs(workdir, ca
     assert len(sim_line) < 400 and "see the table of runs" in sim_line
     table = out[out.index("  simulation runs:"):].splitlines()
     assert table[1].split() == ["run", "valid", "window", "(s)", "what", "ended", "it",
-                                "max", "e/b", "breach"]
+                                "max", "e/b", "peak", "after", "T", "bound/peak", "breach"]
     runs = cert["checks"]["simulation"]["runs"]
     assert len(table) >= len(runs) + 4  # header, one row per run, verdict, error bound
     for run in runs:
