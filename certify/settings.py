@@ -41,7 +41,7 @@ class VerifySettings:
     rate_seconds: float = 20.0  # budget for the proved lam_cert (branch and bound, then decisions)
     residual_seconds: float = 10.0
     lipschitz_seconds: float = 10.0
-    dissipation_seconds: float = 30.0  # budget of the joint dissipation certificate (all proofs)
+    dissipation_seconds: float = 60.0  # budget of the joint dissipation certificate (all proofs)
     noise: float = 0.15  # vbar: bound on ||v(t)||_2 of the measurement noise
     sim_time: float = 10.0
     sim_dt: float = 2e-3

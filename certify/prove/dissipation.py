@@ -60,7 +60,7 @@ MU_GROWTH = (1.02, 1.1, 1.3, 2.0)
 ALPHA_GRID = 24
 #: a candidate's sampled bound may exceed the best one's by this factor when its rate is
 #: slower (more room for the proof)
-ROOM = 1.03
+ROOM = 1.015
 ALPHA_REFINE = 14
 #: an enclosure narrower than this relative to its centre is a point up to rounding: one
 #: centre and a ball (one proof) rather than a polytope
