@@ -23,7 +23,6 @@ Prints a Markdown table, then one JSON line per row.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -34,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from record import emit as record_line  # noqa: E402  (bench/record.py)
 
 from certify.errors import CertifyError  # noqa: E402
 from certify.model import checkpoint  # noqa: E402
@@ -290,8 +290,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{r['system']}: {r['learned_outcome']}")
     print()
     for r in rows:
-        print(json.dumps({k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                          for k, v in r.items()}))
+        record_line({k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                     for k, v in r.items()})
     return 0
 
 
