@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from certify.arith.golden import golden_section
 from certify.design import sdp
 from certify.design.metric import (
     MAX_SDP_VERTICES,
@@ -164,22 +165,6 @@ def design_vertices(system: System, subdivisions: int | None = None
     return verts.pruned, full, verts.boxes
 
 
-def _golden(fun: Any, a: float, b: float, steps: int) -> None:
-    """Golden-section search of fun over [a, b] (values are recorded by fun itself)."""
-    g = (math.sqrt(5.0) - 1.0) / 2.0
-    c, d = b - g * (b - a), a + g * (b - a)
-    fc, fd = fun(c), fun(d)
-    for _ in range(steps):
-        if fc <= fd:
-            b, d, fd = d, c, fc
-            c = b - g * (b - a)
-            fc = fun(c)
-        else:
-            a, c, fc = c, d, fd
-            d = a + g * (b - a)
-            fd = fun(d)
-
-
 def design_bound_observer(system: System, *, min_alpha: float | None = None,
                           alpha: float | None = None,
                           alpha_range: tuple[float, float] = DEFAULT_ALPHA_RANGE,
@@ -234,8 +219,8 @@ def design_bound_observer(system: System, *, min_alpha: float | None = None,
         if math.isfinite(vals[i]) and golden_steps > 0:
             a = grid[max(0, i - 1)]
             b = grid[min(len(grid) - 1, i + 1)]
-            _golden(lambda s: value(float(math.exp(s))), math.log(a), math.log(b),
-                    golden_steps)
+            golden_section(lambda s: value(float(math.exp(s))), math.log(a), math.log(b),
+                           golden_steps)
     ok = [t for t in tried if t["per_unit_noise"] is not None
           and math.isfinite(t["per_unit_noise"])]
     base = dict(min_alpha=min_alpha, vertices=len(full), sdp_vertices=len(pruned),

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from certify.arith.golden import golden_section
 from certify.arith.intervals import gamma
 from certify.enclose.network_interval import gain_enclosure
 from certify.model.kernels import contraction_matrix, gain_terms
@@ -304,24 +305,13 @@ def _plan(problem: Problem, cover: Cover, eps_P: float, vbar: float, samples: in
         k = int(np.argmin([c["bound"] for c in out]))
         i = int(np.searchsorted(grid, out[k]["alpha"]))
         lo, hi = math.log(grid[max(i - 1, 0)]), math.log(grid[min(i + 1, len(grid) - 1)])
-        g = (math.sqrt(5.0) - 1.0) / 2.0
 
         def value(u: float) -> float:
             c = at(math.exp(u))
             if c is not None:
                 out.append(c)
             return c["bound"] if c is not None else math.inf
-        a, b = hi - g * (hi - lo), lo + g * (hi - lo)
-        fa, fb = value(a), value(b)
-        for _ in range(ALPHA_REFINE):
-            if fa <= fb:
-                hi, b, fb = b, a, fa
-                a = hi - g * (hi - lo)
-                fa = value(a)
-            else:
-                lo, a, fa = a, b, fb
-                b = lo + g * (hi - lo)
-                fb = value(b)
+        golden_section(value, lo, hi, ALPHA_REFINE)
     return sorted(out, key=lambda c: c["bound"])
 
 

@@ -29,19 +29,9 @@ from certify.settings import (
 )
 
 from ..cli_helpers import FAST_POLICY, ROOT, fresh_env, probe, run_cli, save_linear
+from ..conftest import LINEAR_SPEC
 
 VDP = ROOT / "examples" / "vdp.ckpt"  # the paper preset: the MPDI is VIOLATED on 100% of X x Y
-SPEC = """name = "lin"
-states = ["x1", "x2"]
-outputs = ["y"]
-f = ["x2", "-2*x1 - 3*x2"]
-h = ["x1"]
-[box]
-X = [[-1, 1], [-1, 1]]
-Y = [[-1, 1]]
-[design]
-lam = 0.5
-"""
 
 
 @pytest.fixture
@@ -107,7 +97,7 @@ def test_an_output_onto_an_input_is_exit_2_and_the_input_is_unchanged(workdir, c
     os.link(workdir / "m.ckpt", workdir / "hard.ckpt")
     (workdir / "model.onnx").write_bytes(b"\x08\x07crafted onnx bytes")
     os.link(workdir / "model.onnx", workdir / "hard.onnx")
-    (workdir / "spec.toml").write_text(SPEC)
+    (workdir / "spec.toml").write_text(LINEAR_SPEC)
     (workdir / "policy.toml").write_text(FAST_POLICY)
     (workdir / "r.json").write_text('{"schema": "certify-certificate"}\n')
     (workdir / "out.html").write_text("an earlier report\n")

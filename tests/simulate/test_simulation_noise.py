@@ -17,7 +17,6 @@ from hypothesis import strategies as st
 from certify.checks import simulation as simulation_mod
 from certify.checks.bounds import check_bounds
 from certify.checks.simulation import check_simulation, time_constant
-from certify.model.network import GainNetwork
 from certify.model.problem import Problem
 from certify.results import DissipationResult, SimulationResult, Status, from_jsonable, to_jsonable
 from certify.settings import VerifySettings
@@ -26,37 +25,13 @@ from certify.simulate.noise import SwitchingNoise, clip_to_ball
 from certify.spec.system import System, load_system
 
 from ..conftest import random_network
+from .test_simulation import LINEAR, A, C, K, linear_problem
 
-# x' = A x, y = x1, k = K (y - h(xhat)) with K = (1, 0): e' = (A - K C) e - K v with
-# He{A - K C} = -I, so lam_cert = 1/2 (P = I), eps_bar = 0, L = 1; and with V = |e|^2,
-# V' = -2|e|^2 - 2 e1 v <= -|e|^2 + v^2: a true dissipation inequality with alpha = mu = 1.
-LINEAR = """
-name = "damped"
-states = ["x1", "x2"]
-outputs = ["y"]
-f = ["x2", "-x1 - x2"]
-h = ["x1"]
-[box]
-X = [[-5.0, 5.0], [-5.0, 5.0]]
-Y = [[-6.0, 6.0]]
-[simulation]
-x0 = [1.0, -1.0]
-xhat0 = [0.0, 0.0]
-"""
-A = np.array([[0.0, 1.0], [-1.0, -1.0]])
-C = np.array([[1.0, 0.0]])
-K = np.array([[1.0], [0.0]])
+# the linear example of test_simulation: x' = A x, y = x1, k = K (y - h(xhat)), K = (1, 0):
+# e' = (A - K C) e - K v with He{A - K C} = -I, so lam_cert = 1/2 (P = I), eps_bar = 0, L = 1;
+# and with V = |e|^2, V' = -2|e|^2 - 2 e1 v <= -|e|^2 + v^2: a true dissipation inequality
+# with alpha = mu = 1.
 VBAR = 0.15
-
-
-def linear_problem() -> Problem:
-    system = System.from_text(LINEAR, origin="test linear")
-    net = GainNetwork(2, 1, (4,), K=torch.as_tensor(K))
-    with torch.no_grad():
-        for layer in net.layers:
-            layer.weight.zero_()
-            layer.bias.zero_()
-    return Problem(system, net, 0.5, np.eye(2))
 
 
 def settings(**kw) -> VerifySettings:
