@@ -54,14 +54,12 @@ POLYGON_SIDES = 8
 #: a ball cover (one proof) is used when its sampled bound is within this factor of the
 #: polytope's (one proof per vertex)
 BALL_ALLOWANCE = 1.03
-#: mu of the sampled optimum times these factors, tried in turn (bound ~ sqrt(mu))
-MU_GROWTH = (1.02, 1.1, 1.3, 2.0)
+#: the attempts, in turn: (room, growth): the slowest sampled rate whose bound is within
+#: `room` of the best one, with its sampled mu times `growth` (the bound grows like sqrt(mu))
+SCHEDULE = ((1.0, 1.02), (1.02, 1.05), (1.05, 1.1), (1.1, 1.5))
 #: rates alpha sampled (geometric, up to 4x the fastest sampled rate), then golden-section
 #: steps around the best
 ALPHA_GRID = 24
-#: a candidate's sampled bound may exceed the best one's by this factor when its rate is
-#: slower (more room for the proof)
-ROOM = 1.015
 ALPHA_REFINE = 14
 #: an enclosure narrower than this relative to its centre is a point up to rounding: one
 #: centre and a ball (one proof) rather than a polytope
@@ -377,16 +375,16 @@ def prove_dissipation(problem: Problem, *, vbar: float, eps_P: float = 0.0,
     P = np.asarray(problem.P, dtype=np.float64)
     tried: list[dict] = []
     boxes = 0
-    # the slowest rate whose sampled bound is within ROOM of the best: the MPDI at alpha/4 then
-    # keeps more margin for the prover, for little bound
-    cand = min((c for c in plan if c["bound"] <= ROOM * plan[0]["bound"]),
-               key=lambda c: c["alpha"])
-    for attempt, grow in enumerate(MU_GROWTH):
-        # each attempt gets an equal share of what is left; a failed one (a point where the
-        # shifted D is not negative definite, or out of time) is retried with more room
-        budget = (seconds - (time.perf_counter() - t0)) / (len(MU_GROWTH) - attempt)
+    for attempt, (room, grow) in enumerate(SCHEDULE):
+        # each attempt gets an equal share of what is left; after a failed one (a point where
+        # the shifted D is not negative definite, or out of time) the next gives the prover
+        # more room: the slowest rate whose sampled bound is within `room` of the best (the
+        # MPDI at alpha/4 keeps more margin everywhere), and a larger mu
+        budget = (seconds - (time.perf_counter() - t0)) / (len(SCHEDULE) - attempt)
         if budget <= 0:
             break
+        cand = min((c for c in plan if c["bound"] <= room * plan[0]["bound"]),
+                   key=lambda c: c["alpha"])
         mu_b = cand["mu_b"] * grow
         shifts = _shifts(P, cover, mu_b, cand["eta"], cand["mu_r"])
         status = Status.PROVED
