@@ -6,7 +6,7 @@ then runs `--rounds` rounds of a decision proof's shape: take a batch of k (half
 half the nearest to closing), add two children per box with fresh bounds. Reported: the
 median and mean seconds of a take, and of a whole round's frontier work (take + add), for
 the pooled frontier and for one that always scans (POOL_MIN raised past N). The two take
-boxes of the same bounds (`tests/test_pipeline.py`); only the cost differs.
+boxes of the same bounds (`tests/search/test_pipeline.py`); only the cost differs.
 
 Run: python bench/frontier.py [--sizes 100000 1000000 4000000] [--batch 2048] [--rounds 100]
 """

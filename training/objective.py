@@ -29,9 +29,9 @@ instead evaluates the MLP trunk by hand:
 
 Everything that does not depend on the weights (Jf at the points, the constant part of D,
 h and dh/dx for the structural gain) is computed once, in float64, before training.
-`tests/test_training.py` checks the gradient against autograd through
+`tests/training/test_training.py` checks the gradient against autograd through
 `GainNetwork.forward_with_jacobian` and `certify.model.kernels.gain_terms`, and
-`tests/test_training_heads.py` the heads against frozen copies of the hand-composed ones
+`tests/training/test_training_heads.py` the heads against frozen copies of the hand-composed ones
 they replaced (the same bits). `check_finite` stops a training loop whose loss, weights or
 gradient went non-finite. The training run that optimises it (Adam, then L-BFGS) is
 `training.train`; the CEGIS loop extends it (`training.cegis_objective`).

@@ -2,7 +2,7 @@
 
 Both reproduce `torch.optim.Adam` and `torch.optim.LBFGS` (defaults; L-BFGS with
 `line_search_fn="strong_wolfe"` and torch's own strong Wolfe line search) operation for
-operation: `tests/test_training.py` checks that the iterates agree with torch's. They are
+operation: `tests/training/test_training.py` checks that the iterates agree with torch's. They are
 re-stated here rather than called because constructing any `torch.optim` optimizer imports
 `torch._dynamo`, which costs 2-3 s on this machine, a fifth of the paper preset's budget.
 

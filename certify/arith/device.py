@@ -3,7 +3,7 @@
 `cpu` is the default. `cuda` runs the MPDI grid sweep, the adversarial falsifier and the
 branch-and-bound proofs (MPDI, rate, boundary residual, local Lipschitz) in float64 on the GPU
 (`on_settings_device`: `Problem.on` moves the network and P; points, boxes and every tensor of
-the enclosures are made on the device of their inputs, which `tests/test_device_follow.py`
+the enclosures are made on the device of their inputs, which `tests/prove/test_device_follow.py`
 checks on the CPU by making the default device `meta`). The simulation, the rate and residual
 grids, LipSDP and the pre-flight stay on the CPU. Measured on an H100: the MPDI proof's box
 bounds (README, "Scaling out"); the rate and side proofs on a GPU were not run there.

@@ -180,7 +180,7 @@ def choose_preconditioner(problem: Problem, lam: float, probes: int = 24,
     The tie-break matters: on examples/vdp2_lmi.ckpt M ~ L^-1 and M = I both close every
     probe, and the whole proof takes far more boxes with the first than with the second,
     whose median bound is the smaller (`bench/same_numbers.py` records that proof's boxes;
-    tests/test_preconditioner_choice.py holds it). Only tightness depends on the choice,
+    tests/enclose/test_preconditioner_choice.py holds it). Only tightness depends on the choice,
     never soundness; it is deterministic in the problem, so every worker of a distributed
     proof chooses alike. `deadline`: a proof's budget, read before each candidate
     (`certify.budget.OutOfTime` once it has passed)."""

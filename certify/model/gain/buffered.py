@@ -13,7 +13,7 @@ pass, kept beside it because it reads exactly the buffers the forward writes; tr
 points are [m, N, out], derivative first. `cols` hands `compose` a standard-layout view
 [N, ..., k] of the columns it asks for (no copy), and `contract` turns that view back into
 the derivative-first one before its einsum, so the heads' arithmetic is the one they always
-did, operation for operation (tests/test_training_heads.py freezes the old heads).
+did, operation for operation (tests/training/test_training_heads.py freezes the old heads).
 """
 
 from __future__ import annotations
