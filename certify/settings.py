@@ -69,8 +69,8 @@ _NONNEG_FLOAT = {"noise"}
 
 
 #: `max_boxes` where the device is a GPU and neither the options nor [tool.certify] name it:
-#: 16x the CPU's, as its proof rounds (`certify.arith.device.PROOF_BATCH`); an H100 bounds about
-#: 400k boxes/s on the issue-9 instances, so 2M would end a proof within seconds of the
+#: 16x the CPU's, as its proof rounds (`certify.arith.device.PROOF_BATCH`): a GPU bounds boxes
+#: fast enough (`bench/device_check.py`) that the CPU's 2M would end a proof long before the
 #: `proof_seconds` a user gave
 GPU_MAX_BOXES = 32_000_000
 

@@ -7,9 +7,7 @@
    Round 0: the linear-injection observer K (y - h) (the warm start's gain) is proved
    before Adam moves anything; when it does not prove within `WARM_PROOF_SECONDS`, the LMI
    is solved again with a larger margin (`WARM_MARGINS`): a flat lam_max(D) just below
-   -margin can leave the prover no room on large boxes (vdp2 at margin 0.5: 99% of the
-   volume in 30 s, at 2 PROVED in 4 s; before the prover chose its congruence per problem,
-   vdp3 at 0.5 proved 5% in 60 s and at 4 in seconds). When no CEGIS round proves, that
+   -margin can leave the prover no room on large boxes. When no CEGIS round proves, that
    PROVED observer is returned (a certified linear injection, MLP output zero), never an
    unproved network.
 2. The gain is structural, k = G(xhat, y) (y - h(xhat)) + K (y - h(xhat)), so eps_bar = 0 by
@@ -123,7 +121,7 @@ def proved_lmi_start(system: System, lam: float, config: TrainConfig, cs: CegisS
 
     The observer proved is the LMI baseline network (direct structure, MLP output exactly
     zero: gain K (y - h)); the structural warm start for CEGIS has the same gain, but the
-    prover pays for its (16, 16) MLP on every box (vdp3: ~150 boxes/s instead of ~9000).
+    prover pays for its (16, 16) MLP on every box (many times slower per box).
     Returns (structural warm start, P, start info, (proved network, its outcome) or None);
     when no margin proves, the first margin's start and None (training goes on from it)."""
     from certify.model.problem import Problem

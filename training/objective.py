@@ -2,8 +2,8 @@
 
 The objective (METHOD.md section 2) needs, at every collocation point, the network's value and
 its Jacobian in xhat, and the gradient of the loss with respect to the weights. A plain
-autograd implementation (double backward) costs about 45 ms per evaluation here; this module
-instead evaluates the MLP trunk by hand:
+autograd implementation (double backward) is slow (`bench/train.py`); this module instead
+evaluates the MLP trunk by hand:
 
 - forward mode for the n Jacobian columns by the one propagation of the gain
   (`certify.model.gain.propagate` with `certify.model.gain.buffered.ChunkArithmetic`): value and

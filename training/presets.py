@@ -28,9 +28,9 @@ from certify.spec.system import MAX_LAM, System, validate_metric
 
 LOSS_KINDS = ("minors", "eigen", "eigen_squared")
 DTYPES = ("float32", "float64")
-#: the certified preset's weight of the Jacobian-variation term (`training.curvature`);
-#: measured on vdp, 3 seeds, 8 CEGIS rounds (bench/curvature.py proof): about 2-3x fewer MPDI
-#: proof sub-boxes than 0 at the same verdict, L within 1%; 1e-3 gave about 20% fewer
+#: the certified preset's weight of the Jacobian-variation term (`training.curvature`): the
+#: choice behind it is `bench/curvature.py proof` (proof sub-boxes at the same verdict and L
+#: against weights 0 and 1e-3)
 CERTIFIED_CURVATURE_WEIGHT = 1e-2
 
 # command-line flag of each field, for error messages

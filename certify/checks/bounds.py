@@ -435,7 +435,7 @@ def ultimate_bound_per_unit_noise(*, lam_cert: float | None, eps_bar: float | No
                                   ) -> float | None:
     """sqrt(kappa(P)) (eps_bar + L vbar) / (2 lam_cert): the ISS ultimate bound at `vbar`.
 
-    The quantity of the comparison table (issue 5, item 5), evaluated at the given vbar (not
+    The quantity of `bench/compare.py`'s older table, evaluated at the given vbar (not
     divided by it). None when it does not exist (lam_cert <= 0 or an input missing/non-finite).
     """
     vals = (lam_cert, eps_bar, L, vbar, kappa_P)

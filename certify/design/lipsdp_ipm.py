@@ -152,8 +152,8 @@ def check_lipsdp_lmi(Ws: Sequence[np.ndarray], W_out: np.ndarray, K: np.ndarray 
 def one_thread() -> Iterator[None]:
     """Run dense small-matrix algebra on one thread (restored afterwards).
 
-    At N ~ 150 threading buys nothing and, on a loaded 2-core machine, oversubscription
-    made each factorisation ~40x slower (measured: 0.27 s vs 6 ms for the same step).
+    At N ~ 150 threading buys nothing, and on a loaded machine oversubscription makes each
+    factorisation many times slower (`bench/lipsdp.py`).
     """
     before = torch.get_num_threads()
     torch.set_num_threads(1)

@@ -217,11 +217,10 @@ def mpdi_decision(problem: Problem, lam: float, technique: Technique = Technique
     depend on it otherwise)."""
     pc = _mpdi_preconditioner(problem, lam, technique, deadline)
     lo, hi = root_box(problem)
-    # where the plain bound probe closes part of the root split into 1024 boxes (Van der Pol
-    # instances, 55-79%), coarser boxes close too: a coarse first round saves refining them
-    # (2x10 Van der Pol, seeds 0-9: 1391 -> 873 boxes, median; vdp_certified: 3012 -> 2020);
-    # where it closes nothing, every region needs that depth and the full first round saves
-    # the coarse levels (3x30 Van der Pol: 4472 boxes against 4780 from a quarter-size one)
+    # where the plain bound probe closes part of the root split into 1024 boxes, coarser
+    # boxes close too: a coarse first round saves refining them; where it closes nothing,
+    # every region needs that depth and the full first round saves the coarse levels
+    # (`bench/tree_size.py` compares the two on the Van der Pol families)
     coarse = (crown and technique is Technique.TAYLOR
               and plain_screen_pays(problem, lam, pc, deadline=deadline))
     options = mpdi_options(problem, lam, pc, technique, crown, plain_screen=coarse,
