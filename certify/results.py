@@ -235,8 +235,9 @@ class BoundsResult:
 @dataclass
 class DissipationResult:
     """The joint dissipation certificate: with V = e^T P e, the proved inequality
-    V' <= -alpha V + mu ||v||^2 (+ mu_residual eps_bar^2 for a direct gain), so that
-    V -> at most (mu vbar^2 + mu_residual eps_bar^2) / alpha.
+    V' <= -alpha V + mu ||v||^2 (+ mu_residual ||P^(1/2) r||^2 for a direct gain, r its
+    residual, with `eps_bar` >= sup ||P^(1/2) r||), so that V -> at most
+    (mu vbar^2 + mu_residual eps_bar^2) / alpha.
 
     `vertices` counts the vertices of the enclosure of dk/dy over X x Y for which the
     inequality was proved; `candidates` records each (alpha, mu) tried, with the sampled

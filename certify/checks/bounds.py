@@ -168,12 +168,12 @@ def validity_conditions(problem: Problem, *, vbar: float, L_is_local: bool,
 def _dissipation_bound(d: DissipationResult | None, vbar: float, lam_min: float
                        ) -> BoundResult | None:
     """The bound of a proved dissipation inequality V' <= -alpha V + mu ||v||^2
-    (+ mu_r eps_bar^2): V(t) <= e^(-alpha t) V(0) + (1 - e^(-alpha t)) V_inf with
-    V_inf = (mu vbar^2 + mu_r eps_bar^2) / alpha, and ||e|| <= sqrt(V / lam_min(P))."""
+    (+ mu_r ||P^(1/2) r||^2): V(t) <= e^(-alpha t) V(0) + (1 - e^(-alpha t)) V_inf with
+    V_inf = (mu vbar^2 + mu_r eps_bar_P^2) / alpha, and ||e|| <= sqrt(V / lam_min(P))."""
     if d is None:
         return None
     formula = ("||e(t)|| <= sqrt((e^(-alpha t) W0^2 + (1 - e^(-alpha t)) (mu vbar^2 + mu_r "
-               "eps_bar^2)/alpha) / lam_min(P)), W0 = ||P^(1/2) e0|| (joint dissipation "
+               "eps_bar_P^2)/alpha) / lam_min(P)), W0 = ||P^(1/2) e0|| (joint dissipation "
                "certificate in [e; v])")
     if d.status != Status.PROVED or d.alpha is None or d.mu is None:
         return _not_applicable("dissipation", formula, f"not proved ({d.message})")
@@ -188,7 +188,7 @@ def _dissipation_bound(d: DissipationResult | None, vbar: float, lam_min: float
     return BoundResult(
         name="dissipation", applicable=math.isfinite(w_inf),
         reason=(f"proved V' <= -{d.alpha:.6g} V + {d.mu:.6g} ||v||^2"
-                + (f" + {d.mu_residual:.6g} eps_bar^2" if d.mu_residual else "")
+                + (f" + {d.mu_residual:.6g} eps_bar_P^2" if d.mu_residual else "")
                 + " over X x Y (valid while y + v stays in Y)"),
         rate=float(d.alpha), gain=_up(1.0 / s), bias=_up(w_inf / s),
         bias_per_unit_noise=_up(math.sqrt(_up(d.mu / d.alpha)) / s), formula=formula)

@@ -52,7 +52,7 @@ def check_dissipation(problem: Problem, settings: VerifySettings, *,
 
 
 class DissipationCheck(Check):
-    """V = e^T P e with V' <= -alpha V + mu ||v||^2 (+ mu_r ||r||^2), proved over X x Y."""
+    """V = e^T P e with V' <= -alpha V + mu ||v||^2 (+ mu_r ||P^(1/2) r||^2), proved over X x Y."""
 
     name = "dissipation"
     title = "Joint dissipation certificate"

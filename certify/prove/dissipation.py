@@ -1,4 +1,4 @@
-"""The joint dissipation certificate: V' <= -alpha V + mu ||v||^2 (+ mu_r eps^2), V = e^T P e.
+"""The joint dissipation certificate: V' <= -alpha V + mu ||v||^2 (+ mu_r ||P^(1/2) r||^2).
 
 With e = x - xhat, measured output y_e = h(x) + v and the observer
 xhat' = f(xhat) + k(xhat, y_e), the mean-value theorem gives e' = A e - B v - r with
@@ -8,10 +8,11 @@ and xhat are in the convex box X and h(x) in Y), B = int_0^1 dk/dy(xhat, h(x) + 
 r = k(x, h(x)) (0 for a structural gain; ||P^(1/2) r|| <= eps_bar_P otherwise). A and B
 average at *different* points, so the inequality must hold for A and B independently:
 
-  V' - (-alpha V + mu ||v||^2 + mu_r ||r||^2) = [e; v; r]^T M [e; v; r] <= 0, where
-  M = [[2 He{P A} + alpha P, -P B, -P], [-B^T P, -mu I, 0], [-P, 0, -mu_r I]],
+  V' - (-alpha V + mu ||v||^2 + mu_r ||s||^2) = [e; v; s]^T M [e; v; s] <= 0, where
+  s = P^(1/2) r and
+  M = [[2 He{P A} + alpha P, -P B, -P^(1/2)], [-B^T P, -mu I, 0], [-P^(1/2), 0, -mu_r I]],
 
-and by the Schur complement M <= 0 iff D(alpha/4) + P B B^T P / (2 mu) + P^2 / (2 mu_r) <= 0
+and by the Schur complement M <= 0 iff D(alpha/4) + P B B^T P / (2 mu) + P / (2 mu_r) <= 0
 with D(lam) = He{P (Jf + dk/dxhat)} + 2 lam P (the MPDI's matrix). It is affine in A, so it
 suffices at every point (xhat, y) of X x Y (the MPDI prover's job) and, being affine in B
 before the Schur step, at the vertices b of a polytope containing dk/dy(X x Y); where the
@@ -268,6 +269,7 @@ def _plan(problem: Problem, cover: Cover, eps_P: float, vbar: float, samples: in
     if not lam_s > 0:
         return []
     nP2 = float(np.linalg.norm(P2, 2))
+    nP = float(np.linalg.norm(P, 2))
 
     def at(alpha: float) -> dict | None:
         """The best (mu_b, eta, mu_r) at this alpha and its sampled bound (None: none)."""
@@ -282,12 +284,12 @@ def _plan(problem: Problem, cover: Cover, eps_P: float, vbar: float, samples: in
             for frac_b in fracs_b:
                 # each extra term takes a fraction of the margin: its P^2 term <= frac |margin|
                 eta = cover.delta ** 2 * nP2 / (2 * frac_b * -margin) if frac_b else 0.0
-                mu_r = nP2 / (2 * frac_r * -margin) if frac_r else 0.0
+                mu_r = nP / (2 * frac_r * -margin) if frac_r else 0.0
                 Deff = D.copy()
                 if eta:
                     Deff = Deff + cover.delta ** 2 * P2 / (2 * eta)
                 if mu_r:
-                    Deff = Deff + P2 / (2 * mu_r)
+                    Deff = Deff + P / (2 * mu_r)
                 mu_b = float(_mu_needed(Deff, PB).max())
                 if not math.isfinite(mu_b):
                     continue
@@ -315,7 +317,7 @@ def _plan(problem: Problem, cover: Cover, eps_P: float, vbar: float, samples: in
 
 def _shifts(P: np.ndarray, cover: Cover, mu_b: float, eta: float, mu_r: float
             ) -> list[np.ndarray]:
-    """The constant terms P b b^T P / (2 mu_b) + delta^2 P^2 / (2 eta) + P^2 / (2 mu_r), one
+    """The constant terms P b b^T P / (2 mu_b) + delta^2 P^2 / (2 eta) + P / (2 mu_r), one
     per vertex b of the cover, each rounded upward (`upper_shift`)."""
     n = P.shape[0]
     A = np.abs(P)
@@ -333,9 +335,9 @@ def _shifts(P: np.ndarray, cover: Cover, mu_b: float, eta: float, mu_r: float
         if eta:
             Q = Q + cover.delta ** 2 * P2 / (2.0 * eta)
             mag = mag + cover.delta ** 2 * A2 / (2.0 * eta)
-        if mu_r:
-            Q = Q + P2 / (2.0 * mu_r)
-            mag = mag + A2 / (2.0 * mu_r)
+        if mu_r:  # the residual enters as s = P^(1/2) r, ||s|| <= eps_bar_P
+            Q = Q + P / (2.0 * mu_r)
+            mag = mag + A / (2.0 * mu_r)
         out.append(upper_shift(Q, mag, 2 * n + b.shape[1] + 8))
     return out
 
@@ -408,7 +410,7 @@ def prove_dissipation(problem: Problem, *, vbar: float, eps_P: float = 0.0,
         if status == Status.PROVED:
             return DissipationOutcome(
                 Status.PROVED, f"V' <= -{cand['alpha']:.4g} V + {mu:.4g} ||v||^2"
-                + (f" + {cand['mu_r']:.4g} ||r||^2" if cand["mu_r"] else "")
+                + (f" + {cand['mu_r']:.4g} ||P^(1/2) r||^2" if cand["mu_r"] else "")
                 + f" proved over X x Y ({len(shifts)} piece(s) covering dk/dy)",
                 alpha=cand["alpha"], mu=mu, mu_residual=cand["mu_r"] or None,
                 vertices=len(cover.vertices), delta=cover.delta, candidates=tried,

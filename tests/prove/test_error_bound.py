@@ -197,3 +197,26 @@ def test_a_wrong_gain_never_gets_a_smaller_bound():
     assert len(c0.vertices) == 1
     spread = np.abs(c1.vertices.reshape(len(c1.vertices), -1) - K.reshape(1, -1)).max()
     assert spread > 0.1
+
+
+def test_residual_share_covers_the_steady_error_it_forces():
+    """A direct gain k = c + K (y - h(xhat)): the residual r = k(x, h(x)) = c is a constant
+    input, which holds the error at e* = (A - K C)^-1 c without noise. The proved bound
+    (noise 0, eps_bar_P = ||P^(1/2) c||) may not be below ||e*||."""
+    K = np.array([[1.0], [0.5]])
+    c = np.array([0.03, -0.02])
+    net = GainNetwork(2, 1, (4,), structure="direct").double()
+    with torch.no_grad():
+        for layer in net.layers:
+            layer.weight.zero_()
+            layer.bias.zero_()
+        net.layers[-1].bias.copy_(torch.as_tensor(c))
+        net.K.copy_(torch.as_tensor(K))
+    net.requires_grad_(False)
+    pb = Problem(system=linear_system(A2, C2, P=P2), network=net, lam=0.1, P=P2)
+    eps_P = float(np.linalg.norm(sqrtm(P2) @ c)) * (1 + 1e-12)
+    out = prove_dissipation(pb, vbar=0.0, eps_P=eps_P, seconds=60)
+    assert out.status == Status.PROVED and out.mu_residual
+    proved = math.sqrt(out.mu_residual * eps_P ** 2 / out.alpha / np.linalg.eigvalsh(P2)[0])
+    e_star = np.linalg.solve(A2 - K @ C2, c)
+    assert np.linalg.norm(e_star) <= proved
