@@ -59,7 +59,10 @@ def certify(tree: Path, args: list[str], cwd: Path) -> tuple[float, int, str, fl
     env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1"}
     c0 = _children_cpu()
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "certify.cli.main", *args], cwd=cwd, env=env,
+    # the command line's module: certify.cli.main since the stage packages, certify.cli before
+    module = "certify.cli.main" if (Path(tree) / "certify" / "cli" / "main.py").exists() \
+        else "certify.cli"
+    proc = subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=1800)
     return (time.perf_counter() - t0, proc.returncode, proc.stderr[-300:],
             _children_cpu() - c0)
