@@ -115,8 +115,7 @@ def dk_dy_cover(problem: Problem, boxes: int = 4096, ball: bool = False) -> Cove
     s = problem.system
     box = np.concatenate([s.X, s.Y], 0).astype(np.float64)
     lo, hi = _sub_boxes(box[:, 0], box[:, 1], boxes)
-    net = problem.network.cpu() if problem.device != "cpu" else problem.network
-    g, _ = gain_enclosure(s, net, lo, hi)
+    g, _ = gain_enclosure(s, problem.on("cpu").network, lo, hi)
     blo, bhi = g.dk_dy.lo.numpy(), g.dk_dy.hi.numpy()  # [B, n, p]
     if not (np.all(np.isfinite(blo)) and np.all(np.isfinite(bhi))):
         return None
@@ -255,7 +254,7 @@ def _plan(problem: Problem, cover: Cover, eps_P: float, vbar: float, samples: in
     P = np.asarray(problem.P, dtype=np.float64)
     s = problem.system
     xhat, y = _samples(problem, samples, seed)
-    terms = gain_terms(s, problem.network.cpu(), xhat, y, with_dy=False)
+    terms = gain_terms(s, problem.on("cpu").network, xhat, y, with_dy=False)
     Jcl = s.jac_f(xhat) + terms.dk_dx
     D0 = contraction_matrix(Jcl, torch.zeros_like(Jcl), torch.as_tensor(P), 0.0).numpy()
     if not np.all(np.isfinite(D0)):
@@ -352,19 +351,20 @@ def prove_dissipation(problem: Problem, *, vbar: float, eps_P: float = 0.0,
     t0 = time.perf_counter()
     if not problem.structural and not math.isfinite(eps_P):
         return DissipationOutcome(Status.UNKNOWN, "no sound bound of the residual (eps_bar_P)")
-    cover = dk_dy_cover(problem)
+    host = problem.on("cpu")  # the cover and the samples on the CPU, the proofs where asked
+    cover = dk_dy_cover(host)
     if cover is None:
         return DissipationOutcome(Status.UNKNOWN, "dk/dy has no finite enclosure on X x Y")
     try:
-        plan = _plan(problem, cover, eps_P, vbar, samples, seed)
+        plan = _plan(host, cover, eps_P, vbar, samples, seed)
     except np.linalg.LinAlgError:
         plan = []
     if len(cover.vertices) > 1:  # one proof (an ellipsoid or a ball) if nearly as good
-        for one in (ellipsoid_cover(cover), dk_dy_cover(problem, ball=True)):
+        for one in (ellipsoid_cover(cover), dk_dy_cover(host, ball=True)):
             if one is None:
                 continue
             try:
-                plan_1 = _plan(problem, one, eps_P, vbar, samples, seed)
+                plan_1 = _plan(host, one, eps_P, vbar, samples, seed)
             except np.linalg.LinAlgError:
                 continue
             if plan_1 and (not plan or plan_1[0]["bound"] <= BALL_ALLOWANCE * plan[0]["bound"]):

@@ -159,8 +159,6 @@ def weighting(problem: Problem, R: np.ndarray | None = None) -> Weighting:
     else:
         value_error = (nW2 * a_norm + nb) * _UP
         dy_error = (nW2 * a_slope + nK) * _UP
-    if not problem.structural and problem.network.layers[-1].weight.shape[0] != n:
-        raise ValueError("a direct gain's network must output n values")
     weighted = Problem(system=problem.system, network=net, lam=problem.lam,
                        P=problem.P).on(problem.device)
     return Weighting(problem=weighted, R=R, factor=_factor(P, R),
