@@ -5,7 +5,6 @@ keys workers/scheduler/device are read from [tool.certify]."""
 
 from __future__ import annotations
 
-import asyncio
 import functools
 import os
 import signal
@@ -27,6 +26,7 @@ from certify.settings import VerifySettings
 
 from ..cli_helpers import run_cli, save_linear
 from ..conftest import random_network
+from .conftest import gone
 
 
 def square_killing(x: int, victim: int) -> int:
@@ -37,22 +37,6 @@ def square_killing(x: int, victim: int) -> int:
         os.kill(victim, signal.SIGKILL)
     time.sleep(0.4)
     return x * x
-
-
-#: how long the workers may take to be back after a kill before a test calls it a fault: a
-#: restart takes seconds, a busy machine minutes; only a nanny that never restarts the worker
-#: runs into this
-WORKERS_BACK_WITHIN = 600.0
-
-
-def wait_for_workers(client, n: int) -> None:
-    """Wait for the event (n workers registered with the scheduler), however long a busy
-    machine makes it; fail with a clear message only after WORKERS_BACK_WITHIN seconds."""
-    try:
-        client.wait_for_workers(n, timeout=WORKERS_BACK_WITHIN)
-    except (TimeoutError, asyncio.TimeoutError):
-        pytest.fail(f"{n} Dask workers not registered {WORKERS_BACK_WITHIN:g} s after a "
-                    "worker was killed: its nanny did not restart it")
 
 
 def _cached_keys() -> list[str]:
@@ -100,16 +84,38 @@ def test_dask_map_keeps_order(dask2):
 
 
 @pytest.mark.slow
-def test_killed_worker_changes_nothing(dask2):
-    """SIGKILL one worker process while the tasks run: Dask re-runs its tasks elsewhere (and
-    the nanny restarts it); the results are the same, in order."""
-    pids = list(dask2.worker_pids().values())
+def test_killed_worker_changes_nothing(doomed2):
+    """SIGKILL one worker process while the tasks run: Dask re-runs its tasks on the worker
+    left (whether or not the dead one comes back); the results are the same, in order."""
+    pids = list(doomed2.worker_pids().values())
     assert len(pids) == 2 and os.getpid() not in pids
     victim = pids[0]
-    out = dask2.map(functools.partial(square_killing, victim=victim), list(range(10)))
+    out = doomed2.map(functools.partial(square_killing, victim=victim), list(range(10)))
     assert out == [i * i for i in range(10)]
-    wait_for_workers(dask2.client, 2)
-    assert victim not in dask2.worker_pids().values()  # it really died
+    assert gone(victim)  # it really died
+
+
+def test_close_survives_a_failing_dask_teardown(caplog):
+    """Dask's own teardown can raise after a worker died (its status watcher meets a worker
+    address it never recorded): every result is in by then, so close() logs it and returns,
+    and the client is closed all the same."""
+
+    class Client:
+        closed = False
+
+        def close(self):
+            Client.closed = True
+
+    class Cluster:
+        def close(self):
+            raise KeyError("tcp://127.0.0.1:45237")
+
+    ex = DaskExecutor.__new__(DaskExecutor)
+    ex._scattered, ex.client, ex._cluster = {"k": 1}, Client(), Cluster()
+    with caplog.at_level("WARNING", logger="certify.search.distributed.executor"):
+        ex.close()
+    assert Client.closed and ex._scattered == {}
+    assert "KeyError" in caplog.text and "45237" in caplog.text
 
 
 def test_problem_payload_rebuilds_the_same_problem(system3):
@@ -275,18 +281,18 @@ class _KillDuringRound:
 
 
 @pytest.mark.slow
-def test_killed_worker_mid_proof_changes_nothing(dask2, serial_proof):
+def test_killed_worker_mid_proof_changes_nothing(doomed2, serial_proof):
     """SIGKILL a worker while a round of the MPDI proof runs on 2 workers: the same outcome."""
     from certify.prove.mpdi import prove_mpdi
 
     problem, serial = serial_proof
-    victim = list(dask2.worker_pids().values())[1]
-    killer = _KillDuringRound(dask2, victim)
+    victim = list(doomed2.worker_pids().values())[1]
+    killer = _KillDuringRound(doomed2, victim)
     with using(killer):
         remote = prove_mpdi(problem, seconds=1e9, max_boxes=BUDGET)
     assert killer.killed_at == 2 and killer.calls >= 2  # killed mid-proof, between rounds
+    assert gone(victim)
     _same(serial, remote)
-    wait_for_workers(dask2.client, 2)
 
 
 def test_wire_format_round_trips_and_sends_only_the_slice():

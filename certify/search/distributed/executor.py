@@ -34,6 +34,8 @@ from typing import Any, Protocol, runtime_checkable
 from certify.errors import SettingsError
 from certify.search.distributed.wire import WireArray, from_wire, to_wire  # noqa: F401 - re-exported
 
+_log = logging.getLogger(__name__)
+
 #: seconds to wait for a scheduler given by address before giving up (exit 2)
 CONNECT_TIMEOUT = 5.0
 
@@ -271,12 +273,22 @@ class DaskExecutor:
         return self.client.run(os.getpid)
 
     def close(self) -> None:
+        """Close the client and, for a local cluster, the cluster.
+
+        Every result has been gathered by then, so a failure inside Dask's own teardown
+        (after a worker died, its cluster's status watcher can meet a worker address it
+        never recorded and raise KeyError) changes no result: it is logged, not raised.
+        """
         self._scattered.clear()
         try:
             self.client.close()
         finally:
             if self._cluster is not None:
-                self._cluster.close()
+                try:
+                    self._cluster.close()
+                except Exception as exc:  # noqa: BLE001 - Dask's teardown, results are in
+                    _log.warning("closing the local Dask cluster: %s: %s",
+                                 type(exc).__name__, exc)
 
     def __enter__(self) -> DaskExecutor:
         return self
