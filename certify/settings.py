@@ -43,7 +43,9 @@ class VerifySettings:
     lipschitz_seconds: float = 10.0
     dissipation_seconds: float = 60.0  # budget of the joint dissipation certificate (all proofs)
     noise: float = 0.15  # vbar: bound on ||v(t)||_2 of the measurement noise
-    sim_time: float = 10.0
+    # simulated seconds; None: automatic (DEFAULT_SIM_TIME, extended when the proved bound is
+    # slow: `certify.checks.simulation.plan_horizon`); a number is kept as given
+    sim_time: float | None = None
     sim_dt: float = 2e-3
     sim_initial_conditions: int = 6
     seed: int = 0
@@ -65,6 +67,11 @@ _INT_MIN = {
 }
 _POS_FLOAT = {"proof_seconds", "rate_seconds", "residual_seconds", "lipschitz_seconds",
               "dissipation_seconds", "sim_time", "sim_dt"}
+#: of those, the ones where None means "automatic"
+_OPTIONAL = {"sim_time"}
+
+#: the simulated seconds when sim_time is not set (before any extension for a slow bound)
+DEFAULT_SIM_TIME = 10.0
 _NONNEG_FLOAT = {"noise"}
 
 
@@ -87,6 +94,8 @@ def validate(s: VerifySettings, source: str = "settings") -> None:
             raise _fail(source, name, f"an int >= {lo}", v)
     for name in _POS_FLOAT | _NONNEG_FLOAT:
         v = getattr(s, name)
+        if v is None and name in _OPTIONAL:
+            continue
         ok = not isinstance(v, bool) and isinstance(v, (int, float)) and v == v and v < float("inf")
         if not ok or (v <= 0 if name in _POS_FLOAT else v < 0):
             raise _fail(source, name, "a number > 0" if name in _POS_FLOAT else "a number >= 0", v)

@@ -47,7 +47,7 @@ from certify.model.problem import Problem
 from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
 from certify.results import BoundResult, BoundsResult, SimulationResult, SimulationRun, Status
-from certify.settings import VerifySettings
+from certify.settings import DEFAULT_SIM_TIME, VerifySettings
 from certify.simulate.integrate import bounded_noise, gaussian_noise, simulate_doubled
 from certify.simulate.noise import SwitchingNoise
 from certify.simulate.starts import (
@@ -76,8 +76,6 @@ MIN_TIME_CONSTANTS = 5.0
 AFTER_SETTLING = 2.0
 #: the automatic horizon never exceeds this many steps of sim_dt
 MAX_AUTO_STEPS = 50_000
-#: sim_time at this value is read as "not set" (the settings' default)
-DEFAULT_SIM_TIME = VerifySettings.__dataclass_fields__["sim_time"].default
 
 __all__ = ["InitialConditions", "check_simulation", "initial_conditions",
            "source_initial_condition"]
@@ -250,15 +248,17 @@ def plan_horizon(bounds: BoundsResult | None, settings: VerifySettings) -> Horiz
     best bound is slow, long enough that a run can stay valid for `MIN_TIME_CONSTANTS` time
     constants and still run `AFTER_SETTLING` of them after the headline's settling time T
     (`BoundsResult.settle_time`), capped at `MAX_AUTO_STEPS` steps. A `sim_time` the user
-    set is kept as set (the note says when it is shorter than that). "Not set" is read as
-    "equal to the settings' default"."""
+    set (any number, `DEFAULT_SIM_TIME` included) is kept as set (the note says when it is
+    shorter than that); None is "not set": `DEFAULT_SIM_TIME`, extended as needed."""
     dt = float(settings.sim_dt)
 
     def even_steps(seconds: float) -> int:
         k = max(2, int(math.ceil(seconds / dt - 1e-9)))
         return k + k % 2
 
-    steps = even_steps(float(settings.sim_time))
+    chosen = settings.sim_time is not None
+    base = float(settings.sim_time) if chosen else DEFAULT_SIM_TIME
+    steps = even_steps(base)
     b = best_bound(bounds)
     tau = time_constant(b)
     if b is None or tau is None or bounds is None or bounds.headline is None:
@@ -271,19 +271,19 @@ def plan_horizon(bounds: BoundsResult | None, settings: VerifySettings) -> Horiz
         return Horizon(steps, dt, need=need)
     why = (f"{MIN_TIME_CONSTANTS:g} time constants of the {b.name} bound ({tau:.3g} s each)"
            f", {AFTER_SETTLING:g} of them after the settling time T = {settle:.3g} s")
-    if settings.sim_time != DEFAULT_SIM_TIME:
+    if chosen:
         return Horizon(steps, dt, need=need,
-                       short=f"sim_time {settings.sim_time:g} s < the {need:.3g} s needed",
-                       note=f"the horizon sim_time = {settings.sim_time:g} s is shorter "
+                       short=f"sim_time {base:g} s < the {need:.3g} s needed",
+                       note=f"the horizon sim_time = {base:g} s is shorter "
                             f"than {need:.3g} s ({why})")
     want = even_steps(need)
     capped = want > MAX_AUTO_STEPS
     steps = min(want, MAX_AUTO_STEPS - MAX_AUTO_STEPS % 2)
     cap = f" (capped at {MAX_AUTO_STEPS} steps of {dt:g} s)" if capped else ""
     return Horizon(steps, dt, extended=True, need=need,
-                   short=f"horizon extended from {settings.sim_time:g} s to "
+                   short=f"horizon extended from {base:g} s to "
                          f"{steps * dt:.4g} s{cap} (sim_time was not set)",
-                   note=f"horizon extended from {settings.sim_time:g} s to "
+                   note=f"horizon extended from {base:g} s to "
                         f"{steps * dt:.4g} s for {why}; sim_time was not set{cap}")
 
 
@@ -683,7 +683,8 @@ class SimulationCheck(Check):
                                if r.time_constant is not None else ""),
                             "no bound to compare with"),
             setting=(Quantity("runs", len(r.runs)),
-                     Quantity("T =", s.get("sim_time"), suffix=" s"),
+                     Quantity("T =", r.horizon if r.horizon is not None
+                              else s.get("sim_time"), suffix=" s"),
                      Quantity("dt =", s.get("sim_dt")), Quantity("v\u0304 =", s.get("noise"))),
             numbers=tuple(numbers),
             facts=(Quantity("Status", r.status.value), Quantity("Runs", len(r.runs)),

@@ -135,7 +135,8 @@ def build_parser(with_train: bool = True) -> argparse.ArgumentParser:
     p.add_argument("--max-boxes", type=int, help="prover sub-box budget")
     p.add_argument("--adversarial-starts", type=int, help="gradient-ascent starts")
     p.add_argument("--noise", type=float, help="noise bound vbar (default 0.15)")
-    p.add_argument("--sim-time", type=float, help="simulated seconds (default 10)")
+    p.add_argument("--sim-time", type=float,
+                   help="simulated seconds (default: 10, longer when the proved bound is slow)")
     p.add_argument("--seed", type=int, help="random seed (default 0)")
     p.add_argument("--require", metavar="CHECKS",
                    help=f"comma-separated checks that must pass; {CERTIFICATE_CHECK} (the "

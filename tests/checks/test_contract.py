@@ -165,6 +165,19 @@ def test_settings_are_frozen_and_echoed():
     assert np.isclose(dataclasses.asdict(SETTINGS)["noise"], 0.15)
 
 
+def test_sim_time_is_automatic_unless_set():
+    """sim_time None (the default) is the automatic horizon; any number, the default's own
+    value included, is kept as set; a non-positive one is refused naming the field."""
+    from certify.errors import SettingsError
+    from certify.settings import DEFAULT_SIM_TIME, VerifySettings, make_settings
+
+    assert VerifySettings().sim_time is None and DEFAULT_SIM_TIME > 0
+    assert make_settings({"sim_time": 10}).sim_time == 10.0
+    for bad in (0, -1.0, float("nan"), True):
+        with pytest.raises(SettingsError, match="sim_time"):
+            make_settings({"sim_time": bad})
+
+
 # ----------------------------------------------------------------------------- check protocol
 
 _PLAIN = (type(None), bool, int, float, str)

@@ -289,6 +289,10 @@ def test_horizon_extended_only_when_sim_time_is_not_set(monkeypatch):
     assert not set_.horizon_extended and set_.horizon == pytest.approx(4.0)
     assert "sim_time 4 s < the" in set_.message
     assert set_.horizon_note.startswith("the horizon sim_time = 4 s is shorter than")
+    ten = check_simulation(problem, slow, settings(sim_time=10.0, sim_initial_conditions=1),
+                           certified=True)  # the default's value, but set: kept as set
+    assert not ten.horizon_extended and ten.horizon == pytest.approx(10.0)
+    assert "sim_time 10 s < the" in ten.message
     monkeypatch.setattr(simulation_mod, "MAX_AUTO_STEPS", 1200)
     capped = check_simulation(problem, slow, settings(sim_initial_conditions=1),
                               certified=True)
