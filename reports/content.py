@@ -340,10 +340,16 @@ def verdict_notes(cert: Certificate) -> list[str]:
     notes = []
     b = result(cert, "bounds")
     if b is not None and getattr(b, "vacuous", False):
-        best = b.ultimate if b.ultimate is not None else min(
+        # the number judged vacuous: the headline (an older certificate: the best limit)
+        shown = getattr(b, "headline", None)
+        limit = b.ultimate if b.ultimate is not None else min(
             (x.bias for x in b.bounds() if x.applicable and x.bias is not None), default=None)
-        shown = DASH if best is None else upper_text(float(best))  # as the headline's limit
-        notes.append(f"the proved error bound {shown} is valid but vacuous: larger than "
+        if shown is None:
+            shown, limit = limit, None
+        text = DASH if shown is None else upper_text(float(shown))
+        if limit is not None and upper_text(float(limit)) != text:
+            text += f" (limit {upper_text(float(limit))})"
+        notes.append(f"the proved error bound {text} is valid but vacuous: larger than "
                      f"the box (half-diagonal of X {fmt(b.box_half_diagonal)})")
     return notes
 

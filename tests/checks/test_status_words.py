@@ -39,6 +39,9 @@ def test_vacuous_bound_on_the_verdict_line_in_json_and_table_of_runs(workdir, ca
     bounds = cert["checks"]["bounds"]
     assert bounds["status"] == "PROVED" and bounds["vacuous"] is True
     assert bounds["box_half_diagonal"] == pytest.approx(2 ** 0.5)
+    # the number the note calls vacuous is the headline, larger than the half-diagonal
+    said = float(re.search(r"error bound ([0-9.]+)", verdict).group(1))
+    assert said > 2 ** 0.5 and said == pytest.approx(bounds["headline"], rel=5e-3)
     assert "valid but vacuous: larger than the box" in bounds["message"]
     # the simulation: one short line, then the table of runs with their valid windows
     sim_line = next(ln for ln in out.splitlines() if ln.startswith("  simulation: "))
