@@ -220,3 +220,37 @@ def test_residual_share_covers_the_steady_error_it_forces():
     proved = math.sqrt(out.mu_residual * eps_P ** 2 / out.alpha / np.linalg.eigvalsh(P2)[0])
     e_star = np.linalg.solve(A2 - K @ C2, c)
     assert np.linalg.norm(e_star) <= proved
+
+
+def test_one_slow_piece_of_the_cover_may_use_the_whole_attempt(monkeypatch):
+    """Every piece must be proved for a candidate, so a piece is given all the attempt has
+    left, not a share: a first piece that needs half the attempt's budget (a slow machine)
+    is proved, and the candidate with it. A fake prover on a fake clock (no wall time):
+    each piece costs what is listed, proved if its budget covers that, else UNKNOWN."""
+    import types
+    from pathlib import Path
+
+    import certify.prove.dissipation as dm
+    from certify.model import checkpoint
+
+    problem = checkpoint.load(str(Path(__file__).parents[2] / "examples"
+                                  / "vdp_certified.ckpt")).problem
+    seconds = 60.0
+    attempt = seconds / len(dm.SCHEDULE)  # the first attempt's budget (planning is free here)
+    clock = [0.0]
+    given: list[float] = []
+
+    def fake_prove(sub, *, lam, seconds):
+        cost = 0.5 * attempt if not given else 0.01 * attempt
+        given.append(seconds)
+        clock[0] += min(cost, seconds)
+        status = Status.PROVED if cost <= seconds else Status.UNKNOWN
+        return types.SimpleNamespace(status=status,
+                                     stats=types.SimpleNamespace(boxes_processed=1))
+
+    monkeypatch.setattr(dm, "prove_mpdi", fake_prove)
+    monkeypatch.setattr(dm.time, "perf_counter", lambda: clock[0])
+    out = prove_dissipation(problem, vbar=0.15, seconds=seconds)
+    assert out.vertices > 2 and len(given) == out.vertices  # every piece, one attempt
+    assert out.status == Status.PROVED and len(out.candidates) == 1
+    assert given[0] == pytest.approx(attempt)
