@@ -5,13 +5,31 @@ Public API:
     train, TrainResult, Objective        -- the training run and its objective
     collocation_points                   -- seeded uniform points in X x Y
     losses                               -- minor, eigenvalue and BC losses
+
+The names are imported on first use (PEP 562), so that `certify train --help`, which reads
+only the presets, does not import torch.
 """
 
-from training import losses
-from training.collocation import collocation_points
-from training.objective import Objective
-from training.presets import PRESETS, TrainConfig, make_config
-from training.train import TrainResult, train
+from __future__ import annotations
 
-__all__ = ["PRESETS", "Objective", "TrainConfig", "TrainResult", "collocation_points",
-           "losses", "make_config", "train"]
+import importlib
+from typing import Any
+
+#: public name -> the module that defines it
+_WHERE = {"losses": "training.losses", "collocation_points": "training.collocation",
+          "Objective": "training.objective", "PRESETS": "training.presets",
+          "TrainConfig": "training.presets", "make_config": "training.presets",
+          "TrainResult": "training.train", "train": "training.train"}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _WHERE:
+        raise AttributeError(f"module 'training' has no attribute {name!r}")
+    module = importlib.import_module(_WHERE[name])
+    return module if name == "losses" else getattr(module, name)
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_WHERE))

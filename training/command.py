@@ -1,6 +1,6 @@
 """`certify train`: the command-line hook (arguments, progress display, checkpoint writing).
 
-The lead's `certify/cli.py` calls `add_train_arguments(parser)` and `run_train(args)`; bad
+`certify.cli` calls `add_train_arguments(parser)` and `run_train(args)`; bad
 values raise `CertifyError` subclasses, which the CLI turns into one line and exit code 2.
 """
 
@@ -16,10 +16,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from certify.errors import CertifyError, SettingsError
-from certify.model import checkpoint
-from certify.spec.system import load_system, parse_metric
 from training.presets import PRESETS, make_config, preset_summary
-from training.train import train
 
 
 def parse_hidden(text: str) -> tuple[int, ...]:
@@ -144,6 +141,8 @@ class RichProgress:
 
 
 def _config_from_args(args: argparse.Namespace, system: Any) -> Any:
+    from certify.spec.system import parse_metric
+
     hidden = parse_hidden(args.hidden) if getattr(args, "hidden", None) is not None else None
     metric = parse_metric(args.metric, system.n) if getattr(args, "metric", None) else None
     preset = getattr(args, "preset", None) or "paper"
@@ -161,6 +160,11 @@ def run_train(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
 
     Raises `CertifyError` (exit code 2) for a bad system, setting or output path.
     """
+    # here, not at the top: they import torch, which `certify train --help` does not need
+    from certify.model import checkpoint
+    from certify.spec.system import load_system
+    from training.train import train
+
     out = stdout or sys.stdout
     system = load_system(args.system)
     config = _config_from_args(args, system)

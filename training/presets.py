@@ -17,14 +17,14 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from certify.errors import CertifyError, SettingsError
-from certify.model import activations
-from certify.model.network import STRUCTURES
-from certify.spec.system import MAX_LAM, System, validate_metric
+
+if TYPE_CHECKING:
+    from certify.spec.system import System
 
 LOSS_KINDS = ("minors", "eigen", "eigen_squared")
 DTYPES = ("float32", "float64")
@@ -100,6 +100,11 @@ def _is_real(v: Any) -> bool:
 
 def validate(c: TrainConfig) -> None:
     """Check every field against its constraint; raise one `SettingsError` line."""
+    # here, not at the top: they import torch, which `certify train --help` does not need
+    from certify.model import activations
+    from certify.model.network import STRUCTURES
+    from certify.spec.system import MAX_LAM, validate_metric
+
     if not isinstance(c.preset, str) or not c.preset:
         raise _fail("preset", "a preset name", c.preset)
     for name, lo in (("seed", 0), ("points", 1), ("adam_iters", 0), ("lbfgs_iters", 0)):

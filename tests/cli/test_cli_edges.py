@@ -283,6 +283,8 @@ def test_device_help_agrees_with_the_readme_and_the_code(capsys):
     (["run", str(VDP), "--system", "dufing"], set(), "did you mean 'duffing'?"),
     (["run", "missing.ckpt"], set(), "checkpoint missing.ckpt not found"),
     (["run", "missing.onnx", "--system", "vdp"], set(), "model missing.onnx not found"),
+    (["train", "--help"], set(), None),
+    (["train", "vpd", "-o", "x.ckpt"], set(), "did you mean 'vdp'?"),
 ])
 @pytest.mark.slow
 def test_systems_and_cheap_errors_do_not_import_torch(tmp_path, argv, heavy_ok, words):
