@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from decimal import ROUND_CEILING, Decimal
 from typing import Any
 
+from certify.arith.text import bound_text, lower_text, upper_text
 from certify.results import BoundsResult, CheckFailure, Status
 
 __all__ = ["Quantity", "Presentation", "NOTHING", "present_failure", "ErrorHeadline",
-           "error_headline", "upper_text", "BOUND_TITLES"]
+           "error_headline", "upper_text", "lower_text", "bound_text", "BOUND_TITLES"]
 
 
 @dataclass(frozen=True)
@@ -25,6 +25,9 @@ class Quantity:
     `value` is plain data: a number, a bool, a word, a point (list of floats) or a matrix
     (list of lists); `None` means "not established" and `missing` says why. `sig`, `signed`
     and `suffix` are formatting hints for the renderer (which does all formatting).
+    `bound`: "upper" or "lower" when the number is a sound bound, so that the renderer rounds
+    it outward (`bound_text`: the text never claims more than was proved); "" for a value
+    that is rounded to nearest (a sampled value, a count, a setting).
     """
 
     label: str
@@ -33,6 +36,7 @@ class Quantity:
     sig: int = 4
     signed: bool = False
     suffix: str = ""
+    bound: str = ""
 
 
 @dataclass(frozen=True)
@@ -77,21 +81,6 @@ BOUND_TITLES = {"dissipation": "joint dissipation certificate",
 
 #: relative outward nudge on a bound scaled here (one float multiply and divide)
 _NUDGE = 1e-12
-
-
-def upper_text(x: float, sig: int = 3) -> str:
-    """An upper bound as text, rounded UP to `sig` significant digits, so that the printed
-    number is never below the proved one (1.2431 -> '1.25', 1240.2 -> '1250'); 'inf' and
-    'NaN' spelled out. Exact: the float is read as the decimal it is."""
-    if math.isnan(x):
-        return "NaN"
-    if math.isinf(x):
-        return "\u221e" if x > 0 else "-\u221e"
-    if x == 0:
-        return "0"
-    d = Decimal(x)
-    q = d.quantize(Decimal(1).scaleb(d.adjusted() - sig + 1), rounding=ROUND_CEILING)
-    return format(q.normalize(), "f")
 
 
 @dataclass(frozen=True)

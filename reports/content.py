@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from certify.certificate import Certificate
-from certify.presentation import ErrorHeadline, Quantity, upper_text
+from certify.presentation import ErrorHeadline, Quantity, bound_text, upper_text
 from certify.results import CheckFailure, Status
 
 DASH = "\u2014"
@@ -192,6 +192,9 @@ def side(q: Quantity) -> Side:
     """A presenter's Quantity as a formatted Side (the dash and the reason when missing)."""
     if q.value is None:
         return Side(q.label, DASH, q.missing)
+    if q.bound and to_float(q.value) is not None and not isinstance(q.value, bool):
+        return Side(q.label, bound_text(to_float(q.value), q.bound, q.sig, signed=q.signed)
+                    + q.suffix)
     return Side(q.label, fmt_value(q.value, q.sig, signed=q.signed) + q.suffix)
 
 

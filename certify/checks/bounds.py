@@ -32,7 +32,13 @@ import numpy as np
 from certify.checks.base import Check, Context
 from certify.errors import SettingsError
 from certify.model.problem import Problem
-from certify.presentation import Presentation, Quantity, error_headline, upper_text
+from certify.presentation import (
+    Presentation,
+    Quantity,
+    error_headline,
+    lower_text,
+    upper_text,
+)
 from certify.results import BoundResult, BoundsResult, DissipationResult, Status
 
 #: Names accepted by `bound_curve`.
@@ -187,8 +193,8 @@ def _dissipation_bound(d: DissipationResult | None, vbar: float, lam_min: float
     w_inf = _up(math.sqrt(_up(noise / (d.alpha * (1.0 - _NUDGE)))))
     return BoundResult(
         name="dissipation", applicable=math.isfinite(w_inf),
-        reason=(f"proved V' <= -{d.alpha:.6g} V + {d.mu:.6g} ||v||^2"
-                + (f" + {d.mu_residual:.6g} eps_bar_P^2" if d.mu_residual else "")
+        reason=(f"proved V' <= -{lower_text(d.alpha, 6)} V + {upper_text(d.mu, 6)} ||v||^2"
+                + (f" + {upper_text(d.mu_residual, 6)} eps_bar_P^2" if d.mu_residual else "")
                 + " over X x Y (valid while y + v stays in Y)"),
         rate=float(d.alpha), gain=_up(1.0 / s), bias=_up(w_inf / s),
         bias_per_unit_noise=_up(math.sqrt(_up(d.mu / d.alpha)) / s), formula=formula)
@@ -363,18 +369,21 @@ def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | N
         _headline(r, P, np.asarray(problem.system.X, dtype=np.float64))
         assert r.ultimate is not None and r.headline is not None
         r.vacuous = r.headline > half_diagonal  # what the headline says, not its limit
-        t3 = (f"applicable, ultimate bound {theorem3.bias:.4g}" if theorem3.applicable
-              else f"not applicable ({theorem3.reason})")
+        t3 = (f"applicable, ultimate bound {upper_text(theorem3.bias, 4)}"
+              if theorem3.applicable else f"not applicable ({theorem3.reason})")
         size = (f"valid but vacuous: larger than the box, whose half-diagonal is "
                 f"{half_diagonal:.4g}"
                 if r.vacuous else f"useful: the box's half-diagonal is {half_diagonal:.4g}")
-        parts = ", ".join(f"{b.name} {b.bias:.4g}" for b in applicable)
+        # bounds rounded up (the text never claims more than was proved), the headline's
+        # numbers as the headline itself prints them (`error_headline`)
+        parts = ", ".join(f"{b.name} {upper_text(b.bias, 4)}" for b in applicable)
         r.status = Status.PROVED
         when = ("as t -> infinity" if r.settle_time is None
-                else f"after t >= {r.settle_time:.3g} s")
-        r.message = (f"||e|| <= {r.headline:.4g} for noise <= {vbar:g} {when} "
-                     f"({size}); ultimate bounds: {parts}; per "
-                     f"component |e_i| <= " + ", ".join(f"{v:.3g}" for v in r.per_component or [])
+                else f"after t >= {upper_text(r.settle_time, 2)} s")
+        limits = ", ".join(upper_text(v) for v in r.per_component or [])
+        r.message = (f"||e|| <= {upper_text(r.headline)} for noise <= {vbar:g} {when} "
+                     f"({size}); ultimate bounds (t -> infinity): {parts}"
+                     + (f", per component |e_i| <= {limits}" if limits else "")
                      + f"; Theorem 3 as stated: {t3}. Valid only under conditions (a)-(d).")
     elif no_rate and not [x for x in invalid if not x.startswith("lam_cert")]:
         r.status = Status.NOT_APPLICABLE
@@ -456,7 +465,8 @@ def _bias_quantity(label: str, b: BoundResult | None, r: BoundsResult) -> Quanti
         return Quantity(label, None, "no bound exists" if r.status == Status.NOT_APPLICABLE
                         else "not applicable")
     big = r.box_half_diagonal is not None and float(b.bias or 0.0) > r.box_half_diagonal
-    return Quantity(label, b.bias, suffix=" (vacuous: larger than the box)" if big else "")
+    return Quantity(label, b.bias, suffix=" (vacuous: larger than the box)" if big else "",
+                    bound="upper")
 
 
 class BoundsCheck(Check):
@@ -503,16 +513,16 @@ class BoundsCheck(Check):
                                  head.components_text(unicode=False) or None, "not computed"),
                         Quantity("error bound size", head.size_text()),
                         Quantity("best bound", r.best or head.source),
-                        Quantity("headline bound", r.headline, sig=6),
-                        Quantity("settle time", r.settle_time, sig=6),
-                        Quantity("ultimate bound", r.ultimate, sig=6)]
+                        Quantity("headline bound", r.headline, sig=6, bound="upper"),
+                        Quantity("settle time", r.settle_time, sig=6, bound="upper"),
+                        Quantity("ultimate bound", r.ultimate, sig=6, bound="upper")]
         else:
             numbers.append(Quantity("error bound", head.reason))
         for b in r.bounds():
             if b.applicable:
-                numbers += [Quantity(f"{b.name} bias", b.bias, sig=6),
-                            Quantity(f"{b.name} rate", b.rate, sig=6),
-                            Quantity(f"{b.name} gain", b.gain, sig=6)]
+                numbers += [Quantity(f"{b.name} bias", b.bias, sig=6, bound="upper"),
+                            Quantity(f"{b.name} rate", b.rate, sig=6, bound="lower"),
+                            Quantity(f"{b.name} gain", b.gain, sig=6, bound="upper")]
             else:
                 numbers.append(Quantity(b.name, f"not applicable: {b.reason}"))
         if head.proved and r.headline is not None:

@@ -18,7 +18,7 @@ from typing import Any
 
 from certify.checks.base import Check, Context
 from certify.model.problem import Problem
-from certify.presentation import Presentation, Quantity
+from certify.presentation import Presentation, Quantity, lower_text, upper_text
 from certify.results import DissipationResult, MpdiResult, ResidualResult, Status
 from certify.settings import VerifySettings
 
@@ -71,16 +71,18 @@ class DissipationCheck(Check):
             sampled=Quantity("sampled aim", r.candidates[0]["bound"] if r.candidates else None,
                              "no candidate"),
             proved=Quantity("\u03b1, \u03bc", None if r.alpha is None else
-                            f"{r.alpha:.4g}, {r.mu:.4g}", "not proved"),
+                            f"{lower_text(r.alpha, 4)}, {upper_text(r.mu, 4)}", "not proved"),
             setting=(Quantity("budget", s.get("dissipation_seconds"), suffix=" s"),),
-            numbers=(Quantity("alpha", r.alpha, sig=6), Quantity("mu", r.mu, sig=6),
-                     Quantity("mu_residual", r.mu_residual, sig=6),
+            numbers=(Quantity("alpha", r.alpha, sig=6, bound="lower"),
+                     Quantity("mu", r.mu, sig=6, bound="upper"),
+                     Quantity("mu_residual", r.mu_residual, sig=6, bound="upper"),
                      Quantity("vertices of dk/dy's cover", r.vertices),
                      Quantity("boxes", r.boxes)),
             facts=(Quantity("Status", r.status.value),
-                   Quantity("Rate of V (alpha)", r.alpha, "not proved", sig=6),
-                   Quantity("Noise gain (mu)", r.mu, "not proved", sig=6),
-                   Quantity("Residual gain", r.mu_residual, "none (structural gain)", sig=6),
+                   Quantity("Rate of V (alpha)", r.alpha, "not proved", sig=6, bound="lower"),
+                   Quantity("Noise gain (mu)", r.mu, "not proved", sig=6, bound="upper"),
+                   Quantity("Residual gain", r.mu_residual, "none (structural gain)", sig=6,
+                            bound="upper"),
                    Quantity("Pieces proved", r.vertices),
                    Quantity("Candidates tried", len(r.candidates))))
 

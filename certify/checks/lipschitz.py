@@ -25,7 +25,7 @@ from certify.design import lipsdp, sdp
 from certify.model.kernels import gain_terms
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
-from certify.presentation import Presentation, Quantity
+from certify.presentation import Presentation, Quantity, upper_text
 from certify.progress import NullProgress, Progress
 from certify.prove.weighted import weighting
 from certify.results import LipschitzResult, Status
@@ -227,17 +227,18 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
     seconds = time.perf_counter() - t0
     parts = [f"sampled >= {sampled:.6g}"]
     if lipsdp is not None:
-        parts.append(f"LipSDP {lipsdp:.6g} (verified)")
+        parts.append(f"LipSDP {upper_text(lipsdp, 6)} (verified)")
     elif res is not None:
         parts.append(f"LipSDP unverified ({res.message})")
     else:
         parts.append("LipSDP not applicable (structural k = G (y - h): the MLP's constant does "
                      "not bound k's)")
-    parts.append(f"naive {naive_f:.6g}" + (" (local, over X x Y)" if structural else ""))
+    parts.append(f"naive {upper_text(naive_f, 6)}"
+                 + (" (local, over X x Y)" if structural else ""))
     if local_upper is not None:
-        parts.append(f"interval prover {local_upper:.6g} (local)")
+        parts.append(f"interval prover {upper_text(local_upper, 6)} (local)")
     if L_P is not None and not identity_metric:
-        parts.append(f"L_P (P^(1/2) k) <= {L_P:.6g} ({L_P_which})")
+        parts.append(f"L_P (P^(1/2) k) <= {upper_text(L_P, 6)} ({L_P_which})")
     elif local_skipped:
         parts.append(f"local proof not run (the global bound is within {LOCAL_ROOM:g} of the "
                      "sampled value)")
@@ -251,7 +252,7 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
                f"{value:.6g} ({which}); " + "; ".join(parts))
     else:
         status = Status.PROVED
-        msg = (f"L <= {value:.6g} ({which}" + (", valid while y and y_e stay in Y" if
+        msg = (f"L <= {upper_text(value, 6)} ({which}" + (", valid while y and y_e stay in Y" if
                which == "local" else ", any xhat and y") + "); " + "; ".join(parts))
     progress.finish(task, msg)
     solver["sampled_at"] = where
@@ -301,20 +302,23 @@ class LipschitzCheck(Check):
         setting = [Quantity("budget", s.get("lipschitz_seconds"), suffix=" s")]
         if solver:
             setting.append(Quantity("LipSDP with", solver))
-        facts = [Quantity("Used", r.value, "no sound bound", suffix=which)]
+        facts = [Quantity("Used", r.value, "no sound bound", suffix=which, bound="upper")]
         if r.solver:
             facts += [Quantity(f"LipSDP solver: {k}", v) for k, v in r.solver.items()
                       if not isinstance(v, (dict, list))]
         return Presentation(
             sampled=Quantity("L \u2265 (sampled max \u2016\u2202k/\u2202y\u2016)", r.sampled),
-            proved=Quantity("L \u2264 (bound used)", r.value, "no sound bound", suffix=which),
+            proved=Quantity("L \u2264 (bound used)", r.value, "no sound bound", suffix=which,
+                            bound="upper"),
             setting=tuple(setting),
-            numbers=(Quantity("LipSDP (verified)", r.lipsdp, "not verified", sig=6),
+            numbers=(Quantity("LipSDP (verified)", r.lipsdp, "not verified", sig=6,
+                              bound="upper"),
                      Quantity("LipSDP raw", r.lipsdp_raw, sig=6),
                      Quantity("LMI max eigenvalue", r.lipsdp_lmi_max_eig, sig=3, signed=True),
-                     Quantity("local interval bound", r.local_upper, sig=6),
-                     Quantity("naive", r.naive, sig=6), Quantity("sampled", r.sampled, sig=6),
-                     Quantity("used", r.value, sig=6, suffix=which)),
+                     Quantity("local interval bound", r.local_upper, sig=6, bound="upper"),
+                     Quantity("naive", r.naive, sig=6, bound="upper"),
+                     Quantity("sampled", r.sampled, sig=6),
+                     Quantity("used", r.value, sig=6, suffix=which, bound="upper")),
             facts=tuple(facts))
 
 

@@ -19,7 +19,7 @@ from certify.checks.base import Check, Context
 from certify.figuredata import ProofBoxes
 from certify.model.kernels import mpdi_lam_max
 from certify.model.problem import Problem
-from certify.presentation import Presentation, Quantity
+from certify.presentation import Presentation, Quantity, lower_text, upper_text
 from certify.progress import NullProgress, Progress
 from certify.results import Counterexample, MpdiResult, Status
 from certify.search.falsify import SearchOutcome, maximize_over_box
@@ -134,7 +134,7 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
             seconds=time.perf_counter() - t0,
             message=(f"D is not negative semidefinite: lam_max(D) = {search.best_value:.4g} > 0 "
                      f"at xhat={_fmt(cex[0].xhat)}, y={_fmt(cex[0].y)} (sound lower bound "
-                     f"{cex[0].sound_bound:.3g}); "
+                     f"{lower_text(cex[0].sound_bound)}); "
                      f"{100 * search.above_fraction:.3g}% of {search.grid_points} grid points "
                      "violate it"), **common)
     seeds = torch.as_tensor(search.top_points, dtype=torch.float64, device="cpu")
@@ -155,13 +155,14 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
                           proof=outcome.stats, seconds=time.perf_counter() - t0,
                           message=(f"prover found lam_max(D) = {cex.value:.4g} > 0 at "
                                    f"xhat={_fmt(cex.xhat)}, y={_fmt(cex.y)} (sound lower "
-                                   f"bound {cex.sound_bound:.3g})"), **common)
+                                   f"bound {lower_text(cex.sound_bound)})"), **common)
     if outcome.status == Status.PROVED and outcome.upper is not None and outcome.upper <= 0:
         return MpdiResult(status=Status.PROVED, upper=outcome.upper, proof=outcome.stats,
                           seconds=time.perf_counter() - t0,
                           message=(f"proved D <= 0 on all of X x Y: max lam_max(D) in "
-                                   f"[{common['lower']:.4g}, {outcome.upper:.4g}]"), **common)
-    best = "none" if outcome.upper is None else f"{outcome.upper:.4g}"
+                                   f"[{common['lower']:.4g}, {upper_text(outcome.upper, 4)}]"),
+                          **common)
+    best = "none" if outcome.upper is None else upper_text(outcome.upper, 4)
     if near_tie or common["lower"] > 0:
         return MpdiResult(
             status=Status.UNKNOWN, upper=outcome.upper, proof=outcome.stats,
@@ -217,14 +218,16 @@ class MpdiCheck(Check):
         why_no_upper = ("not needed: counterexample found" if r.status == Status.VIOLATED
                         else "no proof attempted")
         upper = Quantity("sound upper bound on max \u03bb_max(D)", r.upper, why_no_upper,
-                         signed=True)
+                         signed=True, bound="upper")
         numbers = [Quantity("lower (sampled max lambda_max(D))", r.lower, sig=6, signed=True),
-                   Quantity("upper (proved bound)", r.upper, why_no_upper, sig=6, signed=True),
+                   Quantity("upper (proved bound)", r.upper, why_no_upper, sig=6, signed=True,
+                            bound="upper"),
                    Quantity("violating fraction of grid", r.violating_fraction),
                    Quantity("counterexamples", len(r.counterexamples))]
         facts = [Quantity("Status", r.status.value),
                  Quantity("Sampled max \u03bb_max(D)", r.lower, sig=6, signed=True),
-                 Quantity("Proved upper bound", r.upper, why_no_upper, sig=6, signed=True),
+                 Quantity("Proved upper bound", r.upper, why_no_upper, sig=6, signed=True,
+                          bound="upper"),
                  Quantity("Violating fraction of the grid", 100 * r.violating_fraction,
                           suffix=" %"),
                  Quantity("Grid points", r.grid_points),

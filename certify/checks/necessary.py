@@ -36,7 +36,7 @@ from certify.design.manifold import (
     vertex_upper_bound,
 )
 from certify.design.metric import kernel_basis, output_matrix
-from certify.presentation import Presentation, Quantity
+from certify.presentation import Presentation, Quantity, lower_text, upper_text
 from certify.progress import NullProgress, Progress
 from certify.results import NecessaryResult, Status
 from certify.search.witness import is_witness, manifold_witness_lower
@@ -126,7 +126,7 @@ def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
     if is_witness(q_sound):
         status = Status.VIOLATED
         msg = (f"q = {q_max:.6g} > 0 at xhat = {_fmt(xw)}, y = {_fmt(y_w)} (sound lower bound "
-               f"{q_sound:.3g}): no C^1 gain meets the MPDI and the boundary condition "
+               f"{lower_text(q_sound)}): no C^1 gain meets the MPDI and the boundary condition "
                "together with this P and lam")
     else:
         upper = vertex_upper_bound(system, Pn, lam)
@@ -141,7 +141,8 @@ def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
                     upper = up2
         if upper is not None and upper <= 0:
             status = Status.PROVED
-            msg = (f"q <= {upper:.4g} on all of {{xhat in X : h(xhat) in Y}} (sound bound); "
+            msg = (f"q <= {upper_text(upper, 4)} on all of {{xhat in X : h(xhat) in Y}} "
+                   "(sound bound); "
                    f"largest value found {q_max:.4g}")
         elif q_max > 0:
             status = Status.UNKNOWN
@@ -194,7 +195,8 @@ def _explain(status: Status, P: np.ndarray, lam: float, q_max: float, xw: torch.
     if status is Status.PROVED:
         return (f"With {Pdesc} and lam = {lam:g} the network-independent obstruction is absent: "
                 f"on every state whose output lies in Y, the directions the output cannot see "
-                f"already contract (sound bound {upper:.4g} <= 0). Whether the trained gain "
+                f"already contract (sound bound {upper_text(upper, 4)} <= 0). Whether the "
+                "trained gain "
                 f"meets the contraction condition is the MPDI check's job.{cap}")
     return (f"No point violating the necessary condition was found (largest value "
             f"{q_max:.4g}), but it could not be proved everywhere within the budget; the MPDI "
@@ -219,17 +221,18 @@ class NecessaryCheck(Check):
     def present(self, r: NecessaryResult, certificate: Any) -> Presentation:
         return Presentation(
             sampled=Quantity("max q found", r.q_max, signed=True),
-            proved=Quantity("q \u2264 (sound bound)", r.q_upper, "not bounded", signed=True),
+            proved=Quantity("q \u2264 (sound bound)", r.q_upper, "not bounded", signed=True,
+                            bound="upper"),
             setting=(Quantity("\u03bb =", certificate.lam),
                      Quantity("P =", certificate.P, sig=3)),
             numbers=(Quantity("q_max", r.q_max, sig=6, signed=True),
-                     Quantity("q_upper", r.q_upper, sig=6, signed=True),
+                     Quantity("q_upper", r.q_upper, sig=6, signed=True, bound="upper"),
                      Quantity("witness", r.witness), Quantity("rate cap", r.rate_cap, sig=6),
                      Quantity("residual price", r.residual_price, sig=6)),
             facts=(Quantity("Status", r.status.value),
                    Quantity("max q found", r.q_max, sig=6, signed=True),
                    Quantity("Sound bound q \u2264", r.q_upper, "not bounded", sig=6,
-                            signed=True),
+                            signed=True, bound="upper"),
                    Quantity("Witness x\u0302", r.witness),
                    Quantity("Witness y = h(x\u0302)", r.witness_y),
                    Quantity("Rate cap (any gain with exact BC)", r.rate_cap, "not computed",

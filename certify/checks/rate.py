@@ -17,7 +17,7 @@ from certify.checks.base import Check, Context
 from certify.checks.mpdi import counterexamples_from, joint_box
 from certify.model.kernels import pointwise_rate
 from certify.model.problem import Problem
-from certify.presentation import Presentation, Quantity
+from certify.presentation import Presentation, Quantity, lower_text
 from certify.progress import NullProgress, Progress
 from certify.results import MpdiResult, RateResult, Status
 from certify.search.falsify import maximize_over_box
@@ -118,7 +118,8 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
     if sampled_upper <= 0 and witnessed:
         status, msg = Status.VIOLATED, (
             f"no contraction: at xhat={worst_cex.xhat}, y={worst_cex.y} the pointwise rate is "
-            f"{sampled_upper:.4g} <= 0 (sound: lam_max(He{{P J}}) >= {worst_cex.sound_bound:.3g}"
+            f"{sampled_upper:.4g} <= 0 (sound: lam_max(He{{P J}}) >= "
+            f"{lower_text(worst_cex.sound_bound)}"
             f" >= 0 there), so lam_cert <= 0 and no error bound exists")
     elif sampled_upper <= 0:
         status, msg = Status.UNKNOWN, (
@@ -128,10 +129,12 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
             "shown <= 0")
     elif proved_lower is not None and proved_lower > 0:
         status, msg = Status.PROVED, (
-            f"lam_cert in [{proved_lower:.4g}, {sampled_upper:.4g}] (design lam {problem.lam:g}; "
+            f"lam_cert in [{lower_text(proved_lower, 4)}, {sampled_upper:.4g}] (design lam "
+            f"{problem.lam:g}; "
             "the error contracts at rate 2 lam_cert in the P-norm)")
     else:
-        lower = "not proved" if proved_lower is None else f"proved lower bound {proved_lower:.4g}"
+        lower = ("not proved" if proved_lower is None
+                 else f"proved lower bound {lower_text(proved_lower, 4)}")
         status, msg = Status.UNKNOWN, (
             f"lam_cert <= {sampled_upper:.4g} (sampled); {lower}")
     return RateResult(status, msg, problem.lam, sampled_upper, proved_lower, worst_cex, seconds)
@@ -156,11 +159,11 @@ class RateCheck(Check):
     def present(self, r: RateResult, certificate: Any) -> Presentation:
         s = certificate.settings or {}
         lower = Quantity("\u03bb_cert \u2265 (proved)", r.proved_lower,
-                         "MPDI not proved at any \u03bb > 0", signed=True)
+                         "MPDI not proved at any \u03bb > 0", signed=True, bound="lower")
         facts = [Quantity("Design \u03bb", r.lam_design),
                  Quantity("\u03bb_cert \u2264 (sampled)", r.sampled_upper, sig=6, signed=True),
                  Quantity("\u03bb_cert \u2265 (proved, branch and bound)", r.proved_lower,
-                          "not proved", sig=6, signed=True)]
+                          "not proved", sig=6, signed=True, bound="lower")]
         if r.worst is not None:
             facts += [Quantity("Sampled side attained at x\u0302", r.worst.xhat),
                       Quantity("Sampled side attained at y", r.worst.y)]
@@ -171,7 +174,7 @@ class RateCheck(Check):
                      Quantity("B&B budget", s.get("rate_seconds"), suffix=" s")),
             numbers=(Quantity("lam_design", r.lam_design, sig=6),
                      Quantity("sampled upper", r.sampled_upper, sig=6),
-                     Quantity("proved lower", r.proved_lower, sig=6)),
+                     Quantity("proved lower", r.proved_lower, sig=6, bound="lower")),
             facts=tuple(facts))
 
 

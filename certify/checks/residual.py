@@ -11,7 +11,7 @@ import torch
 from certify.checks.base import Check, Context
 from certify.model.kernels import gain_terms
 from certify.model.problem import Problem
-from certify.presentation import Presentation, Quantity
+from certify.presentation import Presentation, Quantity, upper_text
 from certify.progress import NullProgress, Progress
 from certify.prove.weighted import weighting
 from certify.results import ResidualResult, Status
@@ -70,8 +70,9 @@ def check_residual(problem: Problem, settings: VerifySettings, *,
         upper_P = w.bound(weighted, w.value_error)
     else:
         upper_P = float(upper)
-    where = "" if upper_P is None else f"; ||P^(1/2) k(x, h(x))|| <= {upper_P:.4g}"
-    return ResidualResult(Status.PROVED, f"eps_bar in [{sampled:.4g}, {upper:.4g}]{where}",
+    where = "" if upper_P is None else f"; ||P^(1/2) k(x, h(x))|| <= {upper_text(upper_P, 4)}"
+    return ResidualResult(Status.PROVED,
+                          f"eps_bar in [{sampled:.4g}, {upper_text(float(upper), 4)}]{where}",
                           sampled, float(upper), worst=worst, seconds=time.perf_counter() - t0,
                           upper_P=upper_P)
 
@@ -95,12 +96,13 @@ class ResidualCheck(Check):
         label = "\u03b5\u0304 \u2264 (interval B&B)"
         zero = r.structural and r.upper in (0, 0.0, None)
         proved = (Quantity(label, 0, suffix=" (by construction)") if zero
-                  else Quantity(label, r.upper, "bound not established"))
+                  else Quantity(label, r.upper, "bound not established", bound="upper"))
         return Presentation(
             sampled=Quantity("\u03b5\u0304 \u2265 (sampled + ascent)", r.sampled),
             proved=proved,
             setting=(Quantity("budget", s.get("residual_seconds"), suffix=" s over X"),),
-            numbers=(Quantity("sampled", r.sampled, sig=6), Quantity("upper", r.upper, sig=6),
+            numbers=(Quantity("sampled", r.sampled, sig=6),
+                     Quantity("upper", r.upper, sig=6, bound="upper"),
                      Quantity("structural", r.structural)),
             facts=(Quantity("Status", r.status.value),
                    Quantity("Sampled \u03b5\u0304 \u2265", r.sampled, sig=6),

@@ -44,7 +44,7 @@ from certify.checks.base import Check, Context
 from certify.checks.bounds import BOUND_NAMES, bound_curve, initial_value, settle_time
 from certify.figuredata import FIGURE_DIGITS, round_list
 from certify.model.problem import Problem
-from certify.presentation import Presentation, Quantity
+from certify.presentation import Presentation, Quantity, upper_text
 from certify.progress import NullProgress, Progress
 from certify.results import BoundResult, BoundsResult, SimulationResult, SimulationRun, Status
 from certify.settings import DEFAULT_SIM_TIME, VerifySettings
@@ -549,7 +549,8 @@ def _summary(runs: list[SimulationRun], bounds: BoundsResult | None,
         if worst is not None:
             c = worst.conservatism
             parts.append(f"observed peak {worst.peak_error:.3g} ('{worst.label}') vs bound "
-                         f"{bounds.headline:.3g} after t >= {T:.3g} s: the bound is "
+                         f"{upper_text(bounds.headline)} after t >= {upper_text(T, 2)} s: the "
+                         "bound is "
                          + (f"{c:.3g}x the worst run" if c is not None and math.isfinite(c)
                             else "infinitely far from the worst run (no error)"))
         else:

@@ -38,6 +38,7 @@ import torch
 
 from certify.arith.golden import golden_section
 from certify.arith.intervals import gamma
+from certify.arith.text import lower_text, upper_text
 from certify.enclose.network_interval import gain_enclosure
 from certify.model.kernels import contraction_matrix, gain_terms
 from certify.model.problem import Problem
@@ -412,8 +413,9 @@ def prove_dissipation(problem: Problem, *, vbar: float, eps_P: float = 0.0,
         tried.append(dict(alpha=cand["alpha"], mu=mu, bound=bound, status=status.value))
         if status == Status.PROVED:
             return DissipationOutcome(
-                Status.PROVED, f"V' <= -{cand['alpha']:.4g} V + {mu:.4g} ||v||^2"
-                + (f" + {cand['mu_r']:.4g} ||P^(1/2) r||^2" if cand["mu_r"] else "")
+                Status.PROVED, f"V' <= -{lower_text(cand['alpha'], 4)} V + "
+                f"{upper_text(mu, 4)} ||v||^2"
+                + (f" + {upper_text(cand['mu_r'], 4)} ||P^(1/2) r||^2" if cand["mu_r"] else "")
                 + f" proved over X x Y ({len(shifts)} piece(s) covering dk/dy)",
                 alpha=cand["alpha"], mu=mu, mu_residual=cand["mu_r"] or None,
                 vertices=len(cover.vertices), delta=cover.delta, candidates=tried,

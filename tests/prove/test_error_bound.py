@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from certify.checks.bounds import check_bounds, inverse_diagonal_upper, settle_time
 from certify.model.kernels import gain_terms
+from certify.presentation import error_headline, upper_text
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
 from certify.prove.dissipation import dk_dy_cover, prove_dissipation, upper_shift
@@ -161,6 +162,12 @@ def test_dissipation_bound_in_the_headline():
     # the settle time: the curve from the worst start reaches the headline there
     assert r.settle_time > 0
     assert settle_time(r, "dissipation", 1e-3, r.headline) == 0.0
+    # the check's line says what the headline says, rounded outward (never below the proof)
+    head = error_headline(r)
+    assert r.message.startswith(f"||e|| <= {upper_text(r.headline)} for noise <= 0.15 after "
+                                f"t >= {upper_text(r.settle_time, 2)} s")
+    assert head.sentence(unicode=False).replace("||e||", "") in r.message.replace("||e||", "")
+    assert "ultimate bounds (t -> infinity): " in r.message
 
 
 def test_inverse_diagonal_upper_bounds():
