@@ -207,8 +207,12 @@ def _f(v: Any, fmt: str = ".4g") -> str:
 def _headline(r: dict[str, Any]) -> str:
     if r.get("headline") is None:
         return "—"
+    from certify.arith.text import upper_text  # as the certificate's headline prints it
+
     word = "vacuous" if r.get("vacuous") else "useful"
-    return f"<= {r['headline']:.3g} after t >= {_f(r.get('settle_time'), '.3g')} s ({word})"
+    after = "" if r.get("settle_time") is None else \
+        f" after t >= {upper_text(r['settle_time'], 2)} s"
+    return f"<= {upper_text(r['headline'])}{after} ({word})"
 
 
 def main(argv: list[str] | None = None) -> int:
