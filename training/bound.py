@@ -358,7 +358,8 @@ def train_bound(system: System, config: TrainConfig, *, min_rate: float | None =
     say(f"designed bound {design.bound(REPORT_VBAR):.4g} at noise {REPORT_VBAR:g} (vertex "
         f"SDP; per component "
         + ", ".join(f"{REPORT_VBAR * c:.3g}" for c in design.per_component or [])
-        + f"), sampled {REPORT_VBAR * sampled_lin['per_unit_noise']:.4g}; lam = {lam:.4g}")
+        + f"), sampled {REPORT_VBAR * sampled_lin['per_unit_noise']:.4g}; the checkpoint states "
+          f"lam = {lam:.4g} ({LAM_FRACTION:g} x alpha/4, a margin for the MPDI proof)")
     attempt = None
     chosen, returned = lin, "linear"
     proof: dict[str, Any] = {}

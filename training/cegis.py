@@ -105,7 +105,7 @@ class RoundRecord:
     lip: float  # the penalty's power mean of ||dk/dy||_F on the collocation points
     lip_max: float  # max ||dk/dy||_F on the collocation points
     max_lam_found: float  # largest float64 lam_max(D) found by the falsifier (at design lam)
-    status: str  # PROVED / VIOLATED / UNKNOWN / FALSIFIED (counterexample, proof skipped)
+    status: str  # PROVED / VIOLATED / UNKNOWN / SKIPPED-NEAR-0 (proof skipped, see below)
     proved_volume: float | None
     points: int  # collocation points trained on this round
     added: int  # points added after this round
@@ -387,7 +387,7 @@ class RoundFindings:
     """What the falsifier and the prover found for one round's network."""
 
     status: Status
-    label: str  # PROVED / VIOLATED / UNKNOWN / FALSIFIED (counterexample, proof skipped)
+    label: str  # PROVED / VIOLATED / UNKNOWN / SKIPPED-NEAR-0 (see `search_round`)
     best_value: float  # largest float64 lam_max(D) the falsifier found (at design lam)
     proof: ProofOutcome | None  # None when a counterexample skipped the proof
     added: torch.Tensor  # new collocation points [k, n + p], k <= add_per_round
@@ -419,8 +419,10 @@ def search_round(problem: Problem, cs: CegisSettings, fsettings: VerifySettings,
     if search.nonfinite or search.best_value > -0.5 * cs.margin:
         bad = top[topv > -0.5 * cs.margin] if topv.numel() else top
         new.append(jittered(bad, lo, hi, cs.jitter, cs.jitter_scale, generator))
+        # a value above 0 violates the MPDI; one in (-margin/2, 0] is not a violation but is
+        # too close to 0 for a proof to be worth its time: proof skipped, points added
         status = Status.VIOLATED if search.best_value > 0 else Status.UNKNOWN
-        label = "VIOLATED" if search.best_value > 0 else "FALSIFIED"
+        label = "VIOLATED" if search.best_value > 0 else "SKIPPED-NEAR-0"
     else:
         t0 = time.perf_counter()
         remaining = deadline - time.perf_counter()

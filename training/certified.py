@@ -191,7 +191,8 @@ def train_certified(system: System, config: TrainConfig, *, P: np.ndarray | None
                                  seed=config.seed, activation=config.activation)
     if log is not None:
         warm = "none" if K is None else f"K = {np.round(K.numpy().ravel(), 3).tolist()}"
-        log(f"metric P = {np.array2string(P, precision=4)} (cond {np.linalg.cond(P):.4g}); "
+        rows = ", ".join("[" + ", ".join(f"{v:.4g}" for v in row) + "]" for row in P)
+        log(f"metric P = [{rows}] (cond {np.linalg.cond(P):.4g}); "
             f"warm start: {warm}")
     res = cegis(system, net, P, lam, settings=cs, points=config.points, log=log)
     if res.status is not Status.PROVED and proved is not None:

@@ -284,6 +284,7 @@ def test_device_help_agrees_with_the_readme_and_the_code(capsys):
     (["run", "missing.ckpt"], set(), "checkpoint missing.ckpt not found"),
     (["run", "missing.onnx", "--system", "vdp"], set(), "model missing.onnx not found"),
     (["train", "--help"], set(), None),
+    (["completion", "bash"], set(), None),
     (["train", "vpd", "-o", "x.ckpt"], set(), "did you mean 'vdp'?"),
 ])
 @pytest.mark.slow
