@@ -154,7 +154,10 @@ class Certificate:
             data = json.loads(path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise CertifyError(f"certificate {path} is not valid JSON ({exc})") from None
-        return cls.from_dict(data)
+        try:
+            return cls.from_dict(data)
+        except CertifyError as exc:  # name the file the message is about
+            raise CertifyError(f"{path}: {exc}") from None
 
 
 def format_json(data: Any, width: int = JSON_WIDTH) -> str:

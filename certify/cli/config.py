@@ -39,6 +39,14 @@ def read_tool_table(path: Path) -> dict[str, Any]:
     return {str(k).replace("-", "_"): v for k, v in table.items()}
 
 
+#: the command-line flag of each setting that has one, for errors about a flag's value
+FLAGS = {"grid_points": "--grid-points", "proof_seconds": "--proof-seconds",
+         "max_boxes": "--max-boxes", "noise": "--noise", "seed": "--seed",
+         "required": "--require", "skip": "--skip", "allow_unknown": "--allow-unknown",
+         "sim_time": "--sim-time", "adversarial_starts": "--adversarial-starts",
+         "workers": "--workers", "scheduler": "--scheduler", "device": "--device"}
+
+
 def load_settings(flags: dict[str, Any], config: Path | None = None,
                   use_pyproject: bool = True) -> tuple[VerifySettings, str | None]:
     """Settings from `[tool.certify]` overridden by `flags` (None values ignored).
@@ -60,4 +68,11 @@ def load_settings(flags: dict[str, Any], config: Path | None = None,
         values.update(table)
         source = str(path) if table else None
     values.update({k: v for k, v in flags.items() if v is not None})
-    return make_settings(values, source="option"), source
+    try:
+        return make_settings(values, source="option"), source
+    except SettingsError as exc:  # in the words the user typed: the flag, not the field
+        text = str(exc)
+        for name, flag in FLAGS.items():
+            if flags.get(name) is not None and text.startswith(f"option {name} "):
+                raise SettingsError(flag + text[len(f"option {name}"):]) from None
+        raise

@@ -48,7 +48,7 @@ def version() -> str:
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # one line, exit 2
-        self.exit(EXIT_BAD_INPUT, f"certify: error: {message} (see 'certify --help')\n")
+        self.exit(EXIT_BAD_INPUT, f"certify: error: {message} (see '{self.prog} --help')\n")
 
 
 def _report_flags(p: argparse.ArgumentParser, json_help: str) -> None:

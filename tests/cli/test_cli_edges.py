@@ -485,3 +485,25 @@ def test_certify_systems_piped_into_head(tmp_path):
     assert len(lines) == 2 and lines[0].split()[0] in ("duffing", "lorenz", "vdp"), lines
     assert lines[1] in ("status 0", f"status {EXIT_CLOSED_PIPE}"), lines  # wrote in time, or not
     assert proc.stderr == ""
+
+
+# ----- errors in the words the user typed ------------------------------------------------------
+@pytest.mark.parametrize("argv, words", [
+    (["run", str(VDP), "--require", "foo"], "--require must be a list of check names"),
+    (["run", str(VDP), "--sim-time", "-1"], "--sim-time must be a number > 0; got -1.0"),
+    (["run", str(VDP), "--noise", "nan"], "--noise must be a number >= 0; got nan"),
+    (["train", "vdp"], "-o/--output (see 'certify train --help')"),
+])
+def test_a_bad_flag_value_is_named_by_its_flag(tmp_path, monkeypatch, capsys, argv, words):
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run_cli(capsys, *argv)
+    assert code == 2 and words in err and out == "", err
+    _one_error_line(err)
+
+
+def test_a_file_that_is_not_a_certificate_is_named(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "bad.json").write_text("{}")
+    code, _, err = run_cli(capsys, "report", "bad.json", "--html", "r.html")
+    assert code == 2 and "bad.json: not a certify certificate" in err, err
+    assert not (tmp_path / "r.html").exists()
