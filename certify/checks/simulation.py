@@ -575,8 +575,10 @@ def _verdict(runs: list[SimulationRun], bounds: BoundsResult | None, have_bound:
     src_run = next((run for run in runs if run.noise == "gaussian"), None)
     src_text = (f" Source protocol (outside the conditions): MSE {src_run.mse:.4g}."
                 if src_run is not None else "")
-    where = (f"{exits} of {len(runs)} runs left the validity conditions (see the table of "
-             "runs).")
+    others = len(runs) - len(bounded)
+    counted = (f"{len(runs)} runs ({len(bounded)} with bounded noise, {others} with the "
+               "source's Gaussian noise)" if bounded and others else f"{len(runs)} runs")
+    where = f"{exits} of {counted} left the validity conditions (see the table of runs)."
     if not have_bound:
         why = ("no bounds were computed" if bounds is None else
                "no proved error bound to compare with (bounds " + bounds.status.value + ": "

@@ -14,6 +14,7 @@ from hypothesis import given
 from hypothesis import settings as settings_h
 from hypothesis import strategies as st
 
+from certify.arith.text import upper_text
 from certify.checks import simulation as simulation_mod
 from certify.checks.bounds import check_bounds
 from certify.checks.simulation import check_simulation, time_constant
@@ -191,7 +192,8 @@ def test_linear_example_peaks_stay_below_the_known_bound():
     assert f"observed peak {worst.peak_error:.3g}" in res.message
     assert f"the bound is {res.conservatism:.3g}x the worst run" in res.message
     assert res.long_runs == 6 and "6 of 6 runs valid >= 5 time constants of 1 s" in res.message
-    assert f"vs bound {bounds.headline:.3g} after t >= {bounds.settle_time:.3g} s" in res.message
+    assert (f"vs bound {upper_text(bounds.headline)} after t >= "
+            f"{upper_text(bounds.settle_time, 2)} s") in res.message  # rounded up
     assert not res.horizon_extended and "horizon" not in res.message
     assert from_jsonable(SimulationResult, to_jsonable(res)) == res
 
