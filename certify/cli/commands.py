@@ -251,7 +251,9 @@ def cmd_check(args: argparse.Namespace) -> int:
                 print(f"  fix: certify check {args.system} --lam {lam:g} --metric "
                       f"'{json.dumps(metric.P)}'", file=out)
     verdict = {0: "passes", 1: "fails", 3: "is undecided"}[code]
-    print(f"the spec as given {verdict} the pre-flight (exit {code})", file=out)
+    given = [flag for flag, v in (("--lam", args.lam), ("--metric", args.metric)) if v]
+    what = "the spec as given" if not given else f"the spec with {' and '.join(given)}"
+    print(f"{what} {verdict} the pre-flight (exit {code})", file=out)
     if args.json:
         _write_json(args.json, json.dumps(to_jsonable(record), indent=1) + "\n")
     return code

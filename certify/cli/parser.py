@@ -101,8 +101,9 @@ def build_parser(with_train: bool = True) -> argparse.ArgumentParser:
 
     p = sub.add_parser("check", parents=[common], formatter_class=formatter,
                        help="pre-flight a spec: necessary condition and metric synthesis",
-                       epilog="exit codes: 0 the spec as given passes, 1 it fails (a metric "
-                              "that fixes it is printed when one is found), 2 bad input, "
+                       epilog="exit codes: 0 the spec (with --lam, --metric if given) passes, "
+                              "1 it fails (a metric that fixes it is printed when one is "
+                              "found), 2 bad input, "
                               "3 undecided, 4 internal error.")
     p.add_argument("system", help=f"built-in name ({systems}) or spec path")
     p.add_argument("--lam", type=float, help="contraction rate (default: the spec's)")
