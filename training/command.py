@@ -37,7 +37,10 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     from certify.spec import builtin
 
     names = ", ".join(builtin.names())
-    parser.add_argument("system", help=f"built-in system name ({names}) or a spec .toml path")
+    parser.add_argument("system", nargs="?",
+                        help=f"built-in system name ({names}) or a spec .toml path")
+    parser.add_argument("--system", dest="system_option", metavar="SYSTEM",
+                        help="the same, as an option (as `certify run` takes it)")
     parser.add_argument("-o", "--output", required=True, help="checkpoint file to write (.ckpt)")
     recipes = "; ".join(f"{name}: {preset_summary(name)}" for name in PRESETS)
     parser.add_argument("--preset", default="paper", choices=list(PRESETS), metavar="PRESET",
@@ -153,6 +156,19 @@ def _config_from_args(args: argparse.Namespace, system: Any) -> Any:
                        activation=getattr(args, "activation", None),
                        curvature_weight=getattr(args, "curvature_weight", None),
                        curvature_radius=getattr(args, "curvature_radius", None))
+
+
+def resolve_system(args: argparse.Namespace) -> None:
+    """`args.system` from the positional argument or `--system` (one of them, or both
+    naming the same system); a clear error otherwise."""
+    option = getattr(args, "system_option", None)
+    if args.system is not None and option is not None and args.system != option:
+        raise SettingsError(f"two systems given: {args.system!r} and --system {option!r}; "
+                            "give one")
+    args.system = args.system if args.system is not None else option
+    if args.system is None:
+        raise SettingsError("certify train needs a system: a built-in name or a spec .toml "
+                            "(certify train vdp -o vdp.ckpt; see certify systems)")
 
 
 def run_train(args: argparse.Namespace, stdout: TextIO | None = None) -> int:

@@ -269,10 +269,11 @@ def _write_json(path: str, text: str) -> None:
 
 # ----- train ------------------------------------------------------------------------------
 def cmd_train(args: argparse.Namespace) -> int:
+    from training.command import resolve_system, run_train
+
+    resolve_system(args)
     check_paths([("-o", args.output)], [("the spec being trained for",
                                          system_argument(args.system))])
-    from training.command import run_train
-
     return run_train(args)
 
 

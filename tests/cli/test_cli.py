@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
 from certify.model import checkpoint
 from certify.spec.system import load_system
@@ -39,9 +40,9 @@ def test_bad_input_is_one_line_and_exit_2(workdir, capsys):
     assert code == 2 and err.startswith("certify: error:") and err.count("\n") == 1
     path = save_problem(workdir / "lin.ckpt", linear_problem(A, C, K, lam=0.3))
     code, _, err = run_cli(capsys, "run", path, "--max-boxes", "-3")
-    assert code == 2 and "max_boxes must be an int >= 1; got -3" in err
+    assert code == 2 and "--max-boxes must be an int >= 1; got -3" in err
     code, _, err = run_cli(capsys, "run", path, "--require", "mpdi,nonsense")
-    assert code == 2 and "required" in err
+    assert code == 2 and "--require must be a list of check names" in err
     code, _, err = run_cli(capsys, "run", path, "--no-such-flag")
     assert code == 2
 
@@ -128,6 +129,15 @@ def test_train_tiny_then_run(workdir, capsys):
     code, _, err = run_cli(capsys, "train", "vdp", "--hidden", "3,x", "-o", "x.ckpt")
     assert code == 2 and "--hidden" in err
     assert not (workdir / "x.ckpt").exists()
+    # the system as an option, as `certify run` takes it: the same checkpoint
+    code, _, err = run_cli(capsys, "train", "--system", "vdp", "--preset", "tiny", "-o",
+                           "tiny2.ckpt", "--quiet")
+    assert code == 0, err
+    again = checkpoint.load(workdir / "tiny2.ckpt")
+    assert again.problem.system.name == "vdp"
+    first, second = ck.problem.network.state_dict(), again.problem.network.state_dict()
+    assert first.keys() == second.keys()
+    assert all(torch.equal(first[k], second[k]) for k in first)  # same seed, same network
 
 
 def test_console_script_runs():

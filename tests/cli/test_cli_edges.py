@@ -285,6 +285,8 @@ def test_device_help_agrees_with_the_readme_and_the_code(capsys):
     (["run", "missing.onnx", "--system", "vdp"], set(), "model missing.onnx not found"),
     (["train", "--help"], set(), None),
     (["completion", "bash"], set(), None),
+    (["train", "-o", "x.ckpt"], set(), "certify train needs a system"),
+    (["train", "vdp", "--system", "lorenz", "-o", "x.ckpt"], set(), "two systems given"),
     (["train", "vpd", "-o", "x.ckpt"], set(), "did you mean 'vdp'?"),
 ])
 @pytest.mark.slow
