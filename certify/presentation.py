@@ -11,11 +11,12 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from certify.arith.text import bound_text, lower_text, upper_text
+from certify.arith.text import bound_text, lower_text, special_text, upper_text
 from certify.results import BoundsResult, CheckFailure, Status
 
 __all__ = ["Quantity", "Presentation", "NOTHING", "present_failure", "ErrorHeadline",
-           "error_headline", "upper_text", "lower_text", "bound_text", "BOUND_TITLES"]
+           "error_headline", "upper_text", "lower_text", "bound_text", "special_text",
+           "BOUND_TITLES"]
 
 
 @dataclass(frozen=True)

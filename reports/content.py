@@ -9,12 +9,11 @@ The per-check sections after the table are in `reports.sections`.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
 from certify.certificate import Certificate
-from certify.presentation import ErrorHeadline, Quantity, bound_text, upper_text
+from certify.presentation import ErrorHeadline, Quantity, bound_text, special_text, upper_text
 from certify.results import CheckFailure, Status
 
 DASH = "\u2014"
@@ -64,12 +63,9 @@ def fmt(x: Any, sig: int = 4, *, signed: bool = False, none: str = DASH) -> str:
     v = to_float(x)
     if v is None:
         return str(x)
-    if math.isnan(v):
-        return "NaN"
-    if math.isinf(v):
-        return ("+\u221e" if signed else "\u221e") if v > 0 else "-\u221e"
-    if v == 0:
-        return "0"
+    special = special_text(v, signed)
+    if special is not None:
+        return special
     a = abs(v)
     if a >= 1e6 or a < 1e-3:
         s = f"{v:.{max(sig - 1, 0)}e}"

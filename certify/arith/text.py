@@ -10,19 +10,25 @@ from __future__ import annotations
 import math
 from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
 
-__all__ = ["upper_text", "lower_text", "bound_text"]
+__all__ = ["upper_text", "lower_text", "bound_text", "special_text"]
+
+
+def special_text(x: float, signed: bool = False) -> str | None:
+    """'NaN', the infinities and zero spelled out; None for any other number."""
+    if math.isnan(x):
+        return "NaN"
+    if math.isinf(x):
+        return ("+\u221e" if signed else "\u221e") if x > 0 else "-\u221e"
+    return "0" if x == 0 else None
 
 
 def _directed(x: float, sig: int, rounding: str, signed: bool = False) -> str:
     """`x` rounded in the direction `rounding` (a `decimal` mode) to `sig` significant
     digits: plain decimals for 1e-3 <= |x| < 1e6, else mantissa and exponent ('1.25e-05').
     Exact: the float is read as the decimal it is, so the text is on the stated side."""
-    if math.isnan(x):
-        return "NaN"
-    if math.isinf(x):
-        return ("+\u221e" if signed else "\u221e") if x > 0 else "-\u221e"
-    if x == 0:
-        return "0"
+    special = special_text(x, signed)
+    if special is not None:
+        return special
     d = Decimal(x)
     q = d.quantize(Decimal(1).scaleb(d.adjusted() - sig + 1), rounding=rounding).normalize()
     sign = "+" if signed and x > 0 else ""
