@@ -67,12 +67,12 @@ _INT_MIN = {
 }
 _POS_FLOAT = {"proof_seconds", "rate_seconds", "residual_seconds", "lipschitz_seconds",
               "dissipation_seconds", "sim_time", "sim_dt"}
+_NONNEG_FLOAT = {"noise"}
 #: of those, the ones where None means "automatic"
 _OPTIONAL = {"sim_time"}
 
 #: the simulated seconds when sim_time is not set (before any extension for a slow bound)
 DEFAULT_SIM_TIME = 10.0
-_NONNEG_FLOAT = {"noise"}
 
 
 #: `max_boxes` where the device is a GPU and neither the options nor [tool.certify] name it:
