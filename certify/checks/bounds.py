@@ -29,16 +29,11 @@ from typing import Any
 
 import numpy as np
 
+from certify.arith.text import lower_text, upper_text
 from certify.checks.base import Check, Context
 from certify.errors import SettingsError
 from certify.model.problem import Problem
-from certify.presentation import (
-    Presentation,
-    Quantity,
-    error_headline,
-    lower_text,
-    upper_text,
-)
+from certify.presentation import Presentation, Quantity, error_headline
 from certify.results import BoundResult, BoundsResult, DissipationResult, Status
 
 #: Names accepted by `bound_curve`.

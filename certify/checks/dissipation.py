@@ -16,9 +16,10 @@ from __future__ import annotations
 import time
 from typing import Any
 
+from certify.arith.text import lower_text, upper_text
 from certify.checks.base import Check, Context
 from certify.model.problem import Problem
-from certify.presentation import Presentation, Quantity, lower_text, upper_text
+from certify.presentation import Presentation, Quantity
 from certify.results import DissipationResult, MpdiResult, ResidualResult, Status
 from certify.settings import VerifySettings
 

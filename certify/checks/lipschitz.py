@@ -20,12 +20,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from certify.arith.text import upper_text
 from certify.checks.base import Check, Context
 from certify.design import lipsdp, sdp
 from certify.model.kernels import gain_terms
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
-from certify.presentation import Presentation, Quantity, upper_text
+from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
 from certify.prove.weighted import weighting
 from certify.results import LipschitzResult, Status

@@ -15,11 +15,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from certify.arith.text import lower_text, upper_text
 from certify.checks.base import Check, Context
 from certify.figuredata import ProofBoxes
 from certify.model.kernels import mpdi_lam_max
 from certify.model.problem import Problem
-from certify.presentation import Presentation, Quantity, lower_text, upper_text
+from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
 from certify.results import Counterexample, MpdiResult, Status
 from certify.search.falsify import SearchOutcome, maximize_over_box

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from certify.arith.text import lower_text, upper_text
 from certify.checks.base import Check, Context
 from certify.design.manifold import (
     gain_free_D,
@@ -36,7 +37,7 @@ from certify.design.manifold import (
     vertex_upper_bound,
 )
 from certify.design.metric import kernel_basis, output_matrix
-from certify.presentation import Presentation, Quantity, lower_text, upper_text
+from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
 from certify.results import NecessaryResult, Status
 from certify.search.witness import is_witness, manifold_witness_lower

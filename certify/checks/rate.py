@@ -13,11 +13,12 @@ from typing import Any
 
 import torch
 
+from certify.arith.text import lower_text
 from certify.checks.base import Check, Context
 from certify.checks.mpdi import counterexamples_from, joint_box
 from certify.model.kernels import pointwise_rate
 from certify.model.problem import Problem
-from certify.presentation import Presentation, Quantity, lower_text
+from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
 from certify.results import MpdiResult, RateResult, Status
 from certify.search.falsify import maximize_over_box
