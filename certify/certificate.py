@@ -94,9 +94,11 @@ class Certificate:
         return None if r is None else presentation(name, r, self)
 
     def error_headline(self) -> ErrorHeadline:
-        """The certified error bound as the second headline after the verdict (or why there
-        is none), from the bounds check's result and the system's state names."""
-        return error_headline(self.checks.get("bounds"), (self.system or {}).get("states"))
+        """The error bound as the second headline after the verdict (or why there is none),
+        from the bounds check's result and the system's state names; what it rests on from
+        the other checks and the verdict (`certify.presentation.headline_basis`)."""
+        return error_headline(self.checks.get("bounds"), (self.system or {}).get("states"),
+                              checks=self.checks, verdict=self.verdict, lam=self.lam)
 
     def to_dict(self, *, trajectories: bool = False) -> dict[str, Any]:
         """The JSON form; each simulated run's states `x` and `xhat` only with

@@ -8,6 +8,7 @@ importing any check.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -15,8 +16,8 @@ from certify.arith.text import bound_text, lower_text, special_text, upper_text
 from certify.results import BoundsResult, CheckFailure, Status
 
 __all__ = ["Quantity", "Presentation", "NOTHING", "present_failure", "ErrorHeadline",
-           "error_headline", "upper_text", "lower_text", "bound_text", "special_text",
-           "BOUND_TITLES"]
+           "error_headline", "headline_basis", "BASES", "upper_text", "lower_text",
+           "bound_text", "special_text", "BOUND_TITLES"]
 
 
 @dataclass(frozen=True)
@@ -86,7 +87,7 @@ _NUDGE = 1e-12
 
 @dataclass(frozen=True)
 class ErrorHeadline:
-    """The certified error bound as the second headline after the verdict, as data.
+    """The error bound as the second headline after the verdict, as data.
 
     With a bound (`proved`): ||e(t)|| <= `bound` for noise ||v|| <= `noise` for every
     t >= `after` (seconds) from any start with x, xhat in X, under the validity conditions of
@@ -98,7 +99,9 @@ class ErrorHeadline:
     that start "no error bound".
 
     Every number is an upper bound as proved (never rounded down); `sentence` and
-    `components_text` print them rounded up (`upper_text`).
+    `components_text` print them rounded up (`upper_text`). `title` is the heading every
+    medium shows: "Certified error bound" only when `basis` is "certificate" (a CERTIFIED
+    verdict); otherwise it says what the bound rests on (`note`).
     """
 
     status: str
@@ -112,6 +115,18 @@ class ErrorHeadline:
     half_diagonal: float | None = None
     source: str = ""
     ultimate: float | None = None
+    #: what the bound rests on (`BASES`): "certificate" (the verdict is CERTIFIED), "proved"
+    #: (its contraction was proved, but the verdict is not CERTIFIED), "unproved" (the
+    #: contraction it rests on was not proved); "" when not assessed (no verdict given)
+    basis: str = ""
+    #: the proved rate the bound uses (a lower bound) and the design rate, for the note
+    lam_cert: float | None = None
+    lam_design: float | None = None
+    verdict: str = ""
+    #: the statuses of the checks it may rest on ("" when not run or not given)
+    mpdi_status: str = ""
+    rate_status: str = ""
+    dissipation_status: str = ""
 
     def _le(self, unicode: bool) -> str:
         return "\u2264" if unicode else "<="
@@ -160,6 +175,46 @@ class ErrorHeadline:
             text += f"; limit {upper_text(self.ultimate)} as {arrow}"
         return text
 
+    def note(self, unicode: bool = True) -> str:
+        """What the bound rests on when that is not the certificate, in words ('' for a
+        certified bound, one without a bound, or one not assessed): 'at the proved rate
+        λ_cert ≥ 0.4586; the certificate failed at the design rate λ = 0.5'."""
+        if not self.proved or self.basis in ("", "certificate"):
+            return ""
+        ge, lam = ("\u2265", "\u03bb") if unicode else (">=", "lam")
+        if self.basis == "unproved":
+            if self.source == "dissipation":
+                return ("NOT PROVED: it rests on the dissipation inequality, whose check is "
+                        f"{self.dissipation_status or 'not run'}")
+            return (f"NOT PROVED: it rests on the rate {lam}_cert, which neither the rate "
+                    f"check ({self.rate_status or 'not run'}) nor the MPDI "
+                    f"({self.mpdi_status or 'not run'}) proved")
+        if self.source == "dissipation":
+            rests = "from the proved dissipation inequality"
+        elif self.lam_cert is not None:
+            rests = f"at the proved rate {lam}_cert {ge} {lower_text(self.lam_cert, 4)}"
+        else:
+            rests = "at the proved rate"
+        design = "" if self.lam_design is None else f" {lam} = {self.lam_design:g}"
+        if self.mpdi_status == Status.VIOLATED.value:
+            return f"{rests}; the certificate failed at the design rate{design}"
+        if self.mpdi_status != Status.PROVED.value:
+            return f"{rests}; the MPDI at the design rate{design} was not proved"
+        return f"{rests}, not on the certificate (verdict {self.verdict or 'unknown'})"
+
+    def title(self, unicode: bool = True) -> str:
+        """The heading of the headline: 'Certified error bound' only under a CERTIFIED
+        verdict; 'Proved error bound (<note>)' when it rests on a proved contraction but
+        the verdict is not CERTIFIED; 'Error bound resting on an unproved condition
+        (<note>)'; plain 'Error bound' without a bound or when not assessed."""
+        if not self.proved or self.basis == "":
+            return "Error bound"
+        if self.basis == "certificate":
+            return "Certified error bound"
+        if self.basis == "unproved":
+            return f"Error bound resting on an unproved condition ({self.note(unicode)})"
+        return f"Proved error bound ({self.note(unicode)})"
+
     def line(self, unicode: bool = True) -> str:
         """Everything on one line: sentence, per component, size, source (or the reason)."""
         if not self.proved:
@@ -180,6 +235,7 @@ class ErrorHeadline:
                 "size": self.size_word() or None, "vacuous": self.vacuous if self.proved
                 else None, "box_half_diagonal": self.half_diagonal,
                 "source": self.source or None, "ultimate": self.ultimate,
+                "basis": self.basis or None, "title": self.title(),
                 "reason": self.reason or None}
 
 
@@ -189,12 +245,48 @@ def _no_bound(status: str, why: str) -> ErrorHeadline:
     return ErrorHeadline(status=status, proved=False, reason=reason)
 
 
-def error_headline(bounds: Any, states: list[str] | None = None) -> ErrorHeadline:
+#: what an error bound may rest on (`ErrorHeadline.basis`)
+BASES = ("certificate", "proved", "unproved")
+
+
+def _status_word(result: Any) -> str:
+    status = getattr(result, "status", None)
+    return "" if status is None else (status.value if isinstance(status, Status)
+                                      else str(status))
+
+
+def headline_basis(source: str, checks: Mapping[str, Any], verdict: str) -> str:
+    """What a proved bound from `source` rests on (`BASES`), given the certificate's check
+    results and verdict.
+
+    The dissipation bound rests on the dissipation check (PROVED: V' <= -alpha V + mu
+    ||v||^2 with alpha > 0 is itself a proved contraction); every other bound on lam_cert,
+    proved by the rate check (PROVED, a positive proved lower bound) or by a PROVED MPDI
+    (contraction at the design rate). Only a CERTIFIED verdict makes it "certificate"."""
+    if source == "dissipation":
+        proved = _status_word(checks.get("dissipation")) == Status.PROVED.value
+    else:
+        rate = checks.get("rate")
+        lower = getattr(rate, "proved_lower", None)
+        proved = ((_status_word(rate) == Status.PROVED.value and lower is not None
+                   and lower > 0)
+                  or _status_word(checks.get("mpdi")) == Status.PROVED.value)
+    if not proved:
+        return "unproved"
+    return "certificate" if verdict == "CERTIFIED" else "proved"
+
+
+def error_headline(bounds: Any, states: list[str] | None = None, *,
+                   checks: Mapping[str, Any] | None = None, verdict: str | None = None,
+                   lam: float | None = None) -> ErrorHeadline:
     """The headline of the bounds check's result (`BoundsResult`, a `CheckFailure` or None
     when it did not run); `states` names the components (the system's state names).
 
-    A certificate written before the headline fields existed (PROVED, `headline` None) gets
-    the smallest applicable ultimate bound, reached as t -> infinity (`after` None)."""
+    With the certificate's `checks`, `verdict` and design rate `lam`, the headline also
+    says what the bound rests on (`basis`, `headline_basis`): its title says "Certified"
+    only under a CERTIFIED verdict. A certificate written before the headline fields
+    existed (PROVED, `headline` None) gets the smallest applicable ultimate bound, reached
+    as t -> infinity (`after` None)."""
     if bounds is None:
         return _no_bound(Status.SKIPPED.value, "the bounds check was not run")
     status = bounds.status.value if isinstance(bounds.status, Status) else str(bounds.status)
@@ -222,8 +314,16 @@ def error_headline(bounds: Any, states: list[str] | None = None) -> ErrorHeadlin
             name = names[i] if i < len(names) else ""
             comps.append((name, float(v) * scale * (1.0 + _NUDGE) if scale != 1.0
                           else float(v)))
+    basis = "" if checks is None or verdict is None else headline_basis(source, checks,
+                                                                           verdict)
     return ErrorHeadline(status=status, proved=True, bound=bound, noise=float(bounds.vbar),
                          after=None if after is None else float(after),
                          components=tuple(comps), vacuous=bool(bounds.vacuous),
                          half_diagonal=bounds.box_half_diagonal, source=source,
-                         ultimate=ultimate)
+                         ultimate=ultimate, basis=basis,
+                         lam_cert=None if bounds.lam_cert is None else float(bounds.lam_cert),
+                         lam_design=None if lam is None else float(lam),
+                         verdict=verdict or "",
+                         mpdi_status=_status_word((checks or {}).get("mpdi")),
+                         rate_status=_status_word((checks or {}).get("rate")),
+                         dissipation_status=_status_word((checks or {}).get("dissipation")))

@@ -87,6 +87,16 @@ def fmt_none(x: Any, reason: str, sig: int = 4, *, signed: bool = False) -> str:
     return fmt(x, sig, signed=signed)
 
 
+def fmt_bound(x: Any, side: str, sig: int = 4, reason: str = "", *,
+              signed: bool = False) -> str:
+    """A sound bound on `side` ("upper" or "lower") rounded outward (`bound_text`), so the
+    text never claims more than was proved; None (or a non-number) says why, as `fmt_none`."""
+    v = to_float(x)
+    if v is None:
+        return fmt_none(None, reason) if x is None else fmt(x)
+    return bound_text(v, side, sig, signed=signed)
+
+
 def fmt_vec(v: Any, sig: int = 3) -> str:
     """A point as (a, b, c)."""
     if v is None:
@@ -255,15 +265,19 @@ def result(cert: Certificate, name: str) -> Any:
 # ----------------------------------------------------------------------------- facts
 
 def lam_cert_text(cert: Certificate) -> str:
-    """lam_cert as the bracket the rate check established."""
+    """lam_cert as the bracket the rate check established, rounded outward: the proved
+    lower end down, the sampled upper end up ('∈ [2.532, 2.534]')."""
     rate = result(cert, "rate")
     if rate is None:
         b = result(cert, "bounds")
-        return fmt(b.lam_cert) if b is not None and b.lam_cert is not None else \
-            f"{DASH} (rate not checked)"
-    if rate.proved_lower is None:
-        return f"\u2264 {fmt(rate.sampled_upper)} (sampled); no proved lower bound"
-    return f"\u2208 [{fmt(rate.proved_lower)}, {fmt(rate.sampled_upper)}]"
+        return (f"\u2265 {bound_text(b.lam_cert, 'lower', 4, signed=True)}"
+                if b is not None and to_float(b.lam_cert) is not None
+                else f"{DASH} (rate not checked)")
+    upper = (DASH if to_float(rate.sampled_upper) is None
+             else bound_text(rate.sampled_upper, "upper", 4, signed=True))
+    if to_float(rate.proved_lower) is None:
+        return f"\u2264 {upper} (sampled); no proved lower bound"
+    return f"\u2208 [{bound_text(rate.proved_lower, 'lower', 4, signed=True)}, {upper}]"
 
 
 def system_facts(cert: Certificate) -> list[tuple[str, str]]:
@@ -283,12 +297,12 @@ def system_facts(cert: Certificate) -> list[tuple[str, str]]:
               ("Metric P", fmt_matrix(cert.P))]
     metric = result(cert, "metric")
     bounds = result(cert, "bounds")
-    cond = (metric.condition_number if metric is not None else
-            bounds.kappa_P if bounds is not None else None)
-    if cond is not None:
-        facts.append(("cond(P)", fmt(cond)))
+    if metric is not None and metric.condition_number is not None:
+        facts.append(("cond(P)", fmt(metric.condition_number)))
+    elif bounds is not None and to_float(bounds.kappa_P) is not None:  # a sound upper bound
+        facts.append(("cond(P)", f"\u2264 {bound_text(bounds.kappa_P, 'upper', 4)}"))
     facts += [("Design rate \u03bb", fmt(cert.lam)),
-              ("Certified rate \u03bb_cert", lam_cert_text(cert))]
+              ("Contraction rate \u03bb_cert", lam_cert_text(cert))]
     net = cert.network or {}
     if net:
         hidden = net.get("hidden")
@@ -357,11 +371,14 @@ def verdict_notes(cert: Certificate) -> list[str]:
 
 @dataclass(frozen=True)
 class HeadlineText:
-    """The certified error bound, the second headline after the verdict, as the lines every
-    medium shows (`error_headline_text`): `sentence` ('‖e‖ ≤ 1.25 for noise ≤ 0.15 after
-    t ≥ 3.1 s', or the reason there is none), `components` ('|e1| ≤ 0.396 (x1), ...'),
-    `size_word` ('useful' / 'vacuous', '' without a bound), `size` (the word with the box's
-    half-diagonal), `source` (which bound it comes from: small print)."""
+    """The error bound, the second headline after the verdict, as the lines every medium
+    shows (`error_headline_text`): `title` (the heading: 'Certified error bound' only under
+    a CERTIFIED verdict, else what the bound rests on: `ErrorHeadline.title`), `note` (that
+    qualification alone, '' for a certified bound), `sentence` ('‖e‖ ≤ 1.25 for noise ≤
+    0.15 after t ≥ 3.1 s', or the reason there is none), `components` ('|e1| ≤ 0.396 (x1),
+    ...'), `size_word` ('useful' / 'vacuous', '' without a bound), `size` (the word with
+    the box's half-diagonal), `source` (which bound it comes from: small print), `basis`
+    (`certify.presentation.BASES`, '' without a bound)."""
 
     proved: bool
     sentence: str
@@ -369,15 +386,25 @@ class HeadlineText:
     size_word: str = ""
     size: str = ""
     source: str = ""
+    title: str = "Error bound"
+    note: str = ""
+    basis: str = ""
+
+    @property
+    def label(self) -> str:
+        """'error bound' and, when it does not rest on the certificate, what it rests on in
+        parentheses: what the terminal and JUnit put before the sentence."""
+        return "error bound" + (f" ({self.note})" if self.note else "")
 
     @property
     def line(self) -> str:
-        """One line: 'error bound: <sentence>; <components>; <size> [<source>]', or the
-        reason there is none."""
+        """One line: 'error bound: <sentence>; <components>; <size> [<source>]' (with the
+        note after 'error bound' when there is one), or the reason there is none."""
         if not self.proved:
             return self.sentence
         parts = [self.sentence] + ([self.components] if self.components else []) + [self.size]
-        return "error bound: " + "; ".join(parts) + (f" [{self.source}]" if self.source else "")
+        return (f"{self.label}: " + "; ".join(parts)
+                + (f" [{self.source}]" if self.source else ""))
 
 
 def error_headline(cert: Certificate) -> ErrorHeadline:
@@ -391,7 +418,8 @@ def error_headline_text(cert: Certificate, *, unicode: bool = True) -> HeadlineT
     if not h.proved:
         return HeadlineText(False, h.reason)
     return HeadlineText(True, h.sentence(unicode), h.components_text(unicode), h.size_word(),
-                        h.size_text(), h.source_text(unicode))
+                        h.size_text(), h.source_text(unicode), h.title(unicode),
+                        h.note(unicode), h.basis)
 
 
 def verdict_summary(cert: Certificate) -> str:

@@ -10,10 +10,12 @@ settings allow unknown required checks. A check that is not required never fails
 it passes when it passed, and is otherwise <skipped> with its status and finding as the
 reason. Every case carries the numbers of both sides in <system-out>; a status with a
 qualifier is written with it ("PROVED — vacuous": a vacuous error bound still passes, it is
-valid, but never without that word). The certified error bound, the second headline after
-the verdict, opens the bounds case's <system-out> and is in the suite's properties
+valid, but never without that word). The error bound, the second headline after the
+verdict, opens the bounds case's <system-out> and is in the suite's properties
 (`error_bound`, one `error_bound_e<i>_<state>` per component, `error_bound_size` "useful" or
-"vacuous", `error_bound_source`; without a bound, `error_bound` says why). When `certify run`
+"vacuous", `error_bound_source`, `error_bound_basis` "certificate", "proved" or "unproved"
+and `error_bound_title`, which says "Certified" only under a CERTIFIED verdict; without a
+bound, `error_bound` says why). When `certify run`
 stops on an internal error (exit 4, no certificate), `render_internal_error` gives the one
 <error> case CI shows instead.
 """
@@ -125,7 +127,8 @@ def _headline_properties(cert: Certificate) -> list[tuple[str, str]]:
         props.append(("error_bound_after_seconds", upper_text(data.after, 2)))
     props += [(f"error_bound_e{i + 1}" + (f"_{name}" if name else ""), upper_text(v))
               for i, (name, v) in enumerate(data.components)]
-    props += [("error_bound_size", text.size_word), ("error_bound_source", data.source)]
+    props += [("error_bound_size", text.size_word), ("error_bound_source", data.source),
+              ("error_bound_basis", text.basis), ("error_bound_title", text.title)]
     return props
 
 

@@ -67,11 +67,12 @@ def _verdict(doc: PdfDocument, cert: Certificate) -> None:
 
 
 def _headline(doc: PdfDocument, cert: Certificate) -> None:
-    """The certified error bound under the verdict banner: the sentence and its size word,
-    per component, the size against the box, and (small) which bound it comes from; or the
-    one line saying why there is none."""
+    """The error bound under the verdict banner, headed by what it rests on ('Certified
+    error bound' only under a CERTIFIED verdict): the sentence and its size word, per
+    component, the size against the box, and (small) which bound it comes from; or the one
+    line saying why there is none."""
     h = C.error_headline_text(cert)
-    what = Run("CERTIFIED ERROR BOUND", 7.2, "bold", MUTED)
+    what = Run(h.title, 7.2, "bold", MUTED)
     if not h.proved:
         runs = [what, Run(h.sentence, 9.5, color=MUTED)]
         edge, box = "#9ca3af", PANEL
@@ -84,6 +85,9 @@ def _headline(doc: PdfDocument, cert: Certificate) -> None:
         runs += [Run(h.size, 9), Run(h.source, 7.4, color=MUTED)]
         edge = "#15803d" if h.size_word == "useful" else "#b45309"
         box = PANEL if h.size_word == "useful" else "#fffbeb"
+        if h.basis != "certificate":  # never the colours of a certified bound
+            edge = "#b91c1c" if h.basis == "unproved" else "#6b7280"
+            box = "#fef2f2" if h.basis == "unproved" else PANEL
     lines = doc.layout(runs, CONTENT_W - 0.35)
     height = sum(x[2] for x in lines) + 0.22
     doc.need(height)

@@ -18,7 +18,7 @@ from reports.content import (
     badge_key,
     check_facts,
     fmt,
-    fmt_none,
+    fmt_bound,
     fmt_seconds,
     fmt_vec,
     lam_cert_text,
@@ -32,7 +32,7 @@ THEOREM3_TEXT = (
     "\u2016x(t) \u2212 x\u0302(t)\u2016 \u2264 \u2016x(0) \u2212 x\u0302(0)\u2016 "
     "e^(\u2212\u03b7t) "
     "+ \u03b5\u0304 / (2\u221a\u03b7) + L v\u0304 / (2\u221a\u03b7). The certificate applies it "
-    "with the certified rate \u03bb_cert, never the design \u03bb.")
+    "with the proved rate \u03bb_cert, never the design \u03bb.")
 
 ISS_TEXT = (
     "ISS bound (METHOD \u00a73.7): if D \u2aaf 0 holds for k itself on X \u00d7 Y with metric P, "
@@ -105,16 +105,19 @@ def lipschitz_rows(cert: Certificate) -> list[list[str]]:
 
     lmi = fmt(r.lipsdp_lmi_max_eig, 3, signed=True)
     return [
-        ["LipSDP (verified)", fmt_none(r.lipsdp, "not verified"), "upper, sound",
-         f"raw {fmt(r.lipsdp_raw)}; rebuilt LMI \u03bb_max {lmi}", mark("lipsdp")],
-        ["Local interval bound", fmt_none(r.local_upper, "not computed"), "upper, sound",
+        ["LipSDP (verified)", fmt_bound(r.lipsdp, "upper", reason="not verified"),
+         "upper, sound", f"raw {fmt(r.lipsdp_raw)}; rebuilt LMI \u03bb_max {lmi}",
+         mark("lipsdp")],
+        ["Local interval bound", fmt_bound(r.local_upper, "upper", reason="not computed"),
+         "upper, sound",
          "sup \u2016\u2202k/\u2202y\u2016\u2082 over X \u00d7 Y (needs y_e \u2208 Y)",
          mark("local")],
-        ["Naive (product of norms)", fmt(r.naive), "upper, sound", "", mark("naive")],
-        ["Sampled", fmt(r.sampled), "lower", "max \u2016\u2202k/\u2202y\u2016\u2082 found",
-         ""],
-        ["LipSDP for P^\u00bd k", fmt_none(r.lipsdp_P, "not computed"), "upper, sound",
-         "for the P-weighted ISS bound", ""],
+        ["Naive (product of norms)", fmt_bound(r.naive, "upper"), "upper, sound", "",
+         mark("naive")],
+        ["Sampled", fmt_bound(r.sampled, "lower"), "lower",
+         "max \u2016\u2202k/\u2202y\u2016\u2082 found", ""],
+        ["LipSDP for P^\u00bd k", fmt_bound(r.lipsdp_P, "upper", reason="not computed"),
+         "upper, sound", "for the P-weighted ISS bound", ""],
     ]
 
 
@@ -125,8 +128,10 @@ def bound_rows(cert: Certificate) -> list[list[str]]:
         return []
     rows = []
     for b in r.bounds():
+        # rates are lower bounds, gains and biases upper bounds: each rounded outward
         rows.append([b.name, "yes" if b.applicable else "no", b.reason,
-                     fmt(b.rate), fmt(b.gain), fmt(b.bias), fmt(b.bias_per_unit_noise)])
+                     fmt_bound(b.rate, "lower"), fmt_bound(b.gain, "upper"),
+                     fmt_bound(b.bias, "upper"), fmt_bound(b.bias_per_unit_noise, "upper")])
     return rows
 
 
@@ -267,7 +272,7 @@ def sections(cert: Certificate) -> list[Section]:
 
     if "rate" in cert.checks:
         r = result(cert, "rate")
-        sec = Section("rate", "Certified contraction rate \u03bb_cert", "Rate",
+        sec = Section("rate", "Contraction rate \u03bb_cert", "Rate",
                       _status(cert, "rate"), _message(cert, "rate"))
         sec.paragraphs.append(
             "\u03bb_cert = \u2212max \u03bb_max(He{P (J_f + \u2202k/\u2202x\u0302)}, P) / 2 is the "
@@ -319,7 +324,8 @@ def sections(cert: Certificate) -> list[Section]:
             "x\u0302 (an L2 \u2192 L2 constant, so v\u0304 bounds the Euclidean norm of the "
             "noise). LipSDP is re-verified by rebuilding its LMI at the solver's multipliers; "
             "the smallest sound upper bound is used downstream. The gap to the sampled lower "
-            f"bound measures how tight it is. Used: {r.which or DASH} = {fmt(r.value)}.")
+            f"bound measures how tight it is. Used: {r.which or DASH} \u2264 "
+            f"{fmt_bound(r.value, 'upper')}.")
         sec.tables.append(Table(["Bound", "Value", "Kind", "Note", "Used"],
                                 lipschitz_rows(cert), "", [1.6, 1.1, 0.9, 2.6, 0.5]))
         sec.facts = check_facts(cert, "lipschitz")
@@ -334,7 +340,7 @@ def sections(cert: Certificate) -> list[Section]:
         sec.facts = check_facts(cert, "dissipation")
         out.append(sec)
 
-    sec = Section("bounds", "Error bounds: the certified bound, Theorem 3 as stated and the "
+    sec = Section("bounds", "Error bounds: the headline bound, Theorem 3 as stated and the "
                   "ISS bounds", "Bounds", _status(cert, "bounds"), _message(cert, "bounds"))
     sec.statements = [THEOREM3_TEXT, ISS_TEXT]
     b = result(cert, "bounds")

@@ -498,8 +498,10 @@ class BoundsCheck(Check):
         """The proved side is the headline bound (||e|| after t >= settle_time, from the best
         bound); a vacuous one carries the qualifier "vacuous" wherever its status is shown."""
         head = error_headline(r, (getattr(certificate, "system", None) or {}).get("states"))
-        numbers = [Quantity("vbar", r.vbar, sig=6), Quantity("lam_cert", r.lam_cert, sig=6),
-                   Quantity("eps_bar", r.eps_bar, sig=6), Quantity("L", r.L, sig=6),
+        numbers = [Quantity("vbar", r.vbar, sig=6),
+                   Quantity("lam_cert", r.lam_cert, sig=6, bound="lower"),
+                   Quantity("eps_bar", r.eps_bar, sig=6, bound="upper"),
+                   Quantity("L", r.L, sig=6, bound="upper"),
                    Quantity("box half-diagonal", r.box_half_diagonal, sig=6),
                    Quantity("vacuous (larger than the box)", r.vacuous)]
         if head.proved:
@@ -538,9 +540,10 @@ class BoundsCheck(Check):
                       Quantity("Size", head.size_text()),
                       Quantity("From", head.source_text())]
         facts += [Quantity("Noise level v\u0304", r.vbar),
-                  Quantity("\u03bb_cert used", r.lam_cert, "none: no bound"),
-                  Quantity("\u03b5\u0304 used", r.eps_bar), Quantity("L used", r.L),
-                  Quantity("cond(P)", r.kappa_P),
+                  Quantity("\u03bb_cert used", r.lam_cert, "none: no bound", bound="lower"),
+                  Quantity("\u03b5\u0304 used", r.eps_bar, bound="upper"),
+                  Quantity("L used", r.L, bound="upper"),
+                  Quantity("cond(P)", r.kappa_P, bound="upper"),
                   Quantity("Half-diagonal of X", r.box_half_diagonal, "not recorded")]
         if not head.proved:
             facts.append(Quantity("Error bound", None, head.reason))
@@ -548,7 +551,7 @@ class BoundsCheck(Check):
             sampled=_bias_quantity("Theorem 3 (as stated): ultimate bias", r.theorem3, r),
             proved=proved,
             setting=(Quantity("v\u0304 =", r.vbar),
-                     Quantity("\u03bb_cert used:", r.lam_cert, "none")),
+                     Quantity("\u03bb_cert used:", r.lam_cert, "none", bound="lower")),
             numbers=tuple(numbers), facts=tuple(facts),
             qualifier="vacuous" if head.proved and r.vacuous else "")
 

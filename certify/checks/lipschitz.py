@@ -308,7 +308,8 @@ class LipschitzCheck(Check):
             facts += [Quantity(f"LipSDP solver: {k}", v) for k, v in r.solver.items()
                       if not isinstance(v, (dict, list))]
         return Presentation(
-            sampled=Quantity("L \u2265 (sampled max \u2016\u2202k/\u2202y\u2016)", r.sampled),
+            sampled=Quantity("L \u2265 (sampled max \u2016\u2202k/\u2202y\u2016)", r.sampled,
+                             bound="lower"),
             proved=Quantity("L \u2264 (bound used)", r.value, "no sound bound", suffix=which,
                             bound="upper"),
             setting=tuple(setting),
@@ -318,7 +319,7 @@ class LipschitzCheck(Check):
                      Quantity("LMI max eigenvalue", r.lipsdp_lmi_max_eig, sig=3, signed=True),
                      Quantity("local interval bound", r.local_upper, sig=6, bound="upper"),
                      Quantity("naive", r.naive, sig=6, bound="upper"),
-                     Quantity("sampled", r.sampled, sig=6),
+                     Quantity("sampled", r.sampled, sig=6, bound="lower"),
                      Quantity("used", r.value, sig=6, suffix=which, bound="upper")),
             facts=tuple(facts))
 

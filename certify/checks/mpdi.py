@@ -220,13 +220,15 @@ class MpdiCheck(Check):
                         else "no proof attempted")
         upper = Quantity("sound upper bound on max \u03bb_max(D)", r.upper, why_no_upper,
                          signed=True, bound="upper")
-        numbers = [Quantity("lower (sampled max lambda_max(D))", r.lower, sig=6, signed=True),
+        numbers = [Quantity("lower (sampled max lambda_max(D))", r.lower, sig=6, signed=True,
+                            bound="lower"),
                    Quantity("upper (proved bound)", r.upper, why_no_upper, sig=6, signed=True,
                             bound="upper"),
                    Quantity("violating fraction of grid", r.violating_fraction),
                    Quantity("counterexamples", len(r.counterexamples))]
         facts = [Quantity("Status", r.status.value),
-                 Quantity("Sampled max \u03bb_max(D)", r.lower, sig=6, signed=True),
+                 Quantity("Sampled max \u03bb_max(D)", r.lower, sig=6, signed=True,
+                          bound="lower"),
                  Quantity("Proved upper bound", r.upper, why_no_upper, sig=6, signed=True,
                           bound="upper"),
                  Quantity("Violating fraction of the grid", 100 * r.violating_fraction,
@@ -250,7 +252,8 @@ class MpdiCheck(Check):
                                      r.proof.seconds_to_finish(), sig=2,
                                      missing="no speed measured")]
         return Presentation(
-            sampled=Quantity("max \u03bb_max(D) found (grid + ascent)", r.lower, signed=True),
+            sampled=Quantity("max \u03bb_max(D) found (grid + ascent)", r.lower, signed=True,
+                             bound="lower"),
             proved=upper,
             setting=(Quantity("grid points \u2265", r.grid_points or s.get("grid_points")),
                      Quantity("ascent starts", r.adversarial_starts),

@@ -221,25 +221,26 @@ class NecessaryCheck(Check):
 
     def present(self, r: NecessaryResult, certificate: Any) -> Presentation:
         return Presentation(
-            sampled=Quantity("max q found", r.q_max, signed=True),
+            sampled=Quantity("max q found", r.q_max, signed=True, bound="lower"),
             proved=Quantity("q \u2264 (sound bound)", r.q_upper, "not bounded", signed=True,
                             bound="upper"),
             setting=(Quantity("\u03bb =", certificate.lam),
                      Quantity("P =", certificate.P, sig=3)),
-            numbers=(Quantity("q_max", r.q_max, sig=6, signed=True),
+            numbers=(Quantity("q_max", r.q_max, sig=6, signed=True, bound="lower"),
                      Quantity("q_upper", r.q_upper, sig=6, signed=True, bound="upper"),
-                     Quantity("witness", r.witness), Quantity("rate cap", r.rate_cap, sig=6),
-                     Quantity("residual price", r.residual_price, sig=6)),
+                     Quantity("witness", r.witness),
+                     Quantity("rate cap", r.rate_cap, sig=6, bound="upper"),
+                     Quantity("residual price", r.residual_price, sig=6, bound="lower")),
             facts=(Quantity("Status", r.status.value),
-                   Quantity("max q found", r.q_max, sig=6, signed=True),
+                   Quantity("max q found", r.q_max, sig=6, signed=True, bound="lower"),
                    Quantity("Sound bound q \u2264", r.q_upper, "not bounded", sig=6,
                             signed=True, bound="upper"),
                    Quantity("Witness x\u0302", r.witness),
                    Quantity("Witness y = h(x\u0302)", r.witness_y),
                    Quantity("Rate cap (any gain with exact BC)", r.rate_cap, "not computed",
-                            sig=5, signed=True),
+                            sig=5, signed=True, bound="upper"),
                    Quantity("Price in residual (\u03b5\u0304 \u2265)", r.residual_price,
-                            "not applicable", sig=5)))
+                            "not applicable", sig=5, bound="lower")))
 
 
 CHECK = NecessaryCheck()

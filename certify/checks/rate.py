@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from certify.arith.text import lower_text
+from certify.arith.text import lower_text, upper_text
 from certify.checks.base import Check, Context
 from certify.checks.mpdi import counterexamples_from, joint_box
 from certify.model.kernels import pointwise_rate
@@ -130,14 +130,14 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
             "shown <= 0")
     elif proved_lower is not None and proved_lower > 0:
         status, msg = Status.PROVED, (
-            f"lam_cert in [{lower_text(proved_lower, 4)}, {sampled_upper:.4g}] (design lam "
-            f"{problem.lam:g}; "
+            f"lam_cert in [{lower_text(proved_lower, 4)}, {upper_text(sampled_upper, 4)}] "
+            f"(design lam {problem.lam:g}; "
             "the error contracts at rate 2 lam_cert in the P-norm)")
     else:
         lower = ("not proved" if proved_lower is None
                  else f"proved lower bound {lower_text(proved_lower, 4)}")
         status, msg = Status.UNKNOWN, (
-            f"lam_cert <= {sampled_upper:.4g} (sampled); {lower}")
+            f"lam_cert <= {upper_text(sampled_upper, 4)} (sampled); {lower}")
     return RateResult(status, msg, problem.lam, sampled_upper, proved_lower, worst_cex, seconds)
 
 
@@ -147,7 +147,7 @@ class RateCheck(Check):
     """The certified contraction rate lam_cert, bracketed (a PROVED MPDI is a lower bound)."""
 
     name = "rate"
-    title = "Certified rate \u03bb_cert"
+    title = "Contraction rate \u03bb_cert"
     result_type = RateResult
     reads = ("grid_points", "adversarial_starts", "adversarial_steps", "seed", "rate_seconds",
              "max_boxes")
@@ -162,19 +162,21 @@ class RateCheck(Check):
         lower = Quantity("\u03bb_cert \u2265 (proved)", r.proved_lower,
                          "MPDI not proved at any \u03bb > 0", signed=True, bound="lower")
         facts = [Quantity("Design \u03bb", r.lam_design),
-                 Quantity("\u03bb_cert \u2264 (sampled)", r.sampled_upper, sig=6, signed=True),
+                 Quantity("\u03bb_cert \u2264 (sampled)", r.sampled_upper, sig=6, signed=True,
+                          bound="upper"),
                  Quantity("\u03bb_cert \u2265 (proved, branch and bound)", r.proved_lower,
                           "not proved", sig=6, signed=True, bound="lower")]
         if r.worst is not None:
             facts += [Quantity("Sampled side attained at x\u0302", r.worst.xhat),
                       Quantity("Sampled side attained at y", r.worst.y)]
         return Presentation(
-            sampled=Quantity("\u03bb_cert \u2264 (sampled)", r.sampled_upper, signed=True),
+            sampled=Quantity("\u03bb_cert \u2264 (sampled)", r.sampled_upper, signed=True,
+                             bound="upper"),
             proved=lower,
             setting=(Quantity("design \u03bb =", r.lam_design),
                      Quantity("B&B budget", s.get("rate_seconds"), suffix=" s")),
             numbers=(Quantity("lam_design", r.lam_design, sig=6),
-                     Quantity("sampled upper", r.sampled_upper, sig=6),
+                     Quantity("sampled upper", r.sampled_upper, sig=6, bound="upper"),
                      Quantity("proved lower", r.proved_lower, sig=6, bound="lower")),
             facts=tuple(facts))
 

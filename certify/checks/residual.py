@@ -99,16 +99,16 @@ class ResidualCheck(Check):
         proved = (Quantity(label, 0, suffix=" (by construction)") if zero
                   else Quantity(label, r.upper, "bound not established", bound="upper"))
         return Presentation(
-            sampled=Quantity("\u03b5\u0304 \u2265 (sampled + ascent)", r.sampled),
+            sampled=Quantity("\u03b5\u0304 \u2265 (sampled + ascent)", r.sampled, bound="lower"),
             proved=proved,
             setting=(Quantity("budget", s.get("residual_seconds"), suffix=" s over X"),),
-            numbers=(Quantity("sampled", r.sampled, sig=6),
+            numbers=(Quantity("sampled", r.sampled, sig=6, bound="lower"),
                      Quantity("upper", r.upper, sig=6, bound="upper"),
                      Quantity("structural", r.structural)),
             facts=(Quantity("Status", r.status.value),
-                   Quantity("Sampled \u03b5\u0304 \u2265", r.sampled, sig=6),
+                   Quantity("Sampled \u03b5\u0304 \u2265", r.sampled, sig=6, bound="lower"),
                    Quantity("Sound bound \u03b5\u0304 \u2264", r.upper, "not established",
-                            sig=6),
+                            sig=6, bound="upper"),
                    Quantity("Zero by construction", r.structural),
                    Quantity("Worst x", r.worst, "none: zero by construction"
                             if r.structural else "not found")))

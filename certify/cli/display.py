@@ -2,8 +2,10 @@
 
 `print_summary`: the table of checks, each check's one-line message, the table of
 simulation runs, the verdict line (with its notes, e.g. a vacuous bound) and on the line
-after it the certified error bound (`headline_line`: "‖e‖ ≤ B for noise ≤ v̄ after t ≥ T",
-per component, "useful" or "vacuous"; or why there is none).
+after it the error bound (`headline_line`: "‖e‖ ≤ B for noise ≤ v̄ after t ≥ T", per
+component, "useful" or "vacuous"; or why there is none). A bound that does not rest on the
+certificate says what it rests on after "error bound" (never "certified" under a verdict
+that is not CERTIFIED).
 
 On a terminal: `rich.progress` bars, one row per running step and one per task inside it
 (a grid sweep counts points; a proof shows its closed volume against its budget of seconds
@@ -254,15 +256,15 @@ def _unicode_ok(out: TextIO) -> bool:
 
 
 def headline_line(cert: Any, out: TextIO) -> str:
-    """The certified error bound on one line, in Unicode where `out` can print it."""
+    """The error bound on one line, in Unicode where `out` can print it."""
     from reports.content import error_headline_text
 
     return error_headline_text(cert, unicode=_unicode_ok(out)).line
 
 
 def print_verdict(cert: Any, out: TextIO) -> None:
-    """The verdict line and, on the next line, the certified error bound (plain text: what
-    `--quiet` prints)."""
+    """The verdict line and, on the next line, the error bound (plain text: what `--quiet`
+    prints)."""
     from reports.content import verdict_line
 
     print(verdict_line(cert), file=out)
@@ -309,7 +311,7 @@ def print_summary(cert: Any, out: TextIO) -> None:
         h = error_headline_text(cert, unicode=_unicode_ok(out))
         if h.proved:
             word = "green" if h.size_word == "useful" else "yellow"
-            console.print("[bold]error bound[/]: ", end="", highlight=False)
+            console.print(f"{h.label}: ", style="bold", end="", highlight=False, markup=False)
             console.print(h.sentence, end="", highlight=False, markup=False)
             console.print(f" [bold {word}]{h.size_word}[/]", highlight=False)
             if h.components:

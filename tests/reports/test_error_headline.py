@@ -1,7 +1,9 @@
-"""The certified error bound is the second headline after the verdict, in every medium:
-"‖e‖ ≤ B for noise ≤ v̄ after t ≥ T", per component with the state names, "useful" or
-"vacuous" in words, and which bound it comes from; without a bound, one line saying why.
-A vacuous bound is never shown as a plain (green) PROVED."""
+"""The error bound is the second headline after the verdict, in every medium: "‖e‖ ≤ B for
+noise ≤ v̄ after t ≥ T", per component with the state names, "useful" or "vacuous" in words,
+and which bound it comes from; without a bound, one line saying why. A vacuous bound is
+never shown as a plain (green) PROVED. "Certified error bound" only under a CERTIFIED
+verdict: a bound proved at the proved rate under a failed certificate says so, and one
+resting on a contraction that was not proved is marked NOT PROVED."""
 
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ import pytest
 from certify.certificate import Certificate
 from certify.cli.display import print_summary, print_verdict
 from certify.presentation import ErrorHeadline, error_headline, upper_text
-from certify.results import BoundResult, CheckFailure, Status
+from certify.results import CheckFailure, Status
 from reports import content as C
 from reports.html import render_html
 from reports.junit import render_junit
@@ -30,40 +32,13 @@ from ..fixtures_certificates import (
     inconclusive_certificate,
     violated_vdp_certificate,
 )
-
-HALF_DIAGONAL = (2.5 ** 2 + 3.5 ** 2) ** 0.5  # X of `certified_certificate`
-
-
-def headline_certificate(*, vacuous: bool = False) -> Certificate:
-    """`certified_certificate` with the headline fields a current bounds check fills: the
-    joint dissipation bound is the best, ultimate 1.1374 (useful) or 29.3 (vacuous)."""
-    cert = certified_certificate()
-    b = cert.checks["bounds"]
-    ultimate = 29.3 if vacuous else 1.1374
-    joint = BoundResult(name="dissipation", applicable=True,
-                        reason="proved V' <= -0.9 V + 11.2 ||v||^2 over X x Y",
-                        rate=0.9, gain=2.63, bias=ultimate,
-                        bias_per_unit_noise=ultimate / b.vbar, formula="sqrt(mu/alpha) ...")
-    cert.checks["bounds"] = dataclasses.replace(
-        b, dissipation=joint, best="dissipation", ultimate=ultimate,
-        headline=ultimate * 1.1, settle_time=3.0417,
-        per_component=[0.3561 * ultimate / 1.1374, 1.1374 * ultimate / 1.1374],
-        box_half_diagonal=HALF_DIAGONAL, vacuous=vacuous,
-        message=("||e|| <= ... (valid but vacuous: larger than the box)" if vacuous
-                 else "||e|| <= ... (useful: the box's half-diagonal is 4.3)"))
-    return cert
-
-
-def no_bound_certificate() -> Certificate:
-    """The bounds check ended NOT APPLICABLE: lam_cert <= 0, so no bound exists."""
-    cert = certified_certificate()
-    b = cert.checks["bounds"]
-    cert.checks["bounds"] = dataclasses.replace(
-        b, status=Status.NOT_APPLICABLE,
-        message="no error bound exists: lam_cert = -0.2 <= 0: no contraction was certified",
-        lam_cert=None)
-    return cert
-
+from .builders import (
+    HALF_DIAGONAL,
+    headline_certificate,
+    no_bound_certificate,
+    proved_rate_certificate,
+    unproved_basis_certificate,
+)
 
 # ----------------------------------------------------------------------------- the data
 
@@ -161,7 +136,8 @@ def test_html_headline_after_the_verdict(vacuous):
     big = "32.3" if vacuous else "1.26"
     assert f"\u2016e\u2016 \u2264 {big} for noise \u2264 0.05 after t \u2265 3.1 s" in block
     assert "|e1| \u2264" in block and "(x1)" in block and "(x2)" in block
-    assert f'class="headline {word}"' in block and f">{word}</span>" in block
+    assert f'class="headline {word} basis-certificate"' in block and f">{word}</span>" in block
+    assert '<div class="what">Certified error bound</div>' in block
     assert "joint dissipation certificate (dissipation)" in block
     row = html[html.index('id="row-bounds"'):]
     row = row[:row.index("</tr>")]
@@ -201,7 +177,7 @@ def test_pdf_headline_on_the_first_page(vacuous, tmp_path):
     big = "32.3" if vacuous else "1.26"
     flat = re.sub(r"\s+", " ", first)
     assert f"\u2016e\u2016 \u2264 {big} for noise \u2264 0.05 after t \u2265 3.1 s" in flat
-    assert "CERTIFIED ERROR BOUND" in flat and "(x1)" in flat and "(x2)" in flat
+    assert "Certified error bound" in flat and "(x1)" in flat and "(x2)" in flat
     assert ("vacuous (larger than the box" in flat) == vacuous
     assert ("useful (smaller than the box" in flat) != vacuous
     assert ("PROVED \u2014 vacuous" in re.sub(r"\s+", " ", text)) == vacuous
@@ -292,3 +268,85 @@ def test_headline_type_is_plain_data():
                       components=(("a", 1.0),), vacuous=False, half_diagonal=3.0,
                       source="iss")
     assert json.loads(json.dumps(h.to_dict()))["per_component"] == {"a": 1.0}
+
+
+# ----------------------------------------------------------------------------- what it rests on
+
+#: every place a report names its verdict or error bound in a box, badge or heading
+_HEADED = re.compile(r'<(h[1-3])[^>]*>(.*?)</\1>|<div class="(?:what|line)">(.*?)</div>'
+                     r'|<span class="pill[^"]*">(.*?)</span>', re.S)
+
+
+def _headings(html: str) -> list[str]:
+    return [re.sub(r"<[^>]+>", "", next(g for g in m.groups()[1:] if g is not None))
+            for m in _HEADED.finditer(html)]
+
+
+@pytest.mark.parametrize("build", [violated_vdp_certificate, inconclusive_certificate,
+                                   proved_rate_certificate, unproved_basis_certificate])
+def test_no_box_badge_or_heading_says_certified_unless_certified(build):
+    cert = build()
+    assert cert.verdict != "CERTIFIED"
+    html = render_html(cert, figures=[])
+    said = [h for h in _headings(html) if re.search(r"certified", h, re.I)]
+    assert said == [cert.verdict] if "CERTIFIED" in cert.verdict else not said, said
+    assert C.error_headline_text(cert).title != "Certified error bound"
+    _, props, _ = _junit(cert)
+    assert "certified" not in props.get("error_bound_title", "").lower()
+    out = io.StringIO()
+    print_verdict(cert, out)
+    assert "certified" not in out.getvalue().splitlines()[1].lower()
+
+
+def test_a_bound_at_the_proved_rate_under_a_failed_certificate_says_so(tmp_path):
+    """The MPDI failed at the design rate 2.5, but the rate check proved lam_cert >= 0.45861
+    and the bounds rest on that: shown, headed by what it rests on, never as certified."""
+    cert = proved_rate_certificate()
+    assert cert.verdict == "NOT CERTIFIED"
+    note = ("at the proved rate \u03bb_cert \u2265 0.4586; the certificate failed at the "
+            "design rate \u03bb = 2.5")  # 0.45861 rounded down
+    h = cert.error_headline()
+    assert h.proved and h.basis == "proved" and h.title() == f"Proved error bound ({note})"
+    block = render_html(cert, figures=[])
+    block = block[block.index('<div class="headline'):block.index('<nav class="toc">')]
+    assert "basis-proved" in block and f"Proved error bound ({note})" in block
+    assert "\u2016e\u2016 \u2264 1.48 for noise \u2264 0.15 after t \u2265 4.2 s" in block
+    out = io.StringIO()
+    print_verdict(cert, out)
+    assert out.getvalue().splitlines()[1].startswith(f"error bound ({note}): \u2016e\u2016")
+    raw = io.BytesIO()
+    ascii_out = io.TextIOWrapper(raw, encoding="ascii")
+    print_verdict(cert, ascii_out)
+    ascii_out.flush()
+    assert "error bound (at the proved rate lam_cert >= 0.4586; the certificate failed at " \
+           "the design rate lam = 2.5): ||e|| <= 1.48" in raw.getvalue().decode("ascii")
+    _, props, system_out = _junit(cert)
+    assert props["error_bound_basis"] == "proved"
+    assert props["error_bound_title"] == f"Proved error bound ({note})"
+    assert system_out.splitlines()[0].startswith(f"error bound ({note}): ")
+    eb = json.loads(cert.to_json())["error_bound"]
+    assert eb["basis"] == "proved" and eb["title"] == f"Proved error bound ({note})"
+    text = re.sub(r"\s+", " ", _pdf_text(render_pdf(cert, figures=[]), tmp_path))
+    first = text[:text.index("Checks")]
+    assert f"Proved error bound ({note})" in first and "Certified error bound" not in first
+
+
+def test_a_bound_resting_on_an_unproved_contraction_is_marked():
+    cert = unproved_basis_certificate()
+    h = cert.error_headline()
+    assert h.proved and h.basis == "unproved"
+    assert h.title().startswith("Error bound resting on an unproved condition (NOT PROVED: ")
+    assert "rate check (UNKNOWN)" in h.note() and "MPDI (UNKNOWN)" in h.note()
+    assert 'class="headline useful basis-unproved"' in render_html(cert, figures=[])
+    out = io.StringIO()
+    print_verdict(cert, out)
+    assert out.getvalue().splitlines()[1].startswith("error bound (NOT PROVED: it rests on ")
+
+
+def test_a_dissipation_bound_rests_on_the_dissipation_check():
+    cert = headline_certificate()
+    assert cert.error_headline().basis == "certificate"
+    cert.checks["dissipation"] = dataclasses.replace(cert.checks["dissipation"],
+                                                     status=Status.UNKNOWN, alpha=None)
+    h = cert.error_headline()
+    assert h.basis == "unproved" and "dissipation inequality" in h.note()

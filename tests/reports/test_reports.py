@@ -150,7 +150,7 @@ def test_html_known_numbers_of_the_paper_preset() -> None:
     _, data, _ = rendered("violated")
     text = _norm(" ".join(parse_html(data["html"].decode()).text))
     for needle in ("NOT CERTIFIED", "+7.7", "-1.35", "+6", "-0.5", "18", "(0, -3)",
-                   "not needed: counterexample found", "0.4187", "12.34 (lipsdp)", "1873",
+                   "not needed: counterexample found", "0.4187", "12.34 (lipsdp)", "1874",
                    "9.821", "no error bound", "Theorem 3", "4 of 4 runs exit",
                    "x leaves X: |x2| = 3.03 at t = 0.25"):
         assert needle in text, needle
