@@ -102,6 +102,40 @@ def validate_lam(lam: Any, where: str) -> float:
     return v
 
 
+#: The keys a spec may hold, by table ("" is the top level; "training.paper" the table
+#: [training.paper]). Any other key is refused, naming it, so that a misspelt key is an
+#: error rather than a default silently used; docs/spec-format.md documents each one (a
+#: test keeps the two the same).
+SPEC_KEYS: dict[str, frozenset[str]] = {
+    "": frozenset({"name", "description", "states", "outputs", "f", "h", "box", "design",
+                   "training", "simulation"}),
+    "box": frozenset({"X", "Y"}),
+    "design": frozenset({"lam", "P"}),
+    "training": frozenset({"paper"}),
+    "training.paper": frozenset({"mu1", "mu2", "rho"}),
+    "simulation": frozenset({"x0", "xhat0", "t_final"}),
+}
+
+
+def check_keys(data: dict[str, Any], where: str) -> None:
+    """Refuse (one `SpecError` line) a table that is not a table and a key not in
+    `SPEC_KEYS`."""
+    for table, known in SPEC_KEYS.items():
+        node: Any = data
+        for part in table.split(".") if table else ():
+            node = node.get(part) if isinstance(node, dict) else None
+        if node is None:
+            continue
+        if not isinstance(node, dict):
+            raise SpecError(f"{where}: [{table}] must be a table")
+        unknown = sorted(set(node) - known)
+        if unknown:
+            place = f"[{table}]" if table else "the spec"
+            raise SpecError(f"{where}: unknown key{'s' if len(unknown) > 1 else ''} "
+                            f"{', '.join(repr(k) for k in unknown)} in {place} (known: "
+                            f"{', '.join(sorted(known))})")
+
+
 @dataclass(eq=False)
 class System:
     """A validated system spec. Build with `System.from_text` or `load_system`."""
@@ -129,6 +163,7 @@ class System:
         except tomllib.TOMLDecodeError as exc:
             raise SpecError(f"{origin}: not valid TOML ({exc})") from None
         where = origin
+        check_keys(data, where)
 
         def need(key: str, kind: type | tuple[type, ...]) -> Any:
             if key not in data:
