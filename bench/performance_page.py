@@ -8,6 +8,12 @@ record (the record's `bench` field, else the script), one row per record: number
 bench printed them (floats to 4 significant digits), no narrative. Bench scripts without a
 recorded run are listed as not run in this generation.
 
+The page is for reading: a table wider than `MAX_COLUMNS` is split into several, each
+repeating the columns that name the row; text longer than `MAX_TEXT` becomes a numbered note
+under the table; paths are shown relative to the checkout, or by their file name when they
+lie elsewhere (a build machine's temporary directories mean nothing to a reader); a field
+that only says where a tree was checked out (`path`) is left out.
+
     python bench/performance_page.py                      # bench/results/ -> docs/performance.md
     python bench/performance_page.py FILE.jsonl ... -o -  # chosen files, page on stdout
 
@@ -19,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -29,6 +36,16 @@ PAGE = ROOT / "docs" / "performance.md"
 
 #: fields of the run's tag, shown once per section rather than in every row
 TAG = ("run", "commit", "script", "host", "load")
+#: fields that only say where something was checked out on the machine that ran the bench
+WHERE = {"path"}
+#: columns of one table at most (the columns that name a row count too)
+MAX_COLUMNS = 8
+#: columns that name a row, repeated in each part of a split table
+KEY_COLUMNS = 2
+#: a text cell longer than this becomes a note under its table
+MAX_TEXT = 48
+#: an absolute path in a text: its directories and its file name
+PATH = re.compile(r"(?<![\w.)\]])(/[\w.+-]+)+/([\w.+-]+)")
 #: modules in bench/ that are not benchmarks (helpers, this script)
 NOT_BENCHES = {"record", "instances", "performance_page"}
 #: series too long for a table cell (they stay in the JSON lines)
@@ -80,7 +97,7 @@ def flatten(rec: dict, prefix: str = "") -> dict:
     """Scalar fields of `rec`, nested objects as dotted keys; long series left out."""
     out: dict = {}
     for key, value in rec.items():
-        if not prefix and key in TAG:
+        if not prefix and (key in TAG or key in WHERE):
             continue
         if key in LONG:
             continue
@@ -93,6 +110,14 @@ def flatten(rec: dict, prefix: str = "") -> dict:
         else:
             out[name] = value
     return out
+
+
+def strip_paths(text: str) -> str:
+    """Paths relative to the checkout; any other absolute path by its file name."""
+    if text == str(ROOT):
+        return "."
+    text = text.replace(str(ROOT) + "/", "")
+    return PATH.sub(lambda m: m.group(2), text)
 
 
 def cell(value: object) -> str:
@@ -108,11 +133,7 @@ def cell(value: object) -> str:
         return f"{value:.4g}"
     if isinstance(value, list):
         return "[" + ", ".join(cell(v) for v in value) + "]"
-    text = str(value)
-    if text == str(ROOT):
-        return "."
-    text = text.replace(str(ROOT) + "/", "")  # paths relative to the checkout
-    return text.replace("|", "\\|").replace("\n", " ")
+    return strip_paths(str(value)).replace("|", "\\|").replace("\n", " ")
 
 
 def group_name(rec: dict, script: str) -> str:
@@ -127,7 +148,47 @@ def group_name(rec: dict, script: str) -> str:
     return script
 
 
-def table(rows: list[dict]) -> list[str]:
+class Notes:
+    """Long texts of one section, numbered once each ('[1]' in the cell)."""
+
+    def __init__(self) -> None:
+        self.texts: list[str] = []
+
+    def cell(self, value: object) -> str:
+        text = cell(value)
+        if len(text) <= MAX_TEXT:
+            return text
+        if text not in self.texts:
+            self.texts.append(text)
+        return f"[{self.texts.index(text) + 1}]"
+
+    def lines(self) -> list[str]:
+        return [f"[{i + 1}] {t}" for i, t in enumerate(self.texts)]
+
+
+def parts(cols: list[str], keys: list[str]) -> list[list[str]]:
+    """`cols` (without `keys`) in runs of at most MAX_COLUMNS - len(keys), a run ending
+    early rather than splitting columns of one dotted prefix ('figure_s.bounds.wall' and
+    '.cpu') where it is at least half full."""
+    room = max(1, MAX_COLUMNS - len(keys))
+    out: list[list[str]] = [[]]
+
+    def prefix(c: str) -> str:
+        return c.rsplit(".", 1)[0] if "." in c else c
+
+    for i, c in enumerate(cols):
+        cur = out[-1]
+        whole = [d for d in cols[i:] if prefix(d) == prefix(c)]
+        starts = not cur or prefix(cur[-1]) != prefix(c)
+        if len(cur) >= room or (starts and len(cur) + len(whole) > room
+                                and len(cur) >= room / 2):
+            out.append([])
+        out[-1].append(c)
+    return [p for p in out if p]
+
+
+def table(rows: list[dict], notes: Notes | None = None) -> list[str]:
+    notes = notes if notes is not None else Notes()
     flat = [flatten(r) for r in rows]
     cols: list[str] = []
     for f in flat:
@@ -139,7 +200,7 @@ def table(rows: list[dict]) -> list[str]:
     lines = []
     if len(flat) == 1 and len(cols) > 6:  # one record with many fields: one row per field
         lines += ["| field | value |", "|---|---|"]
-        lines += [f"| {c} | {cell(flat[0][c])} |" for c in cols]
+        lines += [f"| {c} | {notes.cell(flat[0][c])} |" for c in cols]
         return lines
 
     # what names the instance (text, flags) before what was measured (numbers)
@@ -147,15 +208,20 @@ def table(rows: list[dict]) -> list[str]:
         return all(isinstance(f.get(c), (str, bool)) or f.get(c) is None for f in flat)
     cols = [c for c in cols if named(c)] + [c for c in cols if not named(c)]
     if common:
-        lines.append("All rows: " + ", ".join(f"`{c}` = {cell(flat[0][c])}" for c in common)
-                     + ".")
+        lines.append("All rows: " + ", ".join(f"`{c}` = {notes.cell(flat[0][c])}"
+                                              for c in common) + ".")
         lines.append("")
-    if cols:
-        lines.append("| " + " | ".join(cols) + " |")
-        lines.append("|" + "---|" * len(cols))
+    if not cols:
+        return lines
+    keys = [c for c in cols[:KEY_COLUMNS] if named(c)] if len(cols) > MAX_COLUMNS else []
+    for part in parts([c for c in cols if c not in keys], keys):
+        shown = keys + part
+        lines.append("| " + " | ".join(shown) + " |")
+        lines.append("|" + "---|" * len(shown))
         for f in flat:
-            lines.append("| " + " | ".join(cell(f.get(c)) for c in cols) + " |")
-    return lines
+            lines.append("| " + " | ".join(notes.cell(f.get(c)) for c in shown) + " |")
+        lines.append("")
+    return lines[:-1]
 
 
 def section(script: str, recs: list[dict]) -> list[str]:
@@ -169,10 +235,14 @@ def section(script: str, recs: list[dict]) -> list[str]:
     groups: dict[str, list[dict]] = {}
     for r in recs:
         groups.setdefault(group_name(r, script), []).append(r)
+    notes = Notes()
     for name, rows in groups.items():
         if len(groups) > 1:
             lines += [f"### {name}", ""]
-        lines += table(rows) + [""]
+        lines += table(rows, notes) + [""]
+    if notes.texts:
+        lines += ["Notes:", ""] + [f"{n}  " for n in notes.lines()[:-1]] \
+            + notes.lines()[-1:] + [""]
     return lines
 
 
