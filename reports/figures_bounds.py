@@ -17,7 +17,7 @@ from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
 
 from certify.certificate import Certificate
-from reports.content import fmt
+from reports.content import fmt, fmt_bound
 from reports.figure_data import as_array, check_result
 from reports.figure_kit import (
     BOX_COLOURS,
@@ -102,6 +102,7 @@ def fig_lipschitz(cert: Certificate) -> Figure | None:
              ("local interval", r.local_upper, "#0ea5e9", "local"),
              ("LipSDP", r.lipsdp, "#2563eb", "lipsdp"),
              ("naive", r.naive, "#9333ea", "naive")]
+    # each number rounded outward: the sampled one is a lower bound, the others upper
     fig = new_figure(2.3)
     ax = grid(fig, 1, 1, left=1.25, right=0.25, top=0.35, bottom=0.5)[0]
     vals = [v for _, v, _, _ in items if v is not None and math.isfinite(v) and v > 0]
@@ -118,7 +119,8 @@ def fig_lipschitz(cert: Certificate) -> Figure | None:
             mark(fig, "used", key)
         ax.barh(yy, v, color=colour, alpha=1.0 if used else 0.55,
                 edgecolor="black" if used else "none", linewidth=1.2, height=0.6)
-        ax.text(v, yy, f"  {fmt(v)}" + ("  \u2190 used" if used else ""), va="center",
+        ax.text(v, yy, f"  {fmt_bound(v, 'upper' if key else 'lower')}"
+                + ("  \u2190 used" if used else ""), va="center",
                 fontsize=8, fontweight="bold" if used else "normal")
     ax.set_yticks(ypos, [n for n, *_ in items])
     if max(vals) / min(vals) > 20:
