@@ -24,7 +24,8 @@ Two policies, both piecewise constant over holds of a few integration steps:
 
 Where a direction is undefined (e = 0, dk/dy = 0, a non-finite state or matrix) the
 previous one is kept (a seeded random one at the start), so the signal is a function of the
-states and the seed alone.
+states and the seed alone; where the adjoint policy finds no usable plan it keeps it for a
+few holds before it tries again.
 
 Contract: every value has ||v||_2 <= vbar exactly in float64 (the scaling's rounding is
 clipped, and it is asserted). The feedback only chooses the signal; a run under it is
@@ -138,7 +139,7 @@ class SwitchingNoise:
         self.switches = np.zeros(m, dtype=np.int64)
         # the adjoint plans: per row, the step its window began and its directions per hold
         self._plan_start = np.full(m, -1, dtype=np.int64)
-        self._plans: list[np.ndarray] = [np.zeros((0, p)) for _ in range(m)]
+        self._plans = np.zeros((m, 0, p))  # [m, longest plan, p]; zero rows: keep the last
         self._plan_len = np.zeros(m, dtype=np.int64)
 
     # ----- the linearisation ---------------------------------------------------------------
@@ -169,8 +170,11 @@ class SwitchingNoise:
 
     def plan(self, A: np.ndarray, B: np.ndarray, e: np.ndarray) -> np.ndarray | None:
         """The adjoint plan for one run: directions [J, p] for the J holds of its window
-        (None when the linearisation is not usable: non-finite, or not decaying)."""
+        (None when the linearisation is not usable: non-finite, not decaying, or dk/dy = 0,
+        where the noise does not reach the error to first order)."""
         if not (np.isfinite(A).all() and np.isfinite(B).all() and np.isfinite(e).all()):
+            return None
+        if not B.any():  # the noise does not reach the error here: no direction helps
             return None
         decay = -float(np.max(np.linalg.eigvals(A).real))
         h = self.hold * self.dt
@@ -200,8 +204,11 @@ class SwitchingNoise:
 
     def adjoint(self, k: int, x: np.ndarray, xhat: np.ndarray) -> np.ndarray:
         """The directions [m, p] of the current holds of each row's plan; a row whose plan is
-        over (or that has none) gets a new one from its current states."""
-        u = self._last.copy()
+        over (or that has none) gets a new one from its current states. Where no plan is
+        usable (`plan` returns None) the previous direction is kept for `MIN_WINDOW_HOLDS`
+        holds before the next try, so a row without one costs a plan every few holds, not
+        every hold."""
+        m = len(self.rows)
         idx = (k - self._plan_start) // self.hold  # the hold of each row's plan
         due = (self._plan_start < 0) | (idx >= self._plan_len)
         if due.any():
@@ -211,15 +218,28 @@ class SwitchingNoise:
                 A, B, e = self.linearisation(x[todo], xhat[todo])
                 for i, r in enumerate(todo):
                     pl = self.plan(A[i], B[i], e[i])
-                    self._plans[r] = pl if pl is not None else np.zeros((0, self.system.p))
-                    self._plan_len[r] = len(self._plans[r])
+                    self._store(int(r), np.zeros((MIN_WINDOW_HOLDS, self.system.p))
+                                if pl is None else pl)
                     self._plan_start[r] = k
             idx = (k - self._plan_start) // self.hold
-        for r in np.flatnonzero((idx >= 0) & (idx < self._plan_len)):
-            row = self._plans[r][idx[r]]
-            if row.any():  # a zero row: no usable direction there, the previous one is kept
-                u[r] = row
-        return u
+        live = (idx >= 0) & (idx < self._plan_len)
+        if not live.any():
+            return self._last.copy()
+        rows = self._plans[np.arange(m), np.clip(idx, 0, self._plans.shape[1] - 1)]
+        # a zero row: no usable direction there, the previous one is kept
+        use = live & rows.any(axis=1)
+        return np.where(use[:, None], rows, self._last)
+
+    def _store(self, r: int, plan: np.ndarray) -> None:
+        """Row r's plan [J, p] into the padded array of plans (grown when J is longer)."""
+        J = len(plan)
+        if J > self._plans.shape[1]:
+            grown = np.zeros((self._plans.shape[0], J, self._plans.shape[2]))
+            grown[:, : self._plans.shape[1]] = self._plans
+            self._plans = grown
+        self._plans[r, :J] = plan
+        self._plans[r, J:] = 0.0
+        self._plan_len[r] = J
 
     def __call__(self, k: int, x: np.ndarray, xhat: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=np.float64)

@@ -26,7 +26,7 @@ from certify.simulate.noise import SwitchingNoise, clip_to_ball
 from certify.spec.system import System, load_system
 
 from ..conftest import random_network
-from .test_simulation import LINEAR, A, C, K, linear_problem
+from .test_simulation import LINEAR, A, C, K, linear_gain_net, linear_problem
 
 # the linear example of test_simulation: x' = A x, y = x1, k = K (y - h(xhat)), K = (1, 0):
 # e' = (A - K C) e - K v with He{A - K C} = -I, so lam_cert = 1/2 (P = I), eps_bar = 0, L = 1;
@@ -150,6 +150,29 @@ def test_adjoint_noise_reaches_the_linear_worst_case():
     # the greedy policy slides along e^T P K = 0: |e| -> vbar / sqrt(2) here
     assert float(err_g.max()) == pytest.approx(VBAR / math.sqrt(2), rel=0.02)
     assert fb.switches[0] >= 2  # bang-bang: it does switch
+
+
+def test_without_a_usable_plan_the_direction_is_kept_for_a_few_holds():
+    """A zero gain: dk/dy = 0, so no noise reaches the error and no adjoint plan exists.
+    The previous direction is kept (inside the ball), and a new plan is tried only every
+    MIN_WINDOW_HOLDS holds, not at every hold."""
+    from certify.simulate.noise import MIN_WINDOW_HOLDS
+
+    problem = linear_problem()
+    net = linear_gain_net(2, 1, np.zeros((2, 1)))
+    fb = SwitchingNoise(problem.system, net, np.eye(2), VBAR, [0, 1], dt=0.01, seed=1)
+    tries = []
+    plan = fb.plan
+    fb.plan = lambda *a: tries.append(1) or plan(*a)  # type: ignore[method-assign]
+    x = np.array([[0.5, 0.1], [-0.2, 0.3]])
+    first = None
+    holds = 10 * MIN_WINDOW_HOLDS
+    for k in range(0, holds * fb.hold, fb.hold):
+        v = fb(k, x, 0.9 * x)
+        assert np.all(np.linalg.norm(v, axis=1) <= VBAR)
+        first = v if first is None else first
+        assert np.array_equal(v, first)  # the seeded direction, kept
+    assert len(tries) == 2 * holds // MIN_WINDOW_HOLDS
 
 
 # ----- the check: a planted example with a known bound ------------------------------------
