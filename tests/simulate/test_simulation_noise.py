@@ -15,12 +15,13 @@ from hypothesis import settings as settings_h
 from hypothesis import strategies as st
 
 from certify.arith.text import upper_text
-from certify.checks import simulation as simulation_mod
 from certify.checks.bounds import check_bounds
-from certify.checks.simulation import check_simulation, time_constant
+from certify.checks.simulation import check_simulation
 from certify.model.problem import Problem
 from certify.results import DissipationResult, SimulationResult, Status, from_jsonable, to_jsonable
 from certify.settings import VerifySettings
+from certify.simulate import horizon as horizon_mod
+from certify.simulate.horizon import time_constant
 from certify.simulate.integrate import bounded_noise, simulate_doubled
 from certify.simulate.noise import SwitchingNoise, clip_to_ball
 from certify.spec.system import System, load_system
@@ -318,7 +319,7 @@ def test_horizon_extended_only_when_sim_time_is_not_set(monkeypatch):
                            certified=True)  # the default's value, but set: kept as set
     assert not ten.horizon_extended and ten.horizon == pytest.approx(10.0)
     assert "sim_time 10 s < the" in ten.message
-    monkeypatch.setattr(simulation_mod, "MAX_AUTO_STEPS", 1200)
+    monkeypatch.setattr(horizon_mod, "MAX_AUTO_STEPS", 1200)
     capped = check_simulation(problem, slow, settings(sim_initial_conditions=1),
                               certified=True)
     assert capped.horizon == pytest.approx(12.0) and "capped at 1200 steps" in capped.message
