@@ -8,9 +8,9 @@ required), and presents the result.
 
 Status: PASSED ("no breach seen": evidence, never proof) when some run stayed valid for at
 least one time constant of the best bound; UNKNOWN (inconclusive evidence) when every valid
-window is shorter; NOT APPLICABLE when there is no proved bound to compare with (the runs are
-still simulated and reported). Each run's start, window, exit, ratio and peak are in the
-result's `runs` (the reports' table of runs).
+window is shorter; NOT APPLICABLE when there is no proved bound to compare with (then nothing
+is simulated: a run with nothing to compare establishes nothing). Each run's start, window,
+exit, ratio and peak are in the result's `runs` (the reports' table of runs).
 """
 
 from __future__ import annotations

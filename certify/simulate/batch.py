@@ -18,9 +18,11 @@ import numpy as np
 import torch
 
 from certify.model.problem import Problem
+from certify.settings import VerifySettings
 from certify.simulate.integrate import bounded_noise, gaussian_noise
 from certify.simulate.noise import SwitchingNoise
 from certify.simulate.starts import InitialConditions, source_initial_condition
+from certify.spec.system import System
 
 #: The source's simulation protocol: white Gaussian measurement noise of this std.
 SOURCE_NOISE_STD = 0.15
@@ -53,6 +55,14 @@ class RunBatch:
     def e0(self) -> np.ndarray:
         """Initial errors x0 - xhat0 [R, n]."""
         return (self.x0 - self.xhat0).numpy()
+
+
+def run_count(system: System, settings: VerifySettings) -> int:
+    """How many runs `plan_runs` makes: every start under each noise kind, and the source's
+    protocol when the spec has its initial condition (one of the starts is then the
+    source's)."""
+    src = source_initial_condition(system) is not None
+    return settings.sim_initial_conditions * len(NOISE_KINDS) + int(src)
 
 
 def plan_runs(problem: Problem, ics: InitialConditions, *, steps: int, dt: float,

@@ -47,17 +47,20 @@ class BoundFormulas(Protocol):
     def settle(self, which: str, start: float, level: float) -> float: ...
 
 
+def applicable(bounds: BoundsResult | None, formulas: BoundFormulas) -> list[str]:
+    """The names of the applicable proved bounds (none: nothing to compare a run with)."""
+    if bounds is None:
+        return []
+    return [which for which in formulas.names
+            if (b := getattr(bounds, which)) is not None and b.applicable]
+
+
 def best_curve(bounds: BoundsResult | None, formulas: BoundFormulas, e0: np.ndarray,
                t: np.ndarray) -> np.ndarray | None:
     """Pointwise minimum over every applicable proved bound -> [R, T] (None if none), for
     the runs' initial errors e0 [R, n] over times t [T]."""
-    if bounds is None:
-        return None
-    curves = []
-    for which in formulas.names:
-        b = getattr(bounds, which)
-        if b is not None and b.applicable:
-            curves.append(formulas.curve(which, formulas.start(which, e0), t))
+    curves = [formulas.curve(which, formulas.start(which, e0), t)
+              for which in applicable(bounds, formulas)]
     return np.minimum.reduce(curves) if curves else None
 
 

@@ -20,11 +20,12 @@ from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import BoundsResult, SimulationResult, SimulationRun
 from certify.settings import VerifySettings
-from certify.simulate.batch import RunBatch, plan_runs
+from certify.simulate.batch import RunBatch, plan_runs, run_count
 from certify.simulate.compare import (
     BoundFormulas,
     Comparison,
     PeakTest,
+    applicable,
     best_curve,
     compare_run,
     component_bounds,
@@ -34,7 +35,7 @@ from certify.simulate.horizon import MIN_TIME_CONSTANTS, best_bound, plan_horizo
 from certify.simulate.integrate import Trajectories, simulate_doubled
 from certify.simulate.samples import TIME_DIGITS, keep_samples, series
 from certify.simulate.starts import initial_conditions
-from certify.simulate.verdict import summarise, verdict
+from certify.simulate.verdict import not_applicable, summarise, verdict
 
 
 def bound_radius(bounds: BoundsResult | None) -> float | None:
@@ -54,12 +55,19 @@ def simulate_against_bounds(problem: Problem, bounds: BoundsResult | None,
                             ) -> SimulationResult:
     """Simulate plant + observer; compare the error with the proved bound inside the
     conditions. `formulas`: the bounds' curves; `certified`: whether the bound's inputs were
-    all proved (the certificate passes): a breach is then a bug in certify (status ERROR)."""
+    all proved (the certificate passes): a breach is then a bug in certify (status ERROR).
+    Without an applicable proved bound nothing is simulated (NOT APPLICABLE, no runs)."""
     start_time = time.perf_counter()
     progress = NullProgress() if progress is None else progress
+    if not applicable(bounds, formulas):  # nothing to compare a run with: nothing simulated
+        status, msg = not_applicable(bounds)
+        progress.start("simulation", total=1)
+        progress.finish("simulation", status.value)
+        return SimulationResult(status=status, message=msg,
+                                seconds=time.perf_counter() - start_time, horizon=None)
     system = problem.system
     P = np.asarray(problem.P, dtype=np.float64)
-    horizon = plan_horizon(bounds, settings)
+    horizon = plan_horizon(bounds, settings, runs=run_count(system, settings))
     dt, steps = horizon.dt, horizon.steps
     vbar = float(bounds.vbar) if bounds is not None else float(settings.noise)
     measured = needs_measured_output(bounds)
@@ -73,13 +81,12 @@ def simulate_against_bounds(problem: Problem, bounds: BoundsResult | None,
     batch = plan_runs(problem, ics, steps=steps, dt=dt, vbar=vbar, seed=settings.seed)
     e0 = batch.e0
     t_all = np.arange(steps + 1, dtype=np.float64) * dt
-    curve = best_curve(bounds, formulas, e0, t_all)  # [R, T] or None
+    curve = best_curve(bounds, formulas, e0, t_all)  # [R, T]
+    assert curve is not None
     b_idx = batch.bounded
-    # the bounded runs again at 2 dt in the same batch (for the integration error), when
-    # there is a bound to compare with
+    # the bounded runs again at 2 dt in the same batch, for the integration error
     fine, coarse = simulate_doubled(system, problem.network, batch.x0, batch.xhat0, dt=dt,
-                                    steps=steps, noise=batch.noise,
-                                    doubled=b_idx if curve is not None else None,
+                                    steps=steps, noise=batch.noise, doubled=b_idx,
                                     doubled_steps=steps // 2, feedback=batch.feedback)
     progress.update("simulation")
     v_norm = np.linalg.norm(fine.v.numpy(), axis=-1)  # [T, R]
@@ -99,7 +106,7 @@ def simulate_against_bounds(problem: Problem, bounds: BoundsResult | None,
     for r in range(len(batch.labels)):
         within = batch.kinds[r] == "bounded"
         c = Comparison()
-        if curve is not None and within:
+        if within:
             peak = (PeakTest(bounds, formulas, best.name, e0[r], float(headline), comp)
                     if best is not None and headline is not None and bounds is not None
                     else None)
@@ -110,14 +117,13 @@ def simulate_against_bounds(problem: Problem, bounds: BoundsResult | None,
                 late_ratio = c.late_ratio if late_ratio is None else max(late_ratio,
                                                                          c.late_ratio)
         row = run_row(batch, r, fine, int(first[r]), reasons[r], c,
-                      curve[r] if curve is not None and within else None, v_norm[:, r],
+                      curve[r] if within else None, v_norm[:, r],
                       tau, headline)
         runs.append(row)
         if c.compared:
             compared.append(row)
     summary = summarise(runs, bounds, best, tau, horizon)
-    status, msg = verdict(runs, bounds, curve is not None, breaches, certified, tau,
-                          late_ratio, compared, summary)
+    status, msg = verdict(runs, breaches, certified, tau, late_ratio, compared, summary)
     progress.finish("simulation", status.value)
     worst = summary.worst
     return SimulationResult(

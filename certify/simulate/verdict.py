@@ -4,8 +4,8 @@ Status: PASSED ("no breach seen": evidence, never proof) when some run stayed va
 least one time constant of the best bound; UNKNOWN (inconclusive evidence) when every valid
 window is shorter, or nothing was compared; VIOLATED when the error left a bound that was
 not fully proved; ERROR when it left a PROVED certificate's bound (a bug in this tool);
-NOT APPLICABLE when there is no proved bound to compare with (the runs are still simulated
-and reported). The message is a short
+NOT APPLICABLE when there is no proved bound to compare with (then nothing is simulated:
+`not_applicable`). The message is a short
 summary; each run's start, window, exit, ratio and peak are in the table of runs.
 """
 
@@ -48,14 +48,15 @@ def summarise(runs: list[SimulationRun], bounds: BoundsResult | None,
         T = bounds.settle_time or 0.0
         B = upper_text(bounds.headline)
         if worst is not None:
-            c = worst.conservatism
             parts.append(f"observed peak {worst.peak_error:.3g} ('{worst.label}') vs bound "
-                         f"{B} after t >= {upper_text(T, 2)} s: the bound is "
-                         + (f"{c:.3g}x the worst run" if c is not None and math.isfinite(c)
-                            else "infinitely far from the worst run (no error)"))
+                         f"{B} after t >= {upper_text(T, 2)} s: "
+                         + _how_far(worst.conservatism))
+        elif not horizon.reaches_settle:
+            parts.append(f"no run reached t = {upper_text(T, 2)} s, after which ||e|| <= {B} "
+                         "is claimed, so no peak was compared with it")
         else:
-            parts.append(f"no run stayed valid past t = {T:.3g} s, so no peak was compared "
-                         f"with the bound {bounds.headline:.3g}")
+            parts.append(f"no run stayed valid past t = {upper_text(T, 2)} s, so no peak was "
+                         f"compared with the bound {B}")
         parts.append(f"{len(long)} of {len(bounded)} runs valid >= "
                      f"{MIN_TIME_CONSTANTS:g} time constants of {tau:.3g} s")
     if horizon.short:
@@ -64,13 +65,30 @@ def summarise(runs: list[SimulationRun], bounds: BoundsResult | None,
                    bounded=len(bounded), text="; ".join(parts), note=horizon.short)
 
 
-def verdict(runs: list[SimulationRun], bounds: BoundsResult | None, have_bound: bool,
-            breaches: list[str], certified: bool, tau: float | None,
-            late_ratio: float | None, compared: list[SimulationRun], summary: Summary
-            ) -> tuple[Status, str]:
-    """The status and a short summary; the details of every run are in the runs table.
-    `certified`: the bound's inputs were all proved (the certificate passes): a breach is
-    then a bug in certify (ERROR)."""
+def _how_far(c: float | None) -> str:
+    """How far the headline is above the worst peak, conservatism c = B / peak."""
+    if c is None or not math.isfinite(c):
+        return "the bound is infinitely far from the worst run (no error)"
+    if c < 1.0:  # above B, but within the integrator's tolerance (else it is a breach)
+        return "the worst run reaches the bound within the integrator's tolerance"
+    return f"the bound is {c:.3g}x the worst run"
+
+
+def not_applicable(bounds: BoundsResult | None) -> tuple[Status, str]:
+    """The status and message when there is no proved bound to compare with: nothing is
+    simulated then (a run with nothing to compare establishes nothing)."""
+    why = ("no bounds were computed" if bounds is None else
+           "no proved error bound to compare with (bounds " + bounds.status.value + ": "
+           + (bounds.iss.reason if bounds.iss is not None else bounds.message) + ")")
+    return Status.NOT_APPLICABLE, f"not applicable: {why}; nothing was simulated."
+
+
+def verdict(runs: list[SimulationRun], breaches: list[str], certified: bool,
+            tau: float | None, late_ratio: float | None, compared: list[SimulationRun],
+            summary: Summary) -> tuple[Status, str]:
+    """The status and a short summary of runs compared with a proved bound; the details of
+    every run are in the runs table. `certified`: the bound's inputs were all proved (the
+    certificate passes): a breach is then a bug in certify (ERROR)."""
     bounded = [run for run in runs if run.noise == "bounded"]
     exits = sum(run.exit_time is not None for run in runs)
     windows = [run.window or 0.0 for run in bounded]
@@ -81,11 +99,6 @@ def verdict(runs: list[SimulationRun], bounds: BoundsResult | None, have_bound: 
     counted = (f"{len(runs)} runs ({len(bounded)} with bounded noise, {others} with the "
                "source's Gaussian noise)" if bounded and others else f"{len(runs)} runs")
     where = f"{exits} of {counted} left the validity conditions (see the table of runs)."
-    if not have_bound:
-        why = ("no bounds were computed" if bounds is None else
-               "no proved error bound to compare with (bounds " + bounds.status.value + ": "
-               + (bounds.iss.reason if bounds.iss is not None else bounds.message) + ")")
-        return Status.NOT_APPLICABLE, f"not applicable: {why}. {where}{src_text}"
     if breaches:
         if certified:
             return Status.ERROR, (

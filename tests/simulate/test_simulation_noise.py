@@ -284,18 +284,6 @@ def test_a_planted_too_small_bound_is_an_error_naming_the_run(planted):
     assert res2.status == Status.VIOLATED
 
 
-def test_no_bound_still_simulates_both_noise_kinds():
-    problem = linear_problem()
-    bounds = check_bounds(problem, lam_cert=-0.2, eps_bar=0.0, L=1.0, vbar=VBAR)
-    res = check_simulation(problem, bounds, settings(sim_time=1.0), certified=False)
-    assert res.status == Status.NOT_APPLICABLE
-    kinds = [r.noise_kind for r in res.runs]
-    assert kinds == ["uniform", "switching"] * 3 + ["gaussian"]
-    assert all(r.max_noise <= VBAR for r in res.runs if r.noise == "bounded")
-    assert all(r.peak_error is None and r.conservatism is None for r in res.runs)
-    assert res.bound_name == "" and res.peak_error is None and res.time_constant is None
-
-
 # ----- the horizon and the starts ---------------------------------------------------------
 
 def test_horizon_extended_only_when_sim_time_is_not_set(monkeypatch):
@@ -319,10 +307,27 @@ def test_horizon_extended_only_when_sim_time_is_not_set(monkeypatch):
                            certified=True)  # the default's value, but set: kept as set
     assert not ten.horizon_extended and ten.horizon == pytest.approx(10.0)
     assert "sim_time 10 s < the" in ten.message
-    monkeypatch.setattr(horizon_mod, "MAX_AUTO_STEPS", 1200)
+    # the cap is in run-steps: 3 runs here (one start under two noise kinds, the source's
+    # protocol); T = 25.9 s is within a cap of 3000 steps, not T + two time constants
+    assert slow.settle_time == pytest.approx(25.9, abs=0.1)
+    monkeypatch.setattr(horizon_mod, "MAX_WORK", 9000)
     capped = check_simulation(problem, slow, settings(sim_initial_conditions=1),
                               certified=True)
-    assert capped.horizon == pytest.approx(12.0) and "capped at 1200 steps" in capped.message
+    assert capped.horizon == pytest.approx(30.0) and "capped at 9000 run-steps" in (
+        capped.message)
+    assert capped.peak_error is not None  # the runs reached T
+    # a cap of 1200 steps ends the runs before T: said, the peak after T not compared, the
+    # horizon only as long as five time constants ask within the cap
+    monkeypatch.setattr(horizon_mod, "MAX_WORK", 3600)
+    short = check_simulation(problem, slow, settings(sim_initial_conditions=1),
+                             certified=True)
+    assert short.horizon == pytest.approx(12.0) and short.status == Status.PASSED
+    assert short.peak_error is None and all(r.peak_error is None for r in short.runs)
+    assert "runs end at 12 s (a cap of 3600 run-steps)" in short.message
+    assert f"before the settling time T = {upper_text(slow.settle_time, 4)} s" in (
+        short.horizon_note)
+    assert f"no run reached t = {upper_text(slow.settle_time, 2)} s" in short.message
+    assert "the bound's transient, which holds at every t, is compared" in short.horizon_note
 
 
 @pytest.mark.parametrize("lam_cert", [2.512, 0.5])
