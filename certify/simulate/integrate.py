@@ -86,13 +86,14 @@ def gaussian_noise(steps: int, batch: int, p: int, std: float, *, seed: int = 0
 
 class Feedback(Protocol):
     """Noise chosen from the states (`simulate_doubled`'s `feedback`): for the runs `rows`
-    of the batch, called at every step index k with k % hold == 0 with their plant and
-    observer states [m, n] at t_k; returns their noise [m, p] for the next `hold` steps."""
+    of the batch, called at step index k (k = 0 first, a multiple of `hold`) with their
+    plant and observer states [m, n] at t_k; returns their noise [H, m, p] for the next
+    1 <= H <= `holds` holds of `hold` steps each, and is called again at k + H hold."""
 
     rows: list[int]
     hold: int
 
-    def __call__(self, k: int, x: np.ndarray, xhat: np.ndarray) -> np.ndarray: ...
+    def __call__(self, k: int, x: np.ndarray, xhat: np.ndarray, holds: int) -> np.ndarray: ...
 
 
 class GainFunction:
@@ -212,10 +213,9 @@ def simulate_doubled(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: 
     hold is even, see `hold_steps`). Returns (the dt trajectories, the 2 dt ones or None).
 
     `feedback` (optional, e.g. `certify.simulate.noise.SwitchingNoise`): the noise of its
-    `rows` is chosen from the states as the run goes: at every step k with k % hold == 0
-    (hold even) it is called with k and those rows' plant and observer states [m, n] and
-    its values [m, p] are held over steps k .. k + hold - 1 (they replace what `noise` had
-    there; the returned `v` is the signal used). A run at 2 dt replays the signal its
+    `rows` is chosen from the states as the run goes (see `Feedback`; hold even): its H
+    values [H, m, p] are held `hold` steps each from step k on (they replace what `noise`
+    had there; the returned `v` is the signal used). A run at 2 dt replays the signal its
     dt run chose (the same piecewise-constant input), so step doubling still measures the
     integration error alone.
     """
@@ -262,11 +262,16 @@ def simulate_doubled(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: 
         coef_joint = rk4_coefficients(col)
     coef = rk4_coefficients(dt)
     s_f = fine[0]
+    next_fb = 0 if fb_rows else steps  # the step at which the feedback is asked again
     with np.errstate(all="ignore"):  # a run that blows up ends as inf/NaN, found later
         for k in range(steps):
-            if fb_rows and k % feedback.hold == 0:  # type: ignore[union-attr]
-                v = feedback(k, s_f[fb_rows], s_f[B:][fb_rows])  # type: ignore[misc]
-                noise[k: k + feedback.hold, fb_rows] = v  # type: ignore[union-attr]
+            if k == next_fb:
+                hold = feedback.hold  # type: ignore[union-attr]
+                v = feedback(k, s_f[fb_rows], s_f[B:][fb_rows],  # type: ignore[misc]
+                             -(-(steps - k) // hold))
+                span = min(len(v) * hold, steps - k)
+                noise[k: k + span, fb_rows] = np.repeat(v, hold, axis=0)[:span]
+                next_fb = k + len(v) * hold
             j = k // 2
             v_now[0] = noise[k]
             if coarse is not None and k % 2 == 0 and j < c_steps:

@@ -119,7 +119,9 @@ def test_greedy_direction_is_the_first_order_worst():
     x = np.array([[1.0, 0.5], [0.2, -0.4], [-1.0, 2.0]])
     xhat = np.array([[0.5, 0.5], [0.4, -0.1], [-1.0, 2.0]])  # the last: e = 0
     last = fb._last.copy()
-    v = fb(0, x, xhat)
+    v = fb(0, x, xhat, 5)
+    assert v.shape == (1, 3, 1)  # greedy: one hold at a time
+    v = v[0]
     e = x - xhat
     want = -np.sign((e @ P @ K)[:, 0]) * VBAR
     np.testing.assert_allclose(v[:2, 0], want[:2], rtol=1e-13)
@@ -153,27 +155,42 @@ def test_adjoint_noise_reaches_the_linear_worst_case():
     assert fb.switches[0] >= 2  # bang-bang: it does switch
 
 
-def test_without_a_usable_plan_the_direction_is_kept_for_a_few_holds():
-    """A zero gain: dk/dy = 0, so no noise reaches the error and no adjoint plan exists.
-    The previous direction is kept (inside the ball), and a new plan is tried only every
-    MIN_WINDOW_HOLDS holds, not at every hold."""
-    from certify.simulate.noise import MIN_WINDOW_HOLDS
+def test_a_zero_gain_keeps_the_direction_and_asks_once_per_window():
+    """A zero gain: dk/dy = 0, so no noise reaches the error: the plan keeps the previous
+    (seeded) direction over its whole window, returned in one block; an unstable
+    linearisation has no plan at all: the direction is kept MIN_WINDOW_HOLDS holds, then a
+    new plan is tried (not at every hold)."""
+    from certify.simulate.noise import MIN_WINDOW_HOLDS, WINDOW_DECAYS
 
-    problem = linear_problem()
-    net = linear_gain_net(2, 1, np.zeros((2, 1)))
-    fb = SwitchingNoise(problem.system, net, np.eye(2), VBAR, [0, 1], dt=0.01, seed=1)
-    tries = []
-    plan = fb.plan
-    fb.plan = lambda *a: tries.append(1) or plan(*a)  # type: ignore[method-assign]
+    def noise(f: list[str]) -> tuple[SwitchingNoise, list[int]]:
+        text = LINEAR.replace('f = ["x2", "-x1 - x2"]', "f = " + str(f).replace("'", '"'))
+        system = System.from_text(text, origin="test")
+        fb = SwitchingNoise(system, linear_gain_net(2, 1, np.zeros((2, 1))), np.eye(2), VBAR,
+                            [0, 1], dt=0.01, seed=1)
+        tries: list[int] = []
+        plan = fb.plan
+        fb.plan = lambda *a: tries.append(1) or plan(*a)  # type: ignore[method-assign]
+        return fb, tries
+
     x = np.array([[0.5, 0.1], [-0.2, 0.3]])
-    first = None
-    holds = 10 * MIN_WINDOW_HOLDS
-    for k in range(0, holds * fb.hold, fb.hold):
-        v = fb(k, x, 0.9 * x)
-        assert np.all(np.linalg.norm(v, axis=1) <= VBAR)
-        first = v if first is None else first
-        assert np.array_equal(v, first)  # the seeded direction, kept
-    assert len(tries) == 2 * holds // MIN_WINDOW_HOLDS
+    fb, tries = noise(["x2", "-x1 - x2"])  # eigenvalues -1/2 +- i sqrt(3)/2: decay 1/2
+    seeded = VBAR * fb._last
+    v = fb(0, x, 0.9 * x, 10_000)
+    J = int(math.ceil(WINDOW_DECAYS / 0.5 / (fb.hold * fb.dt)))
+    assert v.shape == (J, 2, 1) and len(tries) == 2
+    np.testing.assert_allclose(v, np.broadcast_to(seeded, v.shape), rtol=1e-13)
+    assert np.all(np.linalg.norm(v, axis=-1) <= VBAR)
+    assert fb.switches.tolist() == [0, 0]
+
+    fb, tries = noise(["x1", "x2"])  # unstable: no plan
+    seeded = VBAR * fb._last
+    k = 0
+    for _ in range(3):
+        v = fb(k, x, 0.9 * x, 10_000)
+        assert v.shape == (MIN_WINDOW_HOLDS, 2, 1)
+        np.testing.assert_allclose(v, np.broadcast_to(seeded, v.shape), rtol=1e-13)
+        k += len(v) * fb.hold
+    assert len(tries) == 2 * 3
 
 
 # ----- the check: a planted example with a known bound ------------------------------------
@@ -366,8 +383,11 @@ def test_switching_noise_is_inside_the_ball_for_any_state(vbar, seed, policy):
     xhat[0] = x[0]  # e = 0: no direction, the previous one is kept
     fb = SwitchingNoise(problem.system, problem.network, np.eye(2), vbar, list(range(5)),
                         dt=0.01, seed=seed, policy=policy)
-    for k in (0, 2, 4):
-        v = fb(k, x, xhat)
-        assert np.all(np.linalg.norm(v, axis=1) <= vbar)
-        assert float(torch.linalg.vector_norm(torch.from_numpy(v), dim=1).max()) <= vbar
-        assert np.all(np.linalg.norm(v, axis=1) >= vbar * (1 - 1e-12))
+    k = 0
+    for _ in range(3):
+        v = fb(k, x, xhat, 3)
+        assert 1 <= len(v) <= 3 and v.shape[1:] == (5, 1)
+        assert np.all(np.linalg.norm(v, axis=-1) <= vbar)
+        assert float(torch.linalg.vector_norm(torch.from_numpy(v), dim=-1).max()) <= vbar
+        assert np.all(np.linalg.norm(v, axis=-1) >= vbar * (1 - 1e-12))
+        k += len(v) * fb.hold
