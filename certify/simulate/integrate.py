@@ -107,6 +107,8 @@ class GainFunction:
     ulps; tested): N = W_L act(... act(W_0 [xhat, y] + b_0) ...) + b_L, then
     k = N (direct) or G (y - h(xhat)) with G = N as [n, p] (structural), plus K (y - h(xhat)).
     The weights are copied (transposed) once; the activation's `f_array` is its NumPy form.
+    A network whose last layer is zero (a zero gain, training's warm start) has N = 0 at
+    every finite input, and is not evaluated (k = K (y - h(xhat)), or 0).
     """
 
     def __init__(self, system: System, net: GainNetwork) -> None:
@@ -119,19 +121,25 @@ class GainFunction:
         self.needs_h = spec.needs_h
         self.K_T = np.ascontiguousarray(as_array(spec.K).T) if spec.has_K else None
         self._h = system.array_rows("fh") if spec.needs_h else None
+        W_L, b_L = self.layers[-1]
+        self.silent = not (W_L.any() or b_L.any())  # N = 0
 
     def __call__(self, xhat: np.ndarray, y: np.ndarray,
                  h_xhat: np.ndarray | None = None) -> np.ndarray:
         if not isinstance(xhat, np.ndarray) or not isinstance(y, np.ndarray):
             xhat, y = as_array(xhat), as_array(y)
+        if self.silent and self.K_T is None:
+            return np.zeros((xhat.shape[0], self.n))
+        if self.needs_h and h_xhat is None:
+            h_xhat = self._h(xhat)[:, self.n:]  # type: ignore[misc]
+        if self.silent:
+            return (y - h_xhat) @ self.K_T
         (W0, b0), rest = self.layers[0], self.layers[1:]
         a = np.concatenate([xhat, y], axis=1) @ W0 + b0
         for W, b in rest:
             a = self.act(a) @ W + b
         if not self.needs_h:
             return a
-        if h_xhat is None:
-            h_xhat = self._h(xhat)[:, self.n:]  # type: ignore[misc]
         r = y - h_xhat
         k = a
         if self.structural:  # G r, G = N as [B, n, p] (p = 1: N * r)

@@ -81,3 +81,28 @@ def test_the_batch_equals_serial_runs(which, structure, system3):
         x, xh = reference_run(system, net, x0[r], xh0[r], v[:-1:2, r], 2 * dt)
         np.testing.assert_allclose(coarse.x[:, i].numpy(), x, **SAME)
         np.testing.assert_allclose(coarse.xhat[:, i].numpy(), xh, **SAME)
+
+
+@pytest.mark.parametrize("structure", ["direct", "structural"])
+@pytest.mark.parametrize("with_K", [False, True])
+def test_a_zero_last_layer_skips_the_network_with_the_same_values(structure, with_K,
+                                                                   system3):
+    """N = 0 (a zero gain, training's warm start): k = K (y - h(xhat)) or 0, equal to the
+    general evaluation."""
+    from certify.simulate.integrate import GainFunction
+
+    net = random_network(3, 2, structure=structure, seed=6)
+    with torch.no_grad():
+        net.layers[-1].weight.zero_()
+        net.layers[-1].bias.zero_()
+        if not with_K:
+            net.K.zero_()
+    gain = GainFunction(system3, net)
+    assert gain.silent
+    gen = torch.Generator().manual_seed(3)
+    xhat = torch.rand(9, 3, generator=gen, dtype=torch.float64) * 2 - 1
+    y = torch.rand(9, 2, generator=gen, dtype=torch.float64) * 2 - 1
+    want = gain_value(net.spec(torch.float64, detach=True), system3, xhat, y)
+    got = gain(xhat.numpy(), y.numpy())
+    assert got.shape == (9, 3) and bool(np.any(got)) == with_K
+    np.testing.assert_allclose(got, want.numpy(), rtol=1e-14, atol=1e-15)
