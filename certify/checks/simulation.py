@@ -106,6 +106,15 @@ class SimulationCheck(Check):
 
     def present(self, r: SimulationResult, certificate: Any) -> Presentation:
         s = certificate.settings or {}
+        if not r.runs:  # nothing simulated (no proved bound to compare with)
+            none = Quantity("Runs", 0, suffix=" (nothing simulated)")
+            return Presentation(
+                sampled=Quantity("max error / bound (valid times)", None,
+                                 "no bound to compare"),
+                proved=Quantity("breaches; longest valid window", None,
+                                "no bound to compare with"),
+                setting=(none,), numbers=(Quantity("runs", 0),),
+                facts=(Quantity("Status", r.status.value), none))
         ratios = [run.max_ratio for run in r.runs if run.max_ratio is not None]
         exits = sum(run.exit_time is not None for run in r.runs)
         breaches = sum(bool(run.breach) for run in r.runs)

@@ -185,6 +185,13 @@ def test_no_bound_is_not_applicable_and_nothing_is_simulated(monkeypatch):
     assert res_none.status == Status.NOT_APPLICABLE and res_none.runs == []
     assert "no bounds were computed" in res_none.message
     assert from_jsonable(SimulationResult, to_jsonable(res)) == res
+    from types import SimpleNamespace
+
+    from certify.checks.simulation import CHECK
+
+    shown = CHECK.present(res, SimpleNamespace(settings={}))
+    assert [(q.label, q.value, q.suffix) for q in shown.facts] == [
+        ("Status", "NOT APPLICABLE", ""), ("Runs", 0, " (nothing simulated)")]
 
 
 def test_vdp_source_protocol_leaves_X():
