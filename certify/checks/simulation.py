@@ -29,14 +29,9 @@ from certify.results import BoundsResult, SimulationResult, Status
 from certify.settings import VerifySettings
 from certify.simulate.evidence import simulate_against_bounds
 from certify.simulate.samples import MAX_SAMPLES, keep_samples
-from certify.simulate.starts import (
-    InitialConditions,
-    initial_conditions,
-    source_initial_condition,
-)
 
-__all__ = ["MAX_SAMPLES", "InitialConditions", "check_simulation", "initial_conditions",
-           "keep_samples", "source_initial_condition"]
+#: MAX_SAMPLES and keep_samples live in certify.simulate.samples (named here for old callers)
+__all__ = ["MAX_SAMPLES", "check_simulation", "keep_samples"]
 
 
 @dataclass

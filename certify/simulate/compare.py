@@ -110,39 +110,6 @@ class Comparison:
         return bool(self.breaches)
 
 
-def compare_run(label: str, t: np.ndarray, e: np.ndarray, k_exit: int, curve: np.ndarray,
-                doubling: np.ndarray, *, tau: float | None, peak: PeakTest | None
-                ) -> Comparison:
-    """One run: e [T, n] over t [T], valid on [0, k_exit), its bound curve [T] and the
-    difference from its 2 dt integration at the even steps `doubling` [>= k_exit / 2]."""
-    out = Comparison()
-    if k_exit <= 0:
-        return out
-    norms = np.linalg.norm(e, axis=-1)
-    w = slice(0, k_exit)
-    b = curve[w]
-    d = doubling[: (k_exit + 1) // 2]
-    est = float(np.max(d)) if d.size and np.all(np.isfinite(d)) else math.inf
-    out.tol = tol = ATOL * (1.0 + float(np.max(b))) + est
-    ratio = norms[w] / (b + tol)
-    out.max_ratio = float(np.max(ratio))
-    with np.errstate(invalid="ignore"):
-        j = out.worst = int(np.argmax(np.where(np.isnan(ratio), np.inf, ratio)))
-    out.compared = k_exit > 1
-    if tau is not None:
-        late = t[w] >= tau
-        if late.any():
-            out.late_ratio = float(np.max(ratio[late]))
-    if out.max_ratio > 1.0 or not math.isfinite(out.max_ratio):
-        out.breaches.append(f"run '{label}' at t = {t[j]:.4g}: ||e|| = {norms[j]:.6g} > "
-                            f"bound {b[j]:.6g} + tolerance {tol:.2g}")
-    if peak is not None:
-        out.peak = peak.run(t, e, k_exit, tol)
-        if out.peak.breach:
-            out.breaches.append(f"run '{label}': {out.peak.breach}")
-    return out
-
-
 @dataclass
 class PeakTest:
     """The claim after settling for one run: the best bound `which` from the run's start
@@ -197,3 +164,36 @@ class PeakTest:
                               f"{out.components[i]:.6g} > its bound {comp[i]:.6g} + "
                               f"tolerance {tol:.2g}")
         return out
+
+
+def compare_run(label: str, t: np.ndarray, e: np.ndarray, k_exit: int, curve: np.ndarray,
+                doubling: np.ndarray, *, tau: float | None, peak: PeakTest | None
+                ) -> Comparison:
+    """One run: e [T, n] over t [T], valid on [0, k_exit), its bound curve [T] and the
+    difference from its 2 dt integration at the even steps `doubling` [>= k_exit / 2]."""
+    out = Comparison()
+    if k_exit <= 0:
+        return out
+    norms = np.linalg.norm(e, axis=-1)
+    w = slice(0, k_exit)
+    b = curve[w]
+    d = doubling[: (k_exit + 1) // 2]
+    est = float(np.max(d)) if d.size and np.all(np.isfinite(d)) else math.inf
+    out.tol = tol = ATOL * (1.0 + float(np.max(b))) + est
+    ratio = norms[w] / (b + tol)
+    out.max_ratio = float(np.max(ratio))
+    with np.errstate(invalid="ignore"):
+        j = out.worst = int(np.argmax(np.where(np.isnan(ratio), np.inf, ratio)))
+    out.compared = k_exit > 1
+    if tau is not None:
+        late = t[w] >= tau
+        if late.any():
+            out.late_ratio = float(np.max(ratio[late]))
+    if out.max_ratio > 1.0 or not math.isfinite(out.max_ratio):
+        out.breaches.append(f"run '{label}' at t = {t[j]:.4g}: ||e|| = {norms[j]:.6g} > "
+                            f"bound {b[j]:.6g} + tolerance {tol:.2g}")
+    if peak is not None:
+        out.peak = peak.run(t, e, k_exit, tol)
+        if out.peak.breach:
+            out.breaches.append(f"run '{label}': {out.peak.breach}")
+    return out

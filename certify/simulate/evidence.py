@@ -65,11 +65,12 @@ def simulate_against_bounds(problem: Problem, bounds: BoundsResult | None,
         progress.finish("simulation", status.value)
         return SimulationResult(status=status, message=msg,
                                 seconds=time.perf_counter() - start_time, horizon=None)
+    assert bounds is not None
     system = problem.system
     P = np.asarray(problem.P, dtype=np.float64)
     horizon = plan_horizon(bounds, settings, runs=run_count(system, settings))
     dt, steps = horizon.dt, horizon.steps
-    vbar = float(bounds.vbar) if bounds is not None else float(settings.noise)
+    vbar = float(bounds.vbar)
     measured = needs_measured_output(bounds)
     best = best_bound(bounds)
     progress.start("simulation", total=3)
@@ -95,7 +96,7 @@ def simulate_against_bounds(problem: Problem, bounds: BoundsResult | None,
     diff = doubling_difference(fine, coarse, b_idx)
 
     tau = time_constant(best)
-    headline = bounds.headline if best is not None and bounds is not None else None
+    headline = bounds.headline if best is not None else None
     comp = component_bounds(bounds) if best is not None else None
     t = fine.t.numpy()
     e_all = (fine.x - fine.xhat).numpy()  # [T, R, n]
@@ -108,8 +109,7 @@ def simulate_against_bounds(problem: Problem, bounds: BoundsResult | None,
         c = Comparison()
         if within:
             peak = (PeakTest(bounds, formulas, best.name, e0[r], float(headline), comp)
-                    if best is not None and headline is not None and bounds is not None
-                    else None)
+                    if best is not None and headline is not None else None)
             c = compare_run(batch.labels[r], t, e_all[:, r], int(first[r]), curve[r],
                             diff[:, r], tau=tau, peak=peak)
             breaches += c.breaches
@@ -117,8 +117,7 @@ def simulate_against_bounds(problem: Problem, bounds: BoundsResult | None,
                 late_ratio = c.late_ratio if late_ratio is None else max(late_ratio,
                                                                          c.late_ratio)
         row = run_row(batch, r, fine, int(first[r]), reasons[r], c,
-                      curve[r] if within else None, v_norm[:, r],
-                      tau, headline)
+                      curve[r] if within else None, v_norm[:, r], tau, headline)
         runs.append(row)
         if c.compared:
             compared.append(row)

@@ -97,7 +97,8 @@ def plan_horizon(bounds: BoundsResult | None, settings: VerifySettings, runs: in
     if need <= steps * dt:
         return Horizon(steps, dt, need=need, settle=settle)
     why = (f"{MIN_TIME_CONSTANTS:g} time constants of the {b.name} bound ({tau:.3g} s each)"
-           f", {AFTER_SETTLING:g} of them after the settling time T = {settle or 0.0:.3g} s")
+           f", {AFTER_SETTLING:g} of them after the settling time T = "
+           f"{upper_text(settle or 0.0)} s")
     if chosen:
         return Horizon(steps, dt, need=need, settle=settle,
                        reaches_settle=settle is None or settle < steps * dt,
@@ -116,7 +117,6 @@ def plan_horizon(bounds: BoundsResult | None, settings: VerifySettings, runs: in
     limit = f"{MAX_WORK} run-steps ({runs} runs of at most {cap} steps of {dt:g} s)"
     if settle is None or settle < cap * dt:
         return Horizon(cap, dt, extended=True, need=need, settle=settle,
-                       reaches_settle=settle is None or settle < cap * dt,
                        short=f"horizon extended from {base:g} s to {cap * dt:.4g} s "
                              f"(capped at {limit}; sim_time was not set)",
                        note=f"horizon extended from {base:g} s to {cap * dt:.4g} s for "

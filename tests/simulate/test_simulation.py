@@ -10,7 +10,7 @@ import scipy.linalg
 import torch
 
 from certify.checks.bounds import check_bounds
-from certify.checks.simulation import MAX_SAMPLES, check_simulation, initial_conditions
+from certify.checks.simulation import check_simulation
 from certify.model.kernels import gain_terms
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
@@ -23,6 +23,8 @@ from certify.simulate.integrate import (
     hold_steps,
     simulate,
 )
+from certify.simulate.samples import MAX_SAMPLES
+from certify.simulate.starts import initial_conditions
 from certify.spec.system import System, load_system
 from tests.conftest import random_network
 
