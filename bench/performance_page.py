@@ -71,6 +71,7 @@ WHAT = {
     "tree_size": "the box count a complete MPDI proof needs (random-descent estimate)",
     "same_numbers": "certificates of two checkouts compared number for number",
     "compare": "learned gain vs LMI baseline vs paper preset (the README's design table)",
+    "simulation": "the simulation check per shipped example, and a zero-gain observer's run",
 }
 
 

@@ -1,10 +1,10 @@
-"""Batched fixed-step RK4 for plant + observer, float64, vectorised over initial conditions.
+"""Batched fixed-step RK4 for plant + observer, float64: every run of a check in one batch.
 
     x'    = f(x)
     xhat' = f(xhat) + k(xhat, h(x) + v(t))
 
 The noise v is held constant over each step (sample and hold), so every RK4 step integrates
-a smooth right-hand side and keeps its fourth order. Two noise models:
+a smooth right-hand side and keeps its fourth order. Three noise models:
 
 - `bounded_noise`: piecewise constant over holds of a few steps, each value a random
   direction scaled to norm vbar (1 - 1e-14) (so ||v(t)||_2 <= vbar holds however the norm
@@ -14,10 +14,13 @@ a smooth right-hand side and keeps its fourth order. Two noise models:
 - `gaussian_noise`: white Gaussian samples of a given standard deviation, one per step (the
   source's protocol; it has no bound vbar).
 
-Noise arrays have shape [steps, B, p]; states [B, n]; trajectories [steps + 1, B, n]. The
-integrator runs on float64 NumPy arrays (f and h by `System.array_rows`, k by the NumPy value
-arithmetic `_ArrayValueRows`): a step is ~100 small calls, and a NumPy call costs a quarter
-of a torch call there. `Trajectories` hands torch tensors on.
+Noise arrays have shape [steps, B, p]; states [B, n]; trajectories [steps + 1, B, n]. All
+runs (every start under every noise kind, the source's protocol, and the runs again at 2 dt
+for the integration error) advance together: one right-hand-side call per RK4 stage on the
+whole batch. The batch is a few rows, so a step costs the number of library calls more than
+arithmetic: the integrator runs on float64 NumPy arrays (f and h by `System.array_rows`, k
+by `GainFunction`), whose calls are cheaper than torch's on a few rows. `Trajectories` hands
+torch tensors on.
 """
 
 from __future__ import annotations
@@ -29,9 +32,6 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from certify.model.gain import GainSpec, gain_value
-from certify.model.gain.arithmetic import PointCompose
-from certify.model.gain.propagate import NetOutput
 from certify.model.network import GainNetwork
 from certify.spec.system import System
 
@@ -86,82 +86,67 @@ def gaussian_noise(steps: int, batch: int, p: int, std: float, *, seed: int = 0
 
 class Feedback(Protocol):
     """Noise chosen from the states (`simulate_doubled`'s `feedback`): for the runs `rows`
-    of the batch, called at every step index k with k % hold == 0 with their plant and
-    observer states [m, n] at t_k; returns their noise [m, p] for the next `hold` steps."""
+    of the batch, called at step index k (k = 0 first, a multiple of `hold`) with their
+    plant and observer states [m, n] at t_k; returns their noise [H, m, p] for the next
+    1 <= H <= `holds` holds of `hold` steps each, and is called again at k + H hold."""
 
     rows: list[int]
     hold: int
 
-    def __call__(self, k: int, x: np.ndarray, xhat: np.ndarray) -> np.ndarray: ...
-
-
-class _ArrayValueRows(PointCompose):
-    """The `propagate` / `compose` primitives for k alone (no tangents) on float64 NumPy
-    rows: the simulation calls k ~20 k times on a few rows, where the cost is the number of
-    library calls, and a NumPy call costs a quarter of a torch call. The same composition
-    as every evaluation (`certify.model.gain.gain_value`); the weights are copied (transposed)
-    once; the activation's `f_array` is its NumPy form. Floats agree with the torch row
-    arithmetic up to the libraries' rounding of products and tanh (last ulps)."""
-
-    def __init__(self, spec: GainSpec) -> None:
-        def array(t: torch.Tensor) -> np.ndarray:
-            return t.detach().to(device="cpu", dtype=torch.float64).numpy()
-
-        self._arrays: dict[int, np.ndarray] = {id(W): np.ascontiguousarray(array(W).T)
-                                               for W, _ in spec.layers}
-        self._arrays.update({id(b): array(b) for _, b in spec.layers})
-        self._arrays[id(spec.K)] = np.ascontiguousarray(array(spec.K).T)
-
-    def inputs(self, xhat: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return np.concatenate([xhat, y], axis=1)
-
-    def input_layer(self, z: np.ndarray, W: torch.Tensor, b: torch.Tensor, m: int
-                    ) -> tuple[np.ndarray, None]:
-        if m:
-            raise ValueError("the simulation evaluates k alone (no input derivatives)")
-        return z @ self._arrays[id(W)] + self._arrays[id(b)], None
-
-    def activate(self, act: Any, pre: np.ndarray, layer: int, order: int
-                 ) -> tuple[np.ndarray, None, None]:
-        return act.f_array(pre), None, None
-
-    def affine(self, a: np.ndarray, T: None, S: None, W: torch.Tensor, b: torch.Tensor,
-               layer: int) -> tuple[np.ndarray, None, None]:
-        return a @ self._arrays[id(W)] + self._arrays[id(b)], None, None
-
-    def output(self, pre: np.ndarray, T: None, S: None) -> NetOutput:
-        return NetOutput(pre, None, None)
-
-    def reshape_out(self, out: np.ndarray, n: int, p: int) -> np.ndarray:
-        return out if p == 1 else out.reshape(out.shape[0], n, p)  # p = 1: G as [B, n]
-
-    def matvec(self, A: np.ndarray, v: np.ndarray) -> np.ndarray:
-        if A.ndim == 2:  # p = 1: G r = G[:, :, 0] * r
-            return A * v
-        return (A @ v[:, :, None])[:, :, 0]
-
-    def const_matvec(self, K: torch.Tensor, v: np.ndarray) -> np.ndarray:
-        return v @ self._arrays[id(K)]
+    def __call__(self, k: int, x: np.ndarray, xhat: np.ndarray, holds: int) -> np.ndarray: ...
 
 
 class GainFunction:
-    """k(xhat, y) for a batch of float64 NumPy rows (xhat [B, n], y [B, p] -> [B, n]), by
-    the plain network forward (no Jacobian): `certify.model.gain.gain_value` with the NumPy
-    value arithmetic."""
+    """k(xhat, y) for a batch of float64 NumPy rows (xhat [B, n], y [B, p] -> [B, n]): the
+    plain network forward (no Jacobian), written out for the simulation, whose right-hand
+    side calls it ~20 k times on a few rows each, where every library call counts.
+
+    The composition of `certify.model.gain.gain_value` (the one every evaluation uses), step
+    for step and with the same products, so the floats agree with its NumPy form exactly and
+    with its torch form up to the libraries' rounding of products and the activation (last
+    ulps; tested): N = W_L act(... act(W_0 [xhat, y] + b_0) ...) + b_L, then
+    k = N (direct) or G (y - h(xhat)) with G = N as [n, p] (structural), plus K (y - h(xhat)).
+    The weights are copied (transposed) once; the activation's `f_array` is its NumPy form.
+    A network whose last layer is zero (a zero gain, training's warm start) has N = 0 at
+    every finite input, and is not evaluated (k = K (y - h(xhat)), or 0).
+    """
 
     def __init__(self, system: System, net: GainNetwork) -> None:
+        spec = net.spec(torch.float64, detach=True)
         self.system = system
-        self.spec = net.spec(torch.float64, detach=True)
-        self.arith = _ArrayValueRows(self.spec)
-        self._h = system.array_rows("fh") if self.spec.needs_h else None
+        self.n, self.p = spec.n, spec.p
+        self.layers = [(np.ascontiguousarray(as_array(W).T), as_array(b)) for W, b in spec.layers]
+        self.act = spec.activation.f_array
+        self.structural = spec.structural
+        self.needs_h = spec.needs_h
+        self.K_T = np.ascontiguousarray(as_array(spec.K).T) if spec.has_K else None
+        self._h = system.array_rows("fh") if spec.needs_h else None
+        W_L, b_L = self.layers[-1]
+        self.silent = not (W_L.any() or b_L.any())  # N = 0
 
     def __call__(self, xhat: np.ndarray, y: np.ndarray,
                  h_xhat: np.ndarray | None = None) -> np.ndarray:
         if not isinstance(xhat, np.ndarray) or not isinstance(y, np.ndarray):
             xhat, y = as_array(xhat), as_array(y)
-        if h_xhat is None and self._h is not None:
-            h_xhat = self._h(xhat)[:, self.system.n:]
-        return gain_value(self.spec, self.system, xhat, y, h_xhat, arith=self.arith)
+        if self.silent and self.K_T is None:
+            return np.zeros((xhat.shape[0], self.n))
+        if self.needs_h and h_xhat is None:
+            h_xhat = self._h(xhat)[:, self.n:]  # type: ignore[misc]
+        if self.silent:
+            return (y - h_xhat) @ self.K_T
+        (W0, b0), rest = self.layers[0], self.layers[1:]
+        a = np.concatenate([xhat, y], axis=1) @ W0 + b0
+        for W, b in rest:
+            a = self.act(a) @ W + b
+        if not self.needs_h:
+            return a
+        r = y - h_xhat
+        k = a
+        if self.structural:  # G r, G = N as [B, n, p] (p = 1: N * r)
+            k = a * r if self.p == 1 else (a.reshape(-1, self.n, self.p) @ r[:, :, None])[:, :, 0]
+        if self.K_T is not None:
+            k = k + r @ self.K_T
+        return k
 
 
 def rk4(rhs: Callable[[np.ndarray, int], np.ndarray], s0: np.ndarray, dt: float,
@@ -236,10 +221,9 @@ def simulate_doubled(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: 
     hold is even, see `hold_steps`). Returns (the dt trajectories, the 2 dt ones or None).
 
     `feedback` (optional, e.g. `certify.simulate.noise.SwitchingNoise`): the noise of its
-    `rows` is chosen from the states as the run goes: at every step k with k % hold == 0
-    (hold even) it is called with k and those rows' plant and observer states [m, n] and
-    its values [m, p] are held over steps k .. k + hold - 1 (they replace what `noise` had
-    there; the returned `v` is the signal used). A run at 2 dt replays the signal its
+    `rows` is chosen from the states as the run goes (see `Feedback`; hold even): its H
+    values [H, m, p] are held `hold` steps each from step k on (they replace what `noise`
+    had there; the returned `v` is the signal used). A run at 2 dt replays the signal its
     dt run chose (the same piecewise-constant input), so step doubling still measures the
     integration error alone.
     """
@@ -286,11 +270,16 @@ def simulate_doubled(system: System, net: GainNetwork, x0: torch.Tensor, xhat0: 
         coef_joint = rk4_coefficients(col)
     coef = rk4_coefficients(dt)
     s_f = fine[0]
+    next_fb = 0 if fb_rows else steps  # the step at which the feedback is asked again
     with np.errstate(all="ignore"):  # a run that blows up ends as inf/NaN, found later
         for k in range(steps):
-            if fb_rows and k % feedback.hold == 0:  # type: ignore[union-attr]
-                v = feedback(k, s_f[fb_rows], s_f[B:][fb_rows])  # type: ignore[misc]
-                noise[k: k + feedback.hold, fb_rows] = v  # type: ignore[union-attr]
+            if k == next_fb:
+                hold = feedback.hold  # type: ignore[union-attr]
+                v = feedback(k, s_f[fb_rows], s_f[B:][fb_rows],  # type: ignore[misc]
+                             -(-(steps - k) // hold))
+                span = min(len(v) * hold, steps - k)
+                noise[k: k + span, fb_rows] = np.repeat(v, hold, axis=0)[:span]
+                next_fb = k + len(v) * hold
             j = k // 2
             v_now[0] = noise[k]
             if coarse is not None and k % 2 == 0 and j < c_steps:

@@ -24,7 +24,8 @@ Two policies, both piecewise constant over holds of a few integration steps:
 
 Where a direction is undefined (e = 0, dk/dy = 0, a non-finite state or matrix) the
 previous one is kept (a seeded random one at the start), so the signal is a function of the
-states and the seed alone.
+states and the seed alone; where the adjoint policy finds no usable plan it keeps it for a
+few holds before it tries again.
 
 Contract: every value has ||v||_2 <= vbar exactly in float64 (the scaling's rounding is
 clipped, and it is asserted). The feedback only chooses the signal; a run under it is
@@ -109,9 +110,11 @@ def _transition_transposed(A: np.ndarray, times: np.ndarray) -> np.ndarray:
 class SwitchingNoise:
     """The worst-case-like noise of the module docstring for the runs `rows` of a batch.
 
-    The integrator (`certify.simulate.integrate.simulate_doubled`) calls the object at every
-    step index k with k % hold == 0 (hold even, >= 2) with those rows' plant and observer
-    states [m, n] at t_k = k dt, and gets v [m, p], held over the next `hold` steps.
+    The integrator (`certify.simulate.integrate.simulate_doubled`) calls the object at step
+    index k (a multiple of hold; hold even, >= 2) with those rows' plant and observer
+    states [m, n] at t_k = k dt, and gets v [H, m, p] for the next H holds of `hold` steps
+    each (as far as every row's plan reaches; the greedy policy: one hold); it calls again
+    at step k + H hold.
     Deterministic: the same states and seed give the same values. `switches` counts, per
     row, the holds at which the direction changed.
     """
@@ -138,7 +141,7 @@ class SwitchingNoise:
         self.switches = np.zeros(m, dtype=np.int64)
         # the adjoint plans: per row, the step its window began and its directions per hold
         self._plan_start = np.full(m, -1, dtype=np.int64)
-        self._plans: list[np.ndarray] = [np.zeros((0, p)) for _ in range(m)]
+        self._plans = np.zeros((m, 0, p))  # [m, longest plan, p]; zero rows: keep the last
         self._plan_len = np.zeros(m, dtype=np.int64)
 
     # ----- the linearisation ---------------------------------------------------------------
@@ -169,7 +172,9 @@ class SwitchingNoise:
 
     def plan(self, A: np.ndarray, B: np.ndarray, e: np.ndarray) -> np.ndarray | None:
         """The adjoint plan for one run: directions [J, p] for the J holds of its window
-        (None when the linearisation is not usable: non-finite, or not decaying)."""
+        (zero rows: no direction helps there, e.g. dk/dy = 0, where the noise does not
+        reach the error to first order; None when the linearisation is not usable:
+        non-finite, or not decaying)."""
         if not (np.isfinite(A).all() and np.isfinite(B).all() and np.isfinite(e).all()):
             return None
         decay = -float(np.max(np.linalg.eigvals(A).real))
@@ -182,6 +187,8 @@ class SwitchingNoise:
         J = max(MIN_WINDOW_HOLDS, int(math.ceil(window / h)))
         if J > 100_000:
             return None
+        if not B.any():  # the noise does not reach the error over this window: keep the last
+            return np.zeros((J, B.shape[1]))
         # Phi^T at the hold midpoints' times-to-go (J - j - 1/2) h, j = 0 .. J-1
         phis = _transition_transposed(A, (np.arange(J)[::-1] + 0.5) * h)  # [J, n, n]
         free = _transition_transposed(A, np.array([J * h]))[0].T @ e  # e^(A T) e
@@ -198,33 +205,62 @@ class SwitchingNoise:
         u, good = _unit(-g[int(np.nanargmax(score))])
         return u if good.any() else None
 
-    def adjoint(self, k: int, x: np.ndarray, xhat: np.ndarray) -> np.ndarray:
-        """The directions [m, p] of the current holds of each row's plan; a row whose plan is
-        over (or that has none) gets a new one from its current states."""
-        u = self._last.copy()
+    def adjoint(self, k: int, x: np.ndarray, xhat: np.ndarray, holds: int
+                ) -> np.ndarray:
+        """The directions [m, H, p] of each row's plan for the next H <= `holds` holds: as
+        many as every row's current plan still covers. A row whose plan is over (or that
+        has none) first gets a new one from its current states. Where no plan is usable
+        (`plan` returns None) the previous direction is kept for `MIN_WINDOW_HOLDS` holds
+        before the next try, so a row without one costs a plan every few holds, not every
+        hold. A zero row of a plan keeps the previous direction."""
+        m = len(self.rows)
         idx = (k - self._plan_start) // self.hold  # the hold of each row's plan
         due = (self._plan_start < 0) | (idx >= self._plan_len)
-        if due.any():
-            ok = np.isfinite(x).all(1) & np.isfinite(xhat).all(1)
-            todo = np.flatnonzero(due & ok)
-            if todo.size:
-                A, B, e = self.linearisation(x[todo], xhat[todo])
-                for i, r in enumerate(todo):
-                    pl = self.plan(A[i], B[i], e[i])
-                    self._plans[r] = pl if pl is not None else np.zeros((0, self.system.p))
-                    self._plan_len[r] = len(self._plans[r])
-                    self._plan_start[r] = k
+        ok = np.isfinite(x).all(1) & np.isfinite(xhat).all(1)
+        todo = np.flatnonzero(due & ok)
+        if todo.size:
+            A, B, e = self.linearisation(x[todo], xhat[todo])
+            for i, r in enumerate(todo):
+                pl = self.plan(A[i], B[i], e[i])
+                self._store(int(r), np.zeros((MIN_WINDOW_HOLDS, self.system.p))
+                            if pl is None else pl)
+                self._plan_start[r] = k
             idx = (k - self._plan_start) // self.hold
-        for r in np.flatnonzero((idx >= 0) & (idx < self._plan_len)):
-            row = self._plans[r][idx[r]]
-            if row.any():  # a zero row: no usable direction there, the previous one is kept
-                u[r] = row
-        return u
+        live = (idx >= 0) & (idx < self._plan_len)  # not live: non-finite states, kept
+        if not live.any():
+            return np.repeat(self._last[:, None], holds, axis=1)
+        H = max(1, min(holds, int((self._plan_len - idx)[live].min())))
+        width = self._plans.shape[1]
+        seq = self._plans[np.arange(m)[:, None],
+                          np.clip(idx[:, None] + np.arange(H), 0, width - 1)]  # [m, H, p]
+        usable = live[:, None] & seq.any(axis=2)  # [m, H]
+        # each hold takes the latest usable direction at or before it, else the last one
+        at = np.maximum.accumulate(np.where(usable, np.arange(H), -1), axis=1)
+        picked = np.take_along_axis(seq, np.maximum(at, 0)[..., None], axis=1)
+        return np.where((at >= 0)[..., None], picked, self._last[:, None])
 
-    def __call__(self, k: int, x: np.ndarray, xhat: np.ndarray) -> np.ndarray:
+    def _store(self, r: int, plan: np.ndarray) -> None:
+        """Row r's plan [J, p] into the padded array of plans (grown when J is longer)."""
+        J = len(plan)
+        if J > self._plans.shape[1]:
+            grown = np.zeros((self._plans.shape[0], J, self._plans.shape[2]))
+            grown[:, : self._plans.shape[1]] = self._plans
+            self._plans = grown
+        self._plans[r, :J] = plan
+        self._plans[r, J:] = 0.0
+        self._plan_len[r] = J
+
+    def __call__(self, k: int, x: np.ndarray, xhat: np.ndarray, holds: int = 1
+                 ) -> np.ndarray:
+        """The noise [H, m, p] of the rows for the next H holds from step k (1 <= H <=
+        `holds`; the greedy policy: H = 1), from their plant and observer states [m, n]."""
         x = np.asarray(x, dtype=np.float64)
         xhat = np.asarray(xhat, dtype=np.float64)
-        u = self.adjoint(k, x, xhat) if self.policy == "adjoint" else self.greedy(x, xhat)
-        self.switches += (u != self._last).any(axis=1)
-        self._last = u
-        return clip_to_ball(self.vbar * u, self.vbar)
+        if self.policy == "adjoint":
+            u = self.adjoint(k, x, xhat, max(int(holds), 1))
+        else:
+            u = self.greedy(x, xhat)[:, None]
+        steps = np.concatenate([self._last[:, None], u], axis=1)
+        self.switches += (steps[:, 1:] != steps[:, :-1]).any(axis=2).sum(axis=1)
+        self._last = u[:, -1]
+        return clip_to_ball(self.vbar * u.transpose(1, 0, 2), self.vbar)

@@ -208,6 +208,16 @@ def choose_starts(system: System, P: np.ndarray, count: int, seed: int, *, horiz
                              notes=notes)
 
 
+def initial_conditions(system: System, count: int, seed: int, *, P: np.ndarray | None = None,
+                       horizon: float = 10.0, vbar: float = 0.0, L_is_local: bool = False,
+                       radius: float | None = None, need_time: float | None = None
+                       ) -> InitialConditions:
+    """`choose_starts` with the identity metric when P is not given."""
+    P = np.eye(system.n) if P is None else np.asarray(P, dtype=np.float64)
+    return choose_starts(system, P, count, seed, horizon=horizon, vbar=vbar,
+                         L_is_local=L_is_local, radius=radius, need_time=need_time)
+
+
 def _rank(window: np.ndarray, room: np.ndarray, need: float | None) -> np.ndarray:
     """Candidate indices, best first: without `need`, the longest window first, then the
     most room; with it, those whose window reaches `need` first, then the most room (over

@@ -10,7 +10,7 @@ import scipy.linalg
 import torch
 
 from certify.checks.bounds import check_bounds
-from certify.checks.simulation import MAX_SAMPLES, check_simulation, initial_conditions
+from certify.checks.simulation import check_simulation
 from certify.model.kernels import gain_terms
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
@@ -23,6 +23,8 @@ from certify.simulate.integrate import (
     hold_steps,
     simulate,
 )
+from certify.simulate.samples import MAX_SAMPLES
+from certify.simulate.starts import initial_conditions
 from certify.spec.system import System, load_system
 from tests.conftest import random_network
 
@@ -163,27 +165,43 @@ def test_planted_breach_of_a_proved_certificate_is_an_error():
     assert res2.status == Status.VIOLATED
 
 
-def test_no_bound_is_not_applicable_but_still_simulated():
-    """Runs simulated with nothing to compare them with: NOT APPLICABLE (not "SKIPPED"),
-    a short message, and the runs in the result's table."""
+def test_no_bound_is_not_applicable_and_nothing_is_simulated(monkeypatch):
+    """Nothing to compare a run with: NOT APPLICABLE (not "SKIPPED"), a short message saying
+    so, no runs, and the integrator never called."""
+    import certify.simulate.evidence as evidence
+
+    def never(*a, **k):
+        raise AssertionError("integrated although there is no bound to compare with")
+
+    monkeypatch.setattr(evidence, "simulate_doubled", never)
+    monkeypatch.setattr(evidence, "initial_conditions", never)
     problem = linear_problem()
     bounds = check_bounds(problem, lam_cert=-0.2, eps_bar=0.0, L=1.0, vbar=0.15)
     res = check_simulation(problem, bounds, fast(sim_time=1.0), certified=False)
     assert res.status == Status.NOT_APPLICABLE and "no bound exists" in res.message
     assert res.message.startswith("not applicable: no proved error bound to compare with")
-    assert ("of 9 runs (8 with bounded noise, 1 with the source's Gaussian noise) left the "
-            "validity conditions") in res.message and len(res.message) < 400
-    assert len(res.runs) == 9 and all(r.bound == [] and r.max_ratio is None for r in res.runs)
-    assert all(r.window is not None and r.start for r in res.runs)
+    assert res.message.endswith("nothing was simulated.") and len(res.message) < 400
+    assert res.runs == [] and res.horizon is None and res.bound_name == ""
+    assert res.peak_error is None and res.time_constant is None
     res_none = check_simulation(problem, None, fast(sim_time=1.0), certified=False)
-    assert res_none.status == Status.NOT_APPLICABLE
+    assert res_none.status == Status.NOT_APPLICABLE and res_none.runs == []
     assert "no bounds were computed" in res_none.message
+    assert from_jsonable(SimulationResult, to_jsonable(res)) == res
+    from types import SimpleNamespace
+
+    from certify.checks.simulation import CHECK
+
+    shown = CHECK.present(res, SimpleNamespace(settings={}))
+    assert [(q.label, q.value, q.suffix) for q in shown.facts] == [
+        ("Status", "NOT APPLICABLE", ""), ("Runs", 0, " (nothing simulated)")]
 
 
 def test_vdp_source_protocol_leaves_X():
     vdp = load_system("vdp")
     problem = Problem(vdp, random_network(2, 1, seed=1), 2.5, np.eye(2))
-    res = check_simulation(problem, None, fast(sim_time=2.0, sim_initial_conditions=2),
+    # a loose bound, only so that there is one to compare with (nothing is simulated without)
+    bounds = check_bounds(problem, lam_cert=0.5, eps_bar=0.0, L=1e3, vbar=0.15)
+    res = check_simulation(problem, bounds, fast(sim_time=2.0, sim_initial_conditions=2),
                            certified=False)
     src = next(r for r in res.runs if r.noise == "gaussian")
     assert src.x0 == [-1.0, 2.5] and src.xhat0 == [0.0, 0.0]

@@ -15,18 +15,19 @@ from hypothesis import settings as settings_h
 from hypothesis import strategies as st
 
 from certify.arith.text import upper_text
-from certify.checks import simulation as simulation_mod
 from certify.checks.bounds import check_bounds
-from certify.checks.simulation import check_simulation, time_constant
+from certify.checks.simulation import check_simulation
 from certify.model.problem import Problem
 from certify.results import DissipationResult, SimulationResult, Status, from_jsonable, to_jsonable
 from certify.settings import VerifySettings
+from certify.simulate import horizon as horizon_mod
+from certify.simulate.horizon import time_constant
 from certify.simulate.integrate import bounded_noise, simulate_doubled
 from certify.simulate.noise import SwitchingNoise, clip_to_ball
 from certify.spec.system import System, load_system
 
 from ..conftest import random_network
-from .test_simulation import LINEAR, A, C, K, linear_problem
+from .test_simulation import LINEAR, A, C, K, linear_gain_net, linear_problem
 
 # the linear example of test_simulation: x' = A x, y = x1, k = K (y - h(xhat)), K = (1, 0):
 # e' = (A - K C) e - K v with He{A - K C} = -I, so lam_cert = 1/2 (P = I), eps_bar = 0, L = 1;
@@ -118,7 +119,9 @@ def test_greedy_direction_is_the_first_order_worst():
     x = np.array([[1.0, 0.5], [0.2, -0.4], [-1.0, 2.0]])
     xhat = np.array([[0.5, 0.5], [0.4, -0.1], [-1.0, 2.0]])  # the last: e = 0
     last = fb._last.copy()
-    v = fb(0, x, xhat)
+    v = fb(0, x, xhat, 5)
+    assert v.shape == (1, 3, 1)  # greedy: one hold at a time
+    v = v[0]
     e = x - xhat
     want = -np.sign((e @ P @ K)[:, 0]) * VBAR
     np.testing.assert_allclose(v[:2, 0], want[:2], rtol=1e-13)
@@ -150,6 +153,44 @@ def test_adjoint_noise_reaches_the_linear_worst_case():
     # the greedy policy slides along e^T P K = 0: |e| -> vbar / sqrt(2) here
     assert float(err_g.max()) == pytest.approx(VBAR / math.sqrt(2), rel=0.02)
     assert fb.switches[0] >= 2  # bang-bang: it does switch
+
+
+def test_a_zero_gain_keeps_the_direction_and_asks_once_per_window():
+    """A zero gain: dk/dy = 0, so no noise reaches the error: the plan keeps the previous
+    (seeded) direction over its whole window, returned in one block; an unstable
+    linearisation has no plan at all: the direction is kept MIN_WINDOW_HOLDS holds, then a
+    new plan is tried (not at every hold)."""
+    from certify.simulate.noise import MIN_WINDOW_HOLDS, WINDOW_DECAYS
+
+    def noise(f: list[str]) -> tuple[SwitchingNoise, list[int]]:
+        text = LINEAR.replace('f = ["x2", "-x1 - x2"]', "f = " + str(f).replace("'", '"'))
+        system = System.from_text(text, origin="test")
+        fb = SwitchingNoise(system, linear_gain_net(2, 1, np.zeros((2, 1))), np.eye(2), VBAR,
+                            [0, 1], dt=0.01, seed=1)
+        tries: list[int] = []
+        plan = fb.plan
+        fb.plan = lambda *a: tries.append(1) or plan(*a)  # type: ignore[method-assign]
+        return fb, tries
+
+    x = np.array([[0.5, 0.1], [-0.2, 0.3]])
+    fb, tries = noise(["x2", "-x1 - x2"])  # eigenvalues -1/2 +- i sqrt(3)/2: decay 1/2
+    seeded = VBAR * fb._last
+    v = fb(0, x, 0.9 * x, 10_000)
+    J = int(math.ceil(WINDOW_DECAYS / 0.5 / (fb.hold * fb.dt)))
+    assert v.shape == (J, 2, 1) and len(tries) == 2
+    np.testing.assert_allclose(v, np.broadcast_to(seeded, v.shape), rtol=1e-13)
+    assert np.all(np.linalg.norm(v, axis=-1) <= VBAR)
+    assert fb.switches.tolist() == [0, 0]
+
+    fb, tries = noise(["x1", "x2"])  # unstable: no plan
+    seeded = VBAR * fb._last
+    k = 0
+    for _ in range(3):
+        v = fb(k, x, 0.9 * x, 10_000)
+        assert v.shape == (MIN_WINDOW_HOLDS, 2, 1)
+        np.testing.assert_allclose(v, np.broadcast_to(seeded, v.shape), rtol=1e-13)
+        k += len(v) * fb.hold
+    assert len(tries) == 2 * 3
 
 
 # ----- the check: a planted example with a known bound ------------------------------------
@@ -260,18 +301,6 @@ def test_a_planted_too_small_bound_is_an_error_naming_the_run(planted):
     assert res2.status == Status.VIOLATED
 
 
-def test_no_bound_still_simulates_both_noise_kinds():
-    problem = linear_problem()
-    bounds = check_bounds(problem, lam_cert=-0.2, eps_bar=0.0, L=1.0, vbar=VBAR)
-    res = check_simulation(problem, bounds, settings(sim_time=1.0), certified=False)
-    assert res.status == Status.NOT_APPLICABLE
-    kinds = [r.noise_kind for r in res.runs]
-    assert kinds == ["uniform", "switching"] * 3 + ["gaussian"]
-    assert all(r.max_noise <= VBAR for r in res.runs if r.noise == "bounded")
-    assert all(r.peak_error is None and r.conservatism is None for r in res.runs)
-    assert res.bound_name == "" and res.peak_error is None and res.time_constant is None
-
-
 # ----- the horizon and the starts ---------------------------------------------------------
 
 def test_horizon_extended_only_when_sim_time_is_not_set(monkeypatch):
@@ -295,10 +324,27 @@ def test_horizon_extended_only_when_sim_time_is_not_set(monkeypatch):
                            certified=True)  # the default's value, but set: kept as set
     assert not ten.horizon_extended and ten.horizon == pytest.approx(10.0)
     assert "sim_time 10 s < the" in ten.message
-    monkeypatch.setattr(simulation_mod, "MAX_AUTO_STEPS", 1200)
+    # the cap is in run-steps: 3 runs here (one start under two noise kinds, the source's
+    # protocol); T = 25.9 s is within a cap of 3000 steps, not T + two time constants
+    assert slow.settle_time == pytest.approx(25.9, abs=0.1)
+    monkeypatch.setattr(horizon_mod, "MAX_WORK", 9000)
     capped = check_simulation(problem, slow, settings(sim_initial_conditions=1),
                               certified=True)
-    assert capped.horizon == pytest.approx(12.0) and "capped at 1200 steps" in capped.message
+    assert capped.horizon == pytest.approx(30.0) and "capped at 9000 run-steps" in (
+        capped.message)
+    assert capped.peak_error is not None  # the runs reached T
+    # a cap of 1200 steps ends the runs before T: said, the peak after T not compared, the
+    # horizon only as long as five time constants ask within the cap
+    monkeypatch.setattr(horizon_mod, "MAX_WORK", 3600)
+    short = check_simulation(problem, slow, settings(sim_initial_conditions=1),
+                             certified=True)
+    assert short.horizon == pytest.approx(12.0) and short.status == Status.PASSED
+    assert short.peak_error is None and all(r.peak_error is None for r in short.runs)
+    assert "runs end at 12 s (a cap of 3600 run-steps)" in short.message
+    assert f"before the settling time T = {upper_text(slow.settle_time, 4)} s" in (
+        short.horizon_note)
+    assert f"no run reached t = {upper_text(slow.settle_time, 2)} s" in short.message
+    assert "the bound's transient, which holds at every t, is compared" in short.horizon_note
 
 
 @pytest.mark.parametrize("lam_cert", [2.512, 0.5])
@@ -337,8 +383,11 @@ def test_switching_noise_is_inside_the_ball_for_any_state(vbar, seed, policy):
     xhat[0] = x[0]  # e = 0: no direction, the previous one is kept
     fb = SwitchingNoise(problem.system, problem.network, np.eye(2), vbar, list(range(5)),
                         dt=0.01, seed=seed, policy=policy)
-    for k in (0, 2, 4):
-        v = fb(k, x, xhat)
-        assert np.all(np.linalg.norm(v, axis=1) <= vbar)
-        assert float(torch.linalg.vector_norm(torch.from_numpy(v), dim=1).max()) <= vbar
-        assert np.all(np.linalg.norm(v, axis=1) >= vbar * (1 - 1e-12))
+    k = 0
+    for _ in range(3):
+        v = fb(k, x, xhat, 3)
+        assert 1 <= len(v) <= 3 and v.shape[1:] == (5, 1)
+        assert np.all(np.linalg.norm(v, axis=-1) <= vbar)
+        assert float(torch.linalg.vector_norm(torch.from_numpy(v), dim=-1).max()) <= vbar
+        assert np.all(np.linalg.norm(v, axis=-1) >= vbar * (1 - 1e-12))
+        k += len(v) * fb.hold
