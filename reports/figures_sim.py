@@ -22,8 +22,9 @@ from certify.certificate import Certificate
 from reports.figure_data import as_array, check_result, state_names
 from reports.figure_kit import STATE_COLOURS, grid, log_axis, mark, new_figure
 
-#: at most this many runs are drawn (the table lists all)
-MAX_PANELS = 9
+#: at most this many runs are drawn (the table lists all; the default settings simulate 13)
+MAX_PANELS = 16
+#: panels to a row: NCOLS up to NCOLS^2 panels, one more beyond
 NCOLS = 3
 PANEL_HEIGHT = 1.75  # inches per row
 #: inches: above the panels, the figure's title and two lines of panel title; below, the
@@ -48,14 +49,18 @@ def short_title(run: Any, width: int = 30) -> str:
 
 
 def _grid(fig: Figure, k: int) -> list[Any]:
-    """k panels, NCOLS to a row (only the k axes are made)."""
-    ncols = min(NCOLS, k)
+    """k panels, `_columns(k)` to a row (only the k axes are made)."""
+    ncols = _columns(k)
     return grid(fig, math.ceil(k / ncols), ncols, count=k, left=LEFT, right=RIGHT, top=TOP,
                 bottom=BOTTOM, wgap=COL_GAP, hgap=ROW_GAP)
 
 
+def _columns(k: int) -> int:
+    return min(NCOLS if k <= NCOLS * NCOLS else NCOLS + 1, max(k, 1))
+
+
 def _height(k: int) -> float:
-    return PANEL_HEIGHT * math.ceil(k / min(NCOLS, max(k, 1))) + 0.75
+    return PANEL_HEIGHT * math.ceil(k / _columns(k)) + 0.75
 
 
 def _legend(fig: Figure, handles: list[Any], title: str) -> None:

@@ -369,7 +369,10 @@ def sections(cert: Certificate) -> list[Section]:
     sec = Section("simulation", "Simulation: plant and observer under noise",
                   "Simulation", _status(cert, "simulation"), _message(cert, "simulation"))
     s = result(cert, "simulation")
-    if s is not None:
+    if s is not None and not s.runs:
+        sec.paragraphs.append("Nothing was simulated: " + (s.message or "no runs."))
+        sec.facts = check_facts(cert, "simulation")
+    elif s is not None:
         exits = [run for run in s.runs if run.exit_time is not None]
         tau = (f" One time constant of the bound (1/rate of the bound it is compared with) is "
                f"{fmt(s.time_constant, 3)} s: a window shorter than it compares little."

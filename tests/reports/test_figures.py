@@ -125,3 +125,17 @@ def test_trajectories_only_on_request() -> None:
     assert "bounds" in keys and "simulation" not in keys
     keys = [f.key for f in figmod.render_figures(cert, dpi=40, trajectories=True)]
     assert "simulation" in keys
+
+
+def test_every_run_of_the_default_simulation_gets_a_panel() -> None:
+    """The default settings simulate 13 runs (12 with bounded noise, the source protocol):
+    each one its own panel, in rows of four beyond nine."""
+    cert = F.certified_certificate()
+    sim = cert.checks["simulation"]
+    runs = [dataclasses.replace(sim.runs[i % len(sim.runs)], label=f"run {i}")
+            for i in range(13)]
+    cert.checks["simulation"] = dataclasses.replace(sim, runs=runs)
+    fig = _draw(SPECS["simulation"], cert)
+    panels = [ax for ax in fig.axes if ax.get_title()]
+    assert len(panels) == 13
+    assert len({round(ax.get_position().x0, 3) for ax in panels}) == 4
