@@ -20,6 +20,7 @@ from certify.results import (
     result_from_jsonable,
     to_jsonable,
 )
+from certify.settings import settings_rows
 
 SCHEMA_NAME = "certify-certificate"
 #: v2: a check may hold a `CheckFailure` record (`"failed": true`) instead of its own
@@ -61,6 +62,10 @@ class Certificate:
     versions: dict[str, str]
     timings: dict[str, float]
     created: str = ""
+    #: design values the user gave instead of the checkpoint's (`certify run --lam/--metric`):
+    #: {"lam": {"value": 0.45, "checkpoint": 0.5}, "metric": {...}}; {} for none (and in
+    #: documents written before overrides existed)
+    overrides: dict[str, Any] = field(default_factory=dict)
     #: arrays for figures (plain float lists); see `certify.figuredata` and the schema.
     figures: FigureData = field(default_factory=FigureData)
     schema: str = SCHEMA_NAME
@@ -92,6 +97,19 @@ class Certificate:
 
         r = self.checks.get(name)
         return None if r is None else presentation(name, r, self)
+
+    def settings_rows(self) -> list[tuple[str, str]]:
+        """The rows of the reports' settings table: each override of the checkpoint's design
+        ("lam", "0.45 (override; checkpoint 0.5)"), then every setting by the label and unit
+        of its declaration (`certify.settings.settings_rows`; an older document's keys as
+        they are)."""
+        rows = []
+        for name, label in (("lam", "design \u03bb"), ("metric", "metric P")):
+            o = (self.overrides or {}).get(name)
+            if isinstance(o, dict):
+                rows.append((label, f"{_plain(o.get('value'))} (override; checkpoint "
+                                    f"{_plain(o.get('checkpoint'))})"))
+        return rows + settings_rows(self.settings)
 
     def error_headline(self) -> ErrorHeadline:
         """The certified error bound as the second headline after the verdict (or why there
@@ -158,6 +176,13 @@ class Certificate:
             return cls.from_dict(data)
         except CertifyError as exc:  # name the file the message is about
             raise CertifyError(f"{path}: {exc}") from None
+
+
+def _plain(value: Any) -> str:
+    """A number or matrix of an override, as given."""
+    if isinstance(value, float):
+        return f"{value:g}"
+    return json.dumps(value) if isinstance(value, list) else str(value)
 
 
 def format_json(data: Any, width: int = JSON_WIDTH) -> str:

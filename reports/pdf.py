@@ -162,7 +162,7 @@ def render_pdf(cert: Certificate, figures: list[RenderedFigure] | None = None) -
     doc.heading("Settings", 1)
     doc.para("The settings this certificate was checked with. Required checks: "
              + (", ".join(cert.required) or C.DASH) + ".", 8.8)
-    pairs = C.kv_pairs(cert.settings)
+    pairs = cert.settings_rows()  # labels and units from certify.settings
     half = (len(pairs) + 1) // 2
     left, right = pairs[:half], pairs[half:] + [("", "")] * (2 * half - len(pairs))
     doc.table(["Setting", "Value", "Setting", "Value"],

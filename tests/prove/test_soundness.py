@@ -242,7 +242,7 @@ def test_a_lying_float32_screen_never_decides(monkeypatch, which):
     monkeypatch.setattr(mpdi_module, "GridKernel", _LyingScreen)
     problem = _tie_problem() if which == "tie" else planted_problem("corner")
     settings = VerifySettings(grid_points=5000, adversarial_starts=4, adversarial_steps=10,
-                              proof_seconds=20, float32_screen=True)
+                              max_boxes=400_000, float32_screen=True)
     r = mpdi_module.check_mpdi(problem, settings)
     if which == "tie":
         assert r.status.value in ("PROVED", "UNKNOWN")
