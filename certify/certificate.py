@@ -33,8 +33,13 @@ SCHEMA_NAME = "certify-certificate"
 #: v3 also carries, optionally, the top-level "error_bound": the headline of the bounds check
 #: (`certify.presentation.ErrorHeadline.to_dict`), derived from `checks.bounds` on writing
 #: and ignored on reading (documents without it are read the same).
-SCHEMA_VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
+#: v4: settings with box budgets (`max_boxes`, `rate_boxes`, ...; `max_seconds`) where v3 had
+#: the time budgets `proof_seconds`, ... (a v3 document's settings are shown as they are);
+#: the top-level `overrides` (design values given instead of the checkpoint's; {} in older
+#: documents); a check's result may carry `proof` (its proofs' `ProofStats`, with
+#: `stopped_by_cap`), and a check may be NOT RUN (the verdict was decided before it).
+SCHEMA_VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)
 #: lines of the JSON text are kept within this many characters where a list allows it
 JSON_WIDTH = 100
 

@@ -22,6 +22,7 @@ import torch
 
 from certify.arith.text import upper_text
 from certify.checks.base import Check, Context, setting_quantity
+from certify.checks.residual import is_identity
 from certify.design import lipsdp, sdp
 from certify.model.kernels import gain_terms
 from certify.model.network import GainNetwork
@@ -172,7 +173,7 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
     task = "lipschitz"
     progress.start(task, total=3)
     structural = problem.network.structure != "direct"
-    identity_metric = bool(np.array_equal(problem.P, np.eye(problem.n)))
+    identity_metric = is_identity(problem.P)
     if not identity_metric and weighted is None:
         weighted = weighting(problem)
     proofs: list[ProofStats] = []
@@ -290,7 +291,6 @@ class LipschitzCheck(Check):
 
         budget = dict(max_boxes=context.settings.lipschitz_boxes, deadline=context.deadline,
                       rel_tol=LOCAL_ROOM)
-        identity = bool(np.array_equal(context.problem.P, np.eye(context.problem.n)))
 
         def local() -> tuple[float | None, ProofStats]:
             return bound_dk_dy(context.on_device(), **budget)
@@ -302,7 +302,8 @@ class LipschitzCheck(Check):
 
         return check_lipschitz(context.problem, context.settings, progress=context.progress,
                                local=local, local_P=local_P,
-                               weighted=None if identity else context.weighted())
+                               weighted=None if is_identity(context.problem.P)
+                               else context.weighted())
 
     def present(self, r: LipschitzResult, certificate: Any) -> Presentation:
         s = certificate.settings or {}
