@@ -128,10 +128,11 @@ def _violated(search: SearchOutcome, cex: list[Counterexample], n: int, t0: floa
                  "points violate it"), **common)
 
 
-#: the coarse first search of `check_mpdi(coarse_first=True)`: at most this many grid points
-#: and ascent starts (about 2% of the default grid's work)
+#: the coarse first search of `check_mpdi(coarse_first=True)`: at most this many grid points,
+#: ascent starts and steps per ascent (a few percent of the default search's work)
 COARSE_POINTS = 16_384
 COARSE_STARTS = 8
+COARSE_STEPS = 40
 
 
 def check_mpdi(problem: Problem, settings: VerifySettings, *,
@@ -142,7 +143,7 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
     grid, the ascent, the sound re-check of candidates and the proof) and `executor`
     (default `current_executor()`). The proof's budget is `settings.max_boxes`; `deadline`:
     the run's wall-clock cap (None: none). `coarse_first`: for a caller that wants the
-    verdict more than the numbers, a coarse search (COARSE_POINTS, COARSE_STARTS) first: a
+    verdict more than the numbers, a coarse search (COARSE_POINTS, _STARTS, _STEPS) first: a
     sound counterexample there is the result (VIOLATED, saying which search found it);
     else the full search follows as without it."""
     from certify.arith.device import proof_batch
@@ -153,9 +154,10 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
     t0 = time.perf_counter()
     n = problem.n
     if coarse_first and settings.grid_points > COARSE_POINTS:
-        coarse = dataclasses.replace(settings, grid_points=COARSE_POINTS,
-                                     adversarial_starts=min(COARSE_STARTS,
-                                                            settings.adversarial_starts))
+        coarse = dataclasses.replace(
+            settings, grid_points=COARSE_POINTS,
+            adversarial_starts=min(COARSE_STARTS, settings.adversarial_starts),
+            adversarial_steps=min(COARSE_STEPS, settings.adversarial_steps))
         search = falsify_mpdi(problem, coarse, progress=progress, executor=executor)
         if not search.nonfinite:
             cex = sound_counterexamples(problem, counterexamples_from(search, n, above=0.0))
