@@ -191,10 +191,6 @@ class Declaration:
     metavar: str | None = None
     none: str = "none"  # how a value of None reads in the rows (`Number(optional=True)`)
 
-    @property
-    def config_key(self) -> str:
-        return self.name
-
     def text(self, value: Any) -> str:
         """`value` as the reports' settings rows show it, with the unit."""
         if value is None:
