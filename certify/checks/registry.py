@@ -161,8 +161,10 @@ def run_checks(context: Context, skip: tuple[str, ...] = (),
 
 
 def cap_words(context: Context) -> str:
-    """The wall-clock cap as the user set it: '--max-seconds 30'."""
-    return f"--max-seconds {context.settings.max_seconds:g}"
+    """The wall-clock cap as the user set it: '--max-seconds 30' (a caller's own deadline
+    without the setting: 'of the run')."""
+    cap = context.settings.max_seconds
+    return "of the run" if cap is None else f"--max-seconds {cap:g}"
 
 
 def cut_by_cap(result: Any, context: Context) -> None:
