@@ -65,11 +65,12 @@ def verify(checkpoint: Checkpoint, settings: VerifySettings | None = None, *,
     try:
         # see certify.search.threads: chunk workers beat intra-op threads here
         with torch_threads(1), using(executor):
-            context = Context(problem=checkpoint.problem, settings=settings,
+            problem, applied = overridden(checkpoint.problem, overrides or {})
+            context = Context(problem=problem, settings=settings,
                               progress=progress or NullProgress(), figures=FigureData(),
                               required=required_checks(settings), device=device,
                               executor=executor, deadline=deadline, fail_fast=fail_fast)
-            return _verify(checkpoint, context, figures, overrides or {})
+            return _verify(checkpoint, context, figures, applied)
     finally:
         if owned:
             executor.close()
@@ -95,10 +96,10 @@ def overridden(problem: Problem, overrides: dict[str, Any]) -> tuple[Problem, di
 
 
 def _verify(checkpoint: Checkpoint, context: Context, figures: bool,
-            overrides: dict[str, Any]) -> Certificate:
-    settings, progress = context.settings, context.progress
-    problem, applied = overridden(checkpoint.problem, overrides)
-    context.problem = problem
+            applied: dict[str, Any]) -> Certificate:
+    """The run of `verify` on `context.problem` (the checkpoint's, with the overrides
+    `applied`, as `overridden` records them)."""
+    settings, progress, problem = context.settings, context.progress, context.problem
     torch.manual_seed(settings.seed)
     t_all = time.perf_counter()
     timings = run_checks(context, skip=settings.skip)
