@@ -1,4 +1,4 @@
-"""Time budgets on networks whose boxes are slow: one JSON line per measurement.
+"""The wall-clock cap on networks whose boxes are slow: one JSON line per measurement.
 
 Two observers with gelu gains (n = 4 states, p = 2 outputs, a linear chain as f, P = I):
 "gelu-3-16-8-64" (hidden widths 3, 16, 8, 64, weights scaled by 2, lam 0.2 just below the
@@ -7,11 +7,12 @@ milliseconds a box, several seconds of set-up).
 
 - prove: wall seconds of `prove_mpdi(seconds=S)` (`--seconds`, default 3), with the proof's
   own seconds, boxes and status;
-- run: wall seconds of `certify run CKPT --proof-seconds S` (`--run-seconds`, default 12) as a
-  subprocess, with the MPDI check's seconds from the JSON certificate (`--grid-points`,
-  default 1e5, keeps the grid sweep of the deep network short; the other checks run with
-  their default budgets, except `--skip`, default lipschitz: LipSDP on the deep network
-  asks the SDP solver for more memory than a 24 GB machine has, and the run aborts).
+- run: wall seconds of `certify run CKPT --max-seconds S` (`--run-seconds`, default 12: the
+  cap of the whole run; `--proof-seconds S`, the MPDI proof's own time budget, in a
+  checkout from before the box budgets) as a subprocess, with the MPDI check's seconds from
+  the JSON certificate (`--grid-points`, default 1e5, keeps the grid sweep of the deep
+  network short; `--skip`, default lipschitz: LipSDP on the deep network asks the SDP
+  solver for more memory than a 24 GB machine has, and the run aborts).
 
 `--code DIR` imports `certify` from another checkout (before/after comparisons: run once
 per tree, on the same machine, one after the other). The machine is shared: the `load`
@@ -92,8 +93,10 @@ def bench_run(name: str, seconds: float, grid_points: int, code: Path, skip: str
         env = {**os.environ, "PYTHONPATH": str(code)}
         load = _load()
         t = time.perf_counter()
+        settings = (Path(code) / "certify" / "settings.py").read_text()
+        cap = "--max-seconds" if "max_seconds" in settings else "--proof-seconds"
         proc = subprocess.run([sys.executable, "-m", "certify", "run", str(ckpt), "--no-config",
-                               "--quiet", "--proof-seconds", str(seconds), "--grid-points",
+                               "--quiet", cap, str(seconds), "--grid-points",
                                str(grid_points), "--json", str(cert)]
                               + (["--skip", skip] if skip else []), env=env, cwd=tmp,
                               capture_output=True, text=True)

@@ -235,9 +235,9 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         ap.error(f"unknown design(s) {', '.join(unknown)}")
     settings = VerifySettings(grid_points=50_000 if args.quick else 200_000,
-                              proof_seconds=30.0 if args.quick else 60.0,
-                              lipschitz_seconds=5.0 if args.quick else 10.0,
-                              residual_seconds=5.0 if args.quick else 10.0,
+                              max_boxes=200_000 if args.quick else 2_000_000,
+                              lipschitz_boxes=20_000 if args.quick else 100_000,
+                              residual_boxes=20_000 if args.quick else 100_000,
                               adversarial_starts=32, noise=VBAR, skip=("simulation",))
     rows: list[dict[str, Any]] = []
     for name in [s for s in args.systems.split(",") if s]:

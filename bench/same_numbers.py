@@ -1,7 +1,8 @@
 """Same numbers before and after a change: certificates and proofs, number for number.
 
 Records, for one checkout (`--code DIR`, default this one), the JSON certificate of every
-shipped example (`verify` with budgets so generous that only box budgets can bind) and the
+shipped example (`verify` with the box budgets as shipped; a checkout from before them: time
+budgets so generous that only box budgets can bind) and the
 prover-suite proofs of `bench/instances.py` (several families and seeds, a box budget and no
 time budget), with everything that depends on the clock or the machine removed (seconds,
 timings, versions, paths, dates). `--compare A B` then prints one JSON line per record that
@@ -56,8 +57,12 @@ def record(out: Path) -> None:
     import certify.model.checkpoint  # noqa: F401  (certify.model as an attribute)
 
     out.mkdir(parents=True, exist_ok=True)
-    settings = certify.VerifySettings(proof_seconds=1e5, rate_seconds=1e5,
-                                      residual_seconds=1e5, lipschitz_seconds=1e5)
+    import dataclasses
+
+    names = {f.name for f in dataclasses.fields(certify.VerifySettings)}
+    # box budgets as shipped; a checkout from before them: time budgets too long to bind
+    settings = certify.VerifySettings(**({} if "rate_boxes" in names else dict(
+        proof_seconds=1e5, rate_seconds=1e5, residual_seconds=1e5, lipschitz_seconds=1e5)))
     for name in EXAMPLES:
         ck = certify.model.checkpoint.load(str(ROOT / "examples" / f"{name}.ckpt"))
         cert = certify.verify(ck, settings)

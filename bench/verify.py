@@ -80,7 +80,7 @@ def bench_planted() -> None:
     sys.path.insert(0, str(ROOT))
     from tests.planted import planted_problem
 
-    settings = VerifySettings(grid_points=200_000, proof_seconds=30)
+    settings = VerifySettings(grid_points=200_000)
     for kind in ("corner", "edge", "blob"):
         t0 = time.perf_counter()
         res = check_mpdi(planted_problem(kind), settings)

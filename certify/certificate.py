@@ -20,6 +20,7 @@ from certify.results import (
     result_from_jsonable,
     to_jsonable,
 )
+from certify.settings import settings_rows
 
 SCHEMA_NAME = "certify-certificate"
 #: v2: a check may hold a `CheckFailure` record (`"failed": true`) instead of its own
@@ -32,8 +33,13 @@ SCHEMA_NAME = "certify-certificate"
 #: v3 also carries, optionally, the top-level "error_bound": the headline of the bounds check
 #: (`certify.presentation.ErrorHeadline.to_dict`), derived from `checks.bounds` on writing
 #: and ignored on reading (documents without it are read the same).
-SCHEMA_VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
+#: v4: settings with box budgets (`max_boxes`, `rate_boxes`, ...; `max_seconds`) where v3 had
+#: the time budgets `proof_seconds`, ... (a v3 document's settings are shown as they are);
+#: the top-level `overrides` (design values given instead of the checkpoint's; {} in older
+#: documents); a check's result may carry `proof` (its proofs' `ProofStats`, with
+#: `stopped_by_cap`), and a check may be NOT RUN (the verdict was decided before it).
+SCHEMA_VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)
 #: lines of the JSON text are kept within this many characters where a list allows it
 JSON_WIDTH = 100
 
@@ -61,6 +67,10 @@ class Certificate:
     versions: dict[str, str]
     timings: dict[str, float]
     created: str = ""
+    #: design values the user gave instead of the checkpoint's (`certify run --lam/--metric`):
+    #: {"lam": {"value": 0.45, "checkpoint": 0.5}, "metric": {...}}; {} for none (and in
+    #: documents written before overrides existed)
+    overrides: dict[str, Any] = field(default_factory=dict)
     #: arrays for figures (plain float lists); see `certify.figuredata` and the schema.
     figures: FigureData = field(default_factory=FigureData)
     schema: str = SCHEMA_NAME
@@ -92,6 +102,19 @@ class Certificate:
 
         r = self.checks.get(name)
         return None if r is None else presentation(name, r, self)
+
+    def settings_rows(self) -> list[tuple[str, str]]:
+        """The rows of the reports' settings table: each override of the checkpoint's design
+        ("lam", "0.45 (override; checkpoint 0.5)"), then every setting by the label and unit
+        of its declaration (`certify.settings.settings_rows`; an older document's keys as
+        they are)."""
+        rows = []
+        for name, label in (("lam", "design \u03bb"), ("metric", "metric P")):
+            o = (self.overrides or {}).get(name)
+            if isinstance(o, dict):
+                rows.append((label, f"{_plain(o.get('value'))} (override; checkpoint "
+                                    f"{_plain(o.get('checkpoint'))})"))
+        return rows + settings_rows(self.settings)
 
     def error_headline(self) -> ErrorHeadline:
         """The error bound as the second headline after the verdict (or why there is none),
@@ -160,6 +183,13 @@ class Certificate:
             return cls.from_dict(data)
         except CertifyError as exc:  # name the file the message is about
             raise CertifyError(f"{path}: {exc}") from None
+
+
+def _plain(value: Any) -> str:
+    """A number or matrix of an override, as given."""
+    if isinstance(value, float):
+        return f"{value:g}"
+    return json.dumps(value) if isinstance(value, list) else str(value)
 
 
 def format_json(data: Any, width: int = JSON_WIDTH) -> str:

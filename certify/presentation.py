@@ -291,6 +291,9 @@ def error_headline(bounds: Any, states: list[str] | None = None, *,
         return _no_bound(Status.SKIPPED.value, "the bounds check was not run")
     status = bounds.status.value if isinstance(bounds.status, Status) else str(bounds.status)
     if isinstance(bounds, CheckFailure):
+        if bounds.status == Status.NOT_RUN:  # its message begins "not run: "
+            return _no_bound(status, "the bounds check was not run: "
+                             + bounds.message.removeprefix("not run: "))
         word = "ended in ERROR" if bounds.status == Status.ERROR else "could not run"
         return _no_bound(status, f"the bounds check {word}: {bounds.message}")
     if not isinstance(bounds, BoundsResult) or bounds.status != Status.PROVED:

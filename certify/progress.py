@@ -45,6 +45,14 @@ def start_step(progress: Progress, name: str) -> None:
         progress.start(name)
 
 
+def note(progress: Progress, text: str) -> None:
+    """Tell `progress` something the run established on the way (one line; e.g. that the
+    verdict is decided); a display without a `note` method ignores it."""
+    hook = getattr(progress, "note", None)
+    if hook is not None:
+        hook(text)
+
+
 def finish_step(progress: Progress, name: str, status: str, seconds: float) -> None:
     """Tell `progress` that step `name` ended with `status` after `seconds` (the recorded time)."""
     hook = getattr(progress, "finish_step", None)

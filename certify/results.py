@@ -22,7 +22,10 @@ class Status(str, enum.Enum):
     """How a check ended. PROVED is a sound result; PASSED means sampled evidence (simulation)
     found no problem, which is never called a proof; UNKNOWN is never a pass. NOT APPLICABLE:
     the question has no answer here (e.g. no error bound exists when lam_cert <= 0, or there
-    is no bound to compare a simulation with), which establishes nothing, like UNKNOWN."""
+    is no bound to compare a simulation with), which establishes nothing, like UNKNOWN.
+    SKIPPED: the user skipped the check. NOT RUN: the verdict was decided before it (a
+    required check VIOLATED) and nothing asked for its numbers, so it was not run; it
+    establishes nothing either."""
 
     PROVED = "PROVED"
     PASSED = "PASSED"
@@ -30,6 +33,7 @@ class Status(str, enum.Enum):
     UNKNOWN = "UNKNOWN"
     SKIPPED = "SKIPPED"
     NOT_APPLICABLE = "NOT APPLICABLE"
+    NOT_RUN = "NOT RUN"
     ERROR = "ERROR"
 
 
@@ -56,6 +60,9 @@ class ProofStats:
     proved_volume_fraction: float = 0.0
     max_depth: int = 0
     budget_exhausted: bool = False
+    #: the run's wall-clock cap (`max_seconds`) stopped it before its box budget did (its
+    #: bound is sound but partial, and the check that ran it is UNKNOWN)
+    stopped_by_cap: bool = False
     rounding: str = ""
     # (seconds since start, proved volume fraction) samples, for the report.
     volume_history: list[list[float]] = field(default_factory=list)
@@ -66,6 +73,23 @@ class ProofStats:
     # per stage of the box bound (`certify.enclose.stages`): the boxes it bounded and of those
     # the ones it closed, over the proof's rounds ({} for bounds without stages)
     stages: dict[str, dict[str, int]] = field(default_factory=dict)
+
+    @classmethod
+    def total(cls, parts: list[ProofStats]) -> ProofStats | None:
+        """The effort of several proofs of one check together: boxes and seconds summed,
+        the largest depth, `budget_exhausted` and `stopped_by_cap` if any part's (None
+        without parts)."""
+        parts = [p for p in parts if p is not None]
+        if not parts:
+            return None
+        boxes = sum(p.boxes_processed for p in parts)
+        seconds = sum(p.seconds for p in parts)
+        return cls(boxes_processed=boxes, seconds=seconds,
+                   boxes_per_second=boxes / seconds if seconds > 0 else 0.0,
+                   max_depth=max(p.max_depth for p in parts),
+                   budget_exhausted=any(p.budget_exhausted for p in parts),
+                   stopped_by_cap=any(p.stopped_by_cap for p in parts),
+                   rounding=parts[0].rounding)
 
     def seconds_to_finish(self) -> float | None:
         """Seconds a complete proof still needs at this run's speed, from the estimate of an
@@ -104,6 +128,8 @@ class RateResult:
     proved_lower: float | None  # proved: MPDI at the design lam, or B&B on the rate itself
     worst: Counterexample | None = None
     seconds: float = 0.0
+    #: the effort of its proofs together (`ProofStats.total`; None: no proof ran)
+    proof: ProofStats | None = None
 
 
 @dataclass
@@ -119,6 +145,8 @@ class ResidualResult:
     seconds: float = 0.0
     #: sound upper bound of sup_X ||P^(1/2) k(x, h(x))|| (None: not established)
     upper_P: float | None = None
+    #: the effort of its proofs together (`ProofStats.total`; None: no proof ran)
+    proof: ProofStats | None = None
 
 
 @dataclass
@@ -146,6 +174,8 @@ class LipschitzResult:
     L_P_which: str = ""  # "lipsdp" | "local" | "" (not established)
     #: the local sup over X x Y of ||P^(1/2) dk/dy||_2 (None: not run or not closed)
     local_upper_P: float | None = None
+    #: the effort of its proofs together (`ProofStats.total`; None: no proof ran)
+    proof: ProofStats | None = None
 
 
 @dataclass
@@ -253,6 +283,8 @@ class DissipationResult:
     candidates: list[dict] = field(default_factory=list)
     boxes: int = 0
     seconds: float = 0.0
+    #: the effort of its proofs together (`ProofStats.total`; None: no proof ran)
+    proof: ProofStats | None = None
 
 
 @dataclass
@@ -373,7 +405,7 @@ def decide_verdict(checks: dict[str, Any], required: list[str],
     INCONCLUSIVE, whatever `allow_unknown` says; else any required UNKNOWN (or SKIPPED, not
     run, NOT APPLICABLE) -> INCONCLUSIVE unless `allow_unknown` (never for the MPDI); else
     CERTIFIED. Checks that are not required never change the verdict; one in ERROR is named
-    in the summary.
+    in the summary, and so are the checks NOT RUN once the verdict was decided.
     """
     if CERTIFICATE_CHECK not in required:
         required = [CERTIFICATE_CHECK, *required]
@@ -384,13 +416,16 @@ def decide_verdict(checks: dict[str, Any], required: list[str],
     violated = [n for n in required if status(n) == Status.VIOLATED]
     errors = [n for n in required if status(n) == Status.ERROR]
     unknown = [n for n in required if status(n) in (None, Status.UNKNOWN, Status.SKIPPED,
-                                                    Status.NOT_APPLICABLE)]
+                                                    Status.NOT_APPLICABLE, Status.NOT_RUN)]
     other_errors = [n for n in checks if n not in required and status(n) == Status.ERROR]
     aside = (f"; not required, ended in ERROR: {', '.join(other_errors)}"
              if other_errors else "")
     if violated:
+        not_run = [n for n in checks if status(n) == Status.NOT_RUN]
+        after = (f"; not run, the verdict being decided: {', '.join(not_run)}" if not_run
+                 else "")
         return "NOT CERTIFIED", "failed: " + ", ".join(
-            f"{n} ({checks[n].status.value})" for n in violated) + aside
+            f"{n} ({checks[n].status.value})" for n in violated) + aside + after
     if errors:
         return "INCONCLUSIVE", ("check error: " + ", ".join(errors) + " ended in ERROR "
                                 "(internal failure, see its message)"

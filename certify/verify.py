@@ -2,19 +2,24 @@
 
 It never prints or exits: progress goes to the injected `progress`, the outcome is data.
 The checks run through `certify.checks.registry`, which isolates their faults: a check that
-raises is that check's ERROR, and the others still run.
+raises is that check's ERROR, and the others still run. What a run computes with is
+resolved here, once: the device, the executor and the wall-clock cap's deadline, carried to
+the checks on their `Context`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import json
+import shlex
 import time
 from typing import Any
 
 import numpy as np
 import torch
 
+from certify.arith.text import lower_text
 from certify.certificate import Certificate
 from certify.checks.base import Context
 from certify.checks.registry import run_checks
@@ -22,7 +27,7 @@ from certify.figuredata import MAP_POINTS, FigureData, GridMap
 from certify.model.checkpoint import Checkpoint, versions
 from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress, finish_step, start_step
-from certify.results import CheckFailure, decide_verdict
+from certify.results import CheckFailure, MpdiResult, RateResult, Status, decide_verdict
 from certify.search.threads import torch_threads
 from certify.settings import VerifySettings, required_checks
 
@@ -32,38 +37,71 @@ MAP_Y_SAMPLES = 41  # total samples over Y (and the other states) per map pixel
 
 def verify(checkpoint: Checkpoint, settings: VerifySettings | None = None, *,
            progress: Progress | None = None, figures: bool = True,
-           executor: Any = None) -> Certificate:
+           executor: Any = None, fail_fast: bool = False,
+           overrides: dict[str, Any] | None = None) -> Certificate:
     """Check a loaded checkpoint and return its Certificate (see METHOD.md §3).
 
     `figures`: also compute the maps the reports draw (a step of its own, about as long as
     a fast check); leave it False when no report will be written. `executor`: where chunked
     work runs (`certify.search.distributed.executor`); None opens the one
-    `settings.workers/scheduler` ask for
-    and closes it at the end.
+    `settings.workers/scheduler` ask for and closes it at the end. `fail_fast`: once a
+    required check is VIOLATED the verdict is decided and no further check runs (they are
+    NOT RUN; `certify.checks.registry.run_checks`) and the MPDI looks for a counterexample
+    by a coarse search first: for a caller that wants the verdict, not the numbers.
+    `overrides`: {"lam": rate, "metric": P} verifies the checkpoint's network at that design
+    rate and/or metric instead of its own (validated values; the certificate records both,
+    `Certificate.overrides`). The wall-clock cap
+    `settings.max_seconds` counts from this call.
     """
     from certify.arith.device import resolve_device
     from certify.search.distributed.executor import executor_from_settings, using
 
+    started = time.perf_counter()
     settings = settings or VerifySettings()
-    resolve_device(settings.device)  # an unusable device is bad input, before any work
+    device = resolve_device(settings.device)  # an unusable device is bad input, before any work
     owned = executor is None
     executor = executor_from_settings(settings) if owned else executor
+    deadline = None if settings.max_seconds is None else started + settings.max_seconds
     try:
         # see certify.search.threads: chunk workers beat intra-op threads here
         with torch_threads(1), using(executor):
-            return _verify(checkpoint, settings, progress or NullProgress(), figures)
+            problem, applied = overridden(checkpoint.problem, overrides or {})
+            context = Context(problem=problem, settings=settings,
+                              progress=progress or NullProgress(), figures=FigureData(),
+                              required=required_checks(settings), device=device,
+                              executor=executor, deadline=deadline, fail_fast=fail_fast)
+            return _verify(checkpoint, context, figures, applied)
     finally:
         if owned:
             executor.close()
 
 
-def _verify(checkpoint: Checkpoint, settings: VerifySettings, progress: Progress,
-            figures: bool) -> Certificate:
-    problem = checkpoint.problem
+def overridden(problem: Problem, overrides: dict[str, Any]) -> tuple[Problem, dict[str, Any]]:
+    """The problem at the overridden design rate and metric, and the record of each
+    override: {"lam": {"value": 0.45, "checkpoint": 0.5}, ...}."""
+    unknown = set(overrides) - {"lam", "metric"}
+    if unknown:
+        raise ValueError(f"unknown override(s) {sorted(unknown)}: only lam and metric")
+    if not overrides:
+        return problem, {}
+    lam = float(overrides.get("lam", problem.lam))
+    P = np.asarray(overrides.get("metric", problem.P), dtype=np.float64)
+    record = {}
+    if "lam" in overrides:
+        record["lam"] = {"value": lam, "checkpoint": float(problem.lam)}
+    if "metric" in overrides:
+        record["metric"] = {"value": P.tolist(), "checkpoint": np.asarray(problem.P).tolist()}
+    return Problem(system=problem.system, network=problem.network, lam=lam, P=P,
+                   device=problem.device, shift=problem.shift), record
+
+
+def _verify(checkpoint: Checkpoint, context: Context, figures: bool,
+            applied: dict[str, Any]) -> Certificate:
+    """The run of `verify` on `context.problem` (the checkpoint's, with the overrides
+    `applied`, as `overridden` records them)."""
+    settings, progress, problem = context.settings, context.progress, context.problem
     torch.manual_seed(settings.seed)
     t_all = time.perf_counter()
-    context = Context(problem=problem, settings=settings, progress=progress,
-                      figures=FigureData(), required=required_checks(settings))
     timings = run_checks(context, skip=settings.skip)
     checks = context.results
     if figures:
@@ -74,11 +112,13 @@ def _verify(checkpoint: Checkpoint, settings: VerifySettings, progress: Progress
         finish_step(progress, "figures", "done", timings["figures"])
     timings["total"] = time.perf_counter() - t_all
     verdict, summary = decide_verdict(checks, context.required, settings.allow_unknown)
+    hint = smaller_rate_hint(checks, context.required, problem.lam, checkpoint.path, applied)
     network = problem.network.architecture()
     network["has_linear_gain"] = bool(torch.any(problem.network.K != 0))
     training = checkpoint.training or {}
     return Certificate(
-        verdict=verdict, summary=summary, checks=checks, required=context.required,
+        verdict=verdict, summary=f"{hint} ({summary})" if hint else summary, checks=checks,
+        required=context.required,
         settings=dataclasses.asdict(settings), system=problem.system.summary(), lam=problem.lam,
         P=np.asarray(problem.P).tolist(), network=network,
         checkpoint={"path": checkpoint.path, "sha256": checkpoint.sha256,
@@ -87,7 +127,38 @@ def _verify(checkpoint: Checkpoint, settings: VerifySettings, progress: Progress
                     "versions": checkpoint.versions},
         versions=versions(), timings=timings, figures=context.figures,
         created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        overrides=applied,
     )
+
+
+def smaller_rate_hint(checks: dict[str, Any], required: list[str], lam: float,
+                      path: str | None, overrides: dict[str, Any]) -> str:
+    """Where the MPDI is the one required check VIOLATED at the design rate `lam` and the
+    rate check proved a smaller lam_cert > 0: that rate, rounded down (so that it is at most
+    the proved bound: the MPDI holds there), and the command that certifies at it; where the
+    rate check was not run because the verdict was decided, how to run it; "" else."""
+    mpdi, rate = checks.get("mpdi"), checks.get("rate")
+    failed = [n for n in required if n in checks and checks[n].status == Status.VIOLATED]
+    if not (isinstance(mpdi, MpdiResult) and mpdi.status == Status.VIOLATED
+            and failed == ["mpdi"]):
+        return ""
+    if isinstance(rate, CheckFailure) and rate.status == Status.NOT_RUN:
+        return (f"the MPDI is violated at the design rate lam = {lam:g}; a smaller rate may "
+                "certify: a run with a report output (e.g. --json PATH) runs the rate check, "
+                "which proves the rate lam_cert that does")
+    if not isinstance(rate, RateResult):
+        return ""
+    lower = rate.proved_lower
+    if lower is None or not 0 < lower < lam:
+        return ""
+    text = lower_text(lower, 4)
+    if not 0 < float(text) <= lower:  # never suggest more than was proved
+        return ""
+    command = ["certify", "run", path or "CHECKPOINT", "--lam", text]
+    if "metric" in overrides:
+        command += ["--metric", json.dumps(overrides["metric"]["value"])]
+    return (f"the MPDI is violated at the design rate lam = {lam:g}, but a rate lam_cert >= "
+            f"{text} is proved: `{shlex.join(command)}` certifies at that rate")
 
 
 def _state_grid(problem: Problem) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:

@@ -29,6 +29,7 @@ STATUS_COLOURS = {  # text colour, background
     "UNKNOWN": ("#78350f", "#fef3c7"),
     "SKIPPED": ("#374151", "#e5e7eb"),
     "NOT APPLICABLE": ("#374151", "#e5e7eb"),
+    "NOT RUN": ("#374151", "#e5e7eb"),
     "ERROR": ("#581c87", "#f3e8ff"),
     # a status with a qualifier ("PROVED — vacuous"): amber, never the plain colour of a pass
     "QUALIFIED": ("#78350f", "#fef3c7"),

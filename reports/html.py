@@ -53,7 +53,7 @@ def context(cert: Certificate, figures: list[RenderedFigure]) -> dict[str, Any]:
                      "bullets": sec.bullets, "bullets_title": sec.bullets_title,
                      "empty": sec.empty, "notes": sec.notes,
                      "figures": by_section.get(sec.anchor, [])})
-    settings = C.kv_pairs(cert.settings)
+    settings = cert.settings_rows()  # labels and units from certify.settings
     half = (len(settings) + 1) // 2
     ck = cert.checkpoint or {}
     sha = str(ck.get("sha256", ""))

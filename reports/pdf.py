@@ -310,7 +310,7 @@ def _story(cert: Certificate, figures: list[RenderedFigure]) -> list[Any]:
                    [1, 1, 1, 1])]
     for sec in S.sections(cert):
         story += _section(sec, by_section.get(sec.anchor, []))
-    pairs = C.kv_pairs(cert.settings)
+    pairs = cert.settings_rows()  # labels and units from certify.settings
     half = (len(pairs) + 1) // 2
     story += [*heading("Settings"),
               para("The settings this certificate was checked with. Required checks: "

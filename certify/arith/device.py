@@ -2,9 +2,10 @@
 
 `cpu` is the default. `cuda` runs the MPDI grid sweep, the adversarial falsifier and the
 branch-and-bound proofs (MPDI, rate, boundary residual, local Lipschitz) in float64 on the GPU
-(`on_settings_device`: `Problem.on` moves the network and P; points, boxes and every tensor of
-the enclosures are made on the device of their inputs, which `tests/prove/test_device_follow.py`
-checks on the CPU by making the default device `meta`). The simulation, the rate and residual
+(`certify.checks.base.Context.on_device`, once per run: `Problem.on` moves the network and P;
+points, boxes and every tensor of the enclosures are made on the device of their inputs,
+which `tests/prove/test_device_follow.py` checks on the CPU by making the default device
+`meta`). The simulation, the rate and residual
 grids, LipSDP and the pre-flight stay on the CPU. Measured on an H100: the MPDI proof's box
 bounds (README, "Scaling out"); the rate and side proofs on a GPU were not run there.
 
@@ -60,12 +61,6 @@ PROOF_BATCH = {"cpu": 1024, "cuda": 16384}
 def proof_batch(device: torch.device) -> int:
     """Boxes per round of the MPDI proof on `device` (`PROOF_BATCH`; 1024 elsewhere)."""
     return PROOF_BATCH.get(torch.device(device).type, 1024)
-
-
-def on_settings_device(problem, settings):
-    """`problem` with its network and P on `settings.device` (the problem itself on the CPU):
-    what the checks hand to the grid, the falsifier and the branch-and-bound proofs."""
-    return problem.on(resolve_device(settings.device))
 
 
 def describe(device: torch.device) -> str:

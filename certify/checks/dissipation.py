@@ -17,19 +17,20 @@ import time
 from typing import Any
 
 from certify.arith.text import lower_text, upper_text
-from certify.checks.base import Check, Context
+from certify.checks.base import Check, Context, setting_quantity
 from certify.model.problem import Problem
 from certify.presentation import Presentation, Quantity
-from certify.results import DissipationResult, MpdiResult, ResidualResult, Status
+from certify.results import DissipationResult, MpdiResult, ProofStats, ResidualResult, Status
 from certify.settings import VerifySettings
 
 
 def check_dissipation(problem: Problem, settings: VerifySettings, *,
                       mpdi: MpdiResult | None = None,
-                      residual: ResidualResult | None = None) -> DissipationResult:
-    """Choose and prove (alpha, mu) for `problem` at the settings' noise level, within
-    `settings.dissipation_seconds` (see the module docstring for the statuses)."""
-    from certify.arith.device import on_settings_device
+                      residual: ResidualResult | None = None,
+                      deadline: float | None = None) -> DissipationResult:
+    """Choose and prove (alpha, mu) for `problem` (on the run's device) at the settings'
+    noise level, within `settings.dissipation_boxes` boxes (see the module docstring for the
+    statuses); `deadline`: the run's wall-clock cap (None: none)."""
     from certify.prove.dissipation import prove_dissipation
 
     t0 = time.perf_counter()
@@ -42,14 +43,16 @@ def check_dissipation(problem: Problem, settings: VerifySettings, *,
         if eps_P is None:
             return DissipationResult(Status.NOT_APPLICABLE, "not applicable: no sound bound "
                                      "of ||P^(1/2) k(x, h(x))|| (residual check)")
-    out = prove_dissipation(on_settings_device(problem, settings), vbar=settings.noise,
-                            eps_P=eps_P, seconds=settings.dissipation_seconds,
+    out = prove_dissipation(problem, vbar=settings.noise, eps_P=eps_P,
+                            max_boxes=settings.dissipation_boxes, deadline=deadline,
                             seed=settings.seed)
     return DissipationResult(
         status=out.status, message=out.message, alpha=out.alpha, mu=out.mu,
         mu_residual=out.mu_residual, eps_bar=eps_P if out.mu_residual else None,
         vertices=out.vertices, candidates=out.candidates, boxes=out.boxes,
-        seconds=time.perf_counter() - t0)
+        seconds=time.perf_counter() - t0,
+        proof=ProofStats(boxes_processed=out.boxes, seconds=time.perf_counter() - t0,
+                         stopped_by_cap=out.stopped_by_cap))
 
 
 class DissipationCheck(Check):
@@ -58,13 +61,14 @@ class DissipationCheck(Check):
     name = "dissipation"
     title = "Joint dissipation certificate"
     result_type = DissipationResult
-    reads = ("noise", "dissipation_seconds", "seed")
+    reads = ("noise", "dissipation_boxes", "seed")
     uses = ("mpdi", "residual")
 
     def run(self, context: Context) -> DissipationResult:
-        return check_dissipation(context.problem, context.settings,
+        return check_dissipation(context.on_device(), context.settings,
                                  mpdi=context.result("mpdi"),
-                                 residual=context.result("residual"))
+                                 residual=context.result("residual"),
+                                 deadline=context.deadline)
 
     def present(self, r: DissipationResult, certificate: Any) -> Presentation:
         s = certificate.settings or {}
@@ -73,7 +77,7 @@ class DissipationCheck(Check):
                              "no candidate"),
             proved=Quantity("\u03b1, \u03bc", None if r.alpha is None else
                             f"{lower_text(r.alpha, 4)}, {upper_text(r.mu, 4)}", "not proved"),
-            setting=(Quantity("budget", s.get("dissipation_seconds"), suffix=" s"),),
+            setting=(setting_quantity("dissipation_boxes", s),),
             numbers=(Quantity("alpha", r.alpha, sig=6, bound="lower"),
                      Quantity("mu", r.mu, sig=6, bound="upper"),
                      Quantity("mu_residual", r.mu_residual, sig=6, bound="upper"),

@@ -21,15 +21,16 @@ import numpy as np
 import torch
 
 from certify.arith.text import upper_text
-from certify.checks.base import Check, Context
+from certify.checks.base import Check, Context, setting_quantity
+from certify.checks.residual import is_identity
 from certify.design import lipsdp, sdp
 from certify.model.kernels import gain_terms
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
 from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
-from certify.prove.weighted import weighting
-from certify.results import LipschitzResult, Status
+from certify.prove.weighted import Weighting, weighting
+from certify.results import LipschitzResult, ProofStats, Status
 from certify.search.falsify import maximize_over_box
 from certify.search.witness import dk_dy_norm_lower
 from certify.settings import VerifySettings
@@ -148,8 +149,9 @@ def lipsdp_for(problem: Problem, method: str = "ipm") -> sdp.SdpResult | None:
 def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
                     progress: Progress = _NULL_PROGRESS, local_upper: float | None = None,
                     sample_points: int = 20_000,
-                    local: Callable[[], float | None] | None = None,
-                    local_P: Callable[[], float | None] | None = None) -> LipschitzResult:
+                    local: Callable[[], tuple[float | None, ProofStats]] | None = None,
+                    local_P: Callable[[], tuple[float | None, ProofStats]] | None = None,
+                    weighted: Weighting | None = None) -> LipschitzResult:
     """LipSDP (verified), naive, sampled lower bound and the caller's local bound.
 
     `value` is the smallest sound bound and `which` names it ("lipsdp", "naive" - both
@@ -162,15 +164,19 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
     magnitudes, exact only for p = 1, would spend its whole budget without closing).
     `L_P`: the same constant for P^(1/2) k, the smaller of the metric-weighted LipSDP and
     `local_P()` (the caller's local bound of sup ||P^(1/2) dk/dy||), both through
-    `certify.prove.weighted` (sound for the float square root of P); L_P = L when P = I.
+    `certify.prove.weighted` (sound for the float square root of P; `weighted`: its
+    weighting of the problem, default made here); L_P = L when P = I. `local` and `local_P`
+    return their bound and their proof's stats (`ProofStats`, summed into `proof`).
     """
     t0 = time.perf_counter()
     settings = settings or VerifySettings()
     task = "lipschitz"
     progress.start(task, total=3)
     structural = problem.network.structure != "direct"
-    identity_metric = bool(np.array_equal(problem.P, np.eye(problem.n)))
-    weighted = None if identity_metric else weighting(problem)
+    identity_metric = is_identity(problem.P)
+    if not identity_metric and weighted is None:
+        weighted = weighting(problem)
+    proofs: list[ProofStats] = []
     solver: dict = {}
     res = lipsdp_for(problem)
     progress.update(task)
@@ -206,7 +212,8 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
         if math.isfinite(sampled) and global_bound <= sampled * (1.0 + LOCAL_ROOM):
             local_skipped = True
         else:
-            local_upper = local()
+            local_upper, stats = local()
+            proofs.append(stats)
     cands: list[tuple[float, str]] = []
     if lipsdp is not None:
         cands.append((lipsdp, "lipsdp"))
@@ -221,7 +228,10 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
     if identity_metric:
         L_P, L_P_which, local_upper_P = value, ("local" if which == "local" else "global"), None
     else:
-        local_upper_P = local_P() if local_P is not None else None
+        local_upper_P = None
+        if local_P is not None:
+            local_upper_P, stats = local_P()
+            proofs.append(stats)
         cands_P = [(v, w) for v, w in ((lipsdp_P, "global"), (local_upper_P, "local"))
                    if v is not None and math.isfinite(v)]
         L_P, L_P_which = min(cands_P) if cands_P else (None, "")
@@ -262,6 +272,7 @@ def check_lipschitz(problem: Problem, settings: VerifySettings | None = None, *,
         lipsdp_verified=verified, lipsdp_lmi_max_eig=eig, naive=naive_f, sampled=sampled,
         local_upper=local_upper, value=value, which=which, solver=solver, seconds=seconds,
         lipsdp_P=lipsdp_P, L_P=L_P, L_P_which=L_P_which, local_upper_P=local_upper_P,
+        proof=ProofStats.total(proofs),
     )
 
 
@@ -273,34 +284,32 @@ class LipschitzCheck(Check):
     name = "lipschitz"
     title = "Lipschitz constant L"
     result_type = LipschitzResult
-    reads = ("lipschitz_seconds", "max_boxes", "grid_points", "seed")
+    reads = ("lipschitz_boxes", "grid_points", "seed")
 
     def run(self, context: Context) -> LipschitzResult:
-        from certify.arith.device import on_settings_device
         from certify.prove.side import bound_dk_dy
 
-        s = context.settings
+        budget = dict(max_boxes=context.settings.lipschitz_boxes, deadline=context.deadline,
+                      rel_tol=LOCAL_ROOM)
 
-        def local() -> float | None:
-            return bound_dk_dy(on_settings_device(context.problem, s),
-                               seconds=s.lipschitz_seconds, max_boxes=s.max_boxes,
-                               rel_tol=LOCAL_ROOM)
+        def local() -> tuple[float | None, ProofStats]:
+            return bound_dk_dy(context.on_device(), **budget)
 
-        def local_P() -> float | None:
-            w = weighting(context.problem)
-            upper = bound_dk_dy(on_settings_device(w.problem, s),
-                                seconds=s.lipschitz_seconds, max_boxes=s.max_boxes,
-                                rel_tol=LOCAL_ROOM)
-            return w.bound(upper, w.dy_error)
+        def local_P() -> tuple[float | None, ProofStats]:
+            w = context.weighted()
+            upper, stats = bound_dk_dy(context.on_device(w.problem), **budget)
+            return w.bound(upper, w.dy_error), stats
 
-        return check_lipschitz(context.problem, s, progress=context.progress, local=local,
-                               local_P=local_P)
+        return check_lipschitz(context.problem, context.settings, progress=context.progress,
+                               local=local, local_P=local_P,
+                               weighted=None if is_identity(context.problem.P)
+                               else context.weighted())
 
     def present(self, r: LipschitzResult, certificate: Any) -> Presentation:
         s = certificate.settings or {}
         which = f" ({r.which})" if r.which else ""
         solver = (r.solver or {}).get("name", "")
-        setting = [Quantity("budget", s.get("lipschitz_seconds"), suffix=" s")]
+        setting = [setting_quantity("lipschitz_boxes", s)]
         if solver:
             setting.append(Quantity("LipSDP with", solver))
         facts = [Quantity("Used", r.value, "no sound bound", suffix=which, bound="upper")]

@@ -9,6 +9,7 @@ found. PROVED comes only from the prover; a near-tie it cannot settle is UNKNOWN
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any
 
@@ -16,7 +17,7 @@ import numpy as np
 import torch
 
 from certify.arith.text import lower_text, upper_text
-from certify.checks.base import Check, Context
+from certify.checks.base import Check, Context, setting_quantity
 from certify.figuredata import ProofBoxes
 from certify.model.kernels import mpdi_lam_max
 from certify.model.problem import Problem
@@ -75,28 +76,28 @@ def sound_counterexamples(problem: Problem, candidates: list[Counterexample],
 
 
 def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | None = None,
-                 progress: Progress | None = None) -> SearchOutcome:
-    """Grid + adversarial search for the largest lam_max(D) (float64 values throughout).
+                 progress: Progress | None = None, executor: Any = None) -> SearchOutcome:
+    """Grid + adversarial search for the largest lam_max(D) (float64 values throughout), on
+    the problem's device and `executor` (default `current_executor()`).
 
     The grid is swept with a float32 copy of the kernel as a screen; every point that could be
     above 0 and every top candidate is re-evaluated in float64 (see `maximize_over_box`).
     Where a number of the problem does not fit float32 (`certify.search.grid.float32_misfit`),
     there is no screen: the sweep runs in float64 alone.
     """
-    from certify.arith.device import resolve_device
     from certify.search.distributed.executor import current_executor
 
-    device = resolve_device(settings.device)
-    problem = problem.on(device)  # the grid and the ascent run there (no copy if already)
+    device = torch.device(problem.device)
     lo, hi = joint_box(problem)
     exact = GridKernel(problem, lam)
     screen = float32_screen(problem, lam) if settings.float32_screen else None
-    executor, remote = current_executor(), None
+    executor = current_executor() if executor is None else executor
+    remote = None
     if executor.remote or executor.workers > 1:  # the sweep on the run's Dask workers
         from certify.search.distributed.payload import mpdi_grid_chunk, mpdi_payload
 
         remote = (executor, mpdi_grid_chunk, mpdi_payload(
-            problem, exact.lam, screen is not None, settings.device))
+            problem, exact.lam, screen is not None, str(device)))
     return maximize_over_box(exact, lo, hi, grid_points=settings.grid_points,
                              starts=settings.adversarial_starts, steps=settings.adversarial_steps,
                              top_k=settings.top_counterexamples, seed=settings.seed,
@@ -104,24 +105,66 @@ def falsify_mpdi(problem: Problem, settings: VerifySettings, *, lam: float | Non
                              device=device)
 
 
+def _search_fields(search: SearchOutcome, n: int) -> dict[str, Any]:
+    """The falsification side of an `MpdiResult`, from a search."""
+    worst = counterexamples_from(search, n)[:1]
+    return dict(lower=search.best_value, worst=worst[0] if worst else None,
+                violating_fraction=search.above_fraction, grid_points=search.grid_points,
+                adversarial_starts=search.starts)
+
+
+def _violated(search: SearchOutcome, cex: list[Counterexample], n: int, t0: float,
+              coarse: bool = False) -> MpdiResult:
+    """VIOLATED by the sound counterexamples `cex` a search found."""
+    common = {**_search_fields(search, n), "worst": cex[0]}
+    which = "the coarse first search's " if coarse else ""
+    return MpdiResult(
+        status=Status.VIOLATED, upper=None, counterexamples=cex,
+        seconds=time.perf_counter() - t0,
+        message=(f"D is not negative semidefinite: lam_max(D) = {search.best_value:.4g} > 0 "
+                 f"at xhat={_fmt(cex[0].xhat)}, y={_fmt(cex[0].y)} (sound lower bound "
+                 f"{lower_text(cex[0].sound_bound)}); "
+                 f"{100 * search.above_fraction:.3g}% of {which}{search.grid_points:,} grid "
+                 "points violate it"), **common)
+
+
+#: the coarse first search of `check_mpdi(coarse_first=True)`: at most this many grid points,
+#: ascent starts and steps per ascent (a few percent of the default search's work)
+COARSE_POINTS = 16_384
+COARSE_STARTS = 8
+COARSE_STEPS = 40
+
+
 def check_mpdi(problem: Problem, settings: VerifySettings, *,
                progress: Progress | None = None,
-               figures: dict[str, Any] | None = None) -> MpdiResult:
-    """Decide D <= 0 over X x Y at the problem's lam and P (on settings.device: the grid, the
-    ascent, the sound re-check of candidates and the proof)."""
-    from certify.arith.device import on_settings_device, proof_batch
+               figures: dict[str, Any] | None = None, executor: Any = None,
+               deadline: float | None = None, coarse_first: bool = False) -> MpdiResult:
+    """Decide D <= 0 over X x Y at the problem's lam and P, on the problem's device (the
+    grid, the ascent, the sound re-check of candidates and the proof) and `executor`
+    (default `current_executor()`). The proof's budget is `settings.max_boxes`; `deadline`:
+    the run's wall-clock cap (None: none). `coarse_first`: for a caller that wants the
+    verdict more than the numbers, a coarse search (COARSE_POINTS, _STARTS, _STEPS) first: a
+    sound counterexample there is the result (VIOLATED, saying which search found it);
+    else the full search follows as without it."""
+    from certify.arith.device import proof_batch
     from certify.prove.mpdi import prove_mpdi
     from certify.search.tree_estimate import completion_text
 
     progress = progress or NullProgress()
     t0 = time.perf_counter()
-    problem = on_settings_device(problem, settings)  # one copy for every step below
     n = problem.n
-    search = falsify_mpdi(problem, settings, progress=progress)
-    worst = counterexamples_from(search, n)[:1]
-    common = dict(lower=search.best_value, worst=worst[0] if worst else None,
-                  violating_fraction=search.above_fraction, grid_points=search.grid_points,
-                  adversarial_starts=search.starts)
+    if coarse_first and settings.grid_points > COARSE_POINTS:
+        coarse = dataclasses.replace(
+            settings, grid_points=COARSE_POINTS,
+            adversarial_starts=min(COARSE_STARTS, settings.adversarial_starts),
+            adversarial_steps=min(COARSE_STEPS, settings.adversarial_steps))
+        search = falsify_mpdi(problem, coarse, progress=progress, executor=executor)
+        if not search.nonfinite:
+            cex = sound_counterexamples(problem, counterexamples_from(search, n, above=0.0))
+            if cex:
+                return _violated(search, cex, n, t0, coarse=True)
+    search = falsify_mpdi(problem, settings, progress=progress, executor=executor)
+    common = _search_fields(search, n)
     if search.nonfinite:
         return MpdiResult(status=Status.UNKNOWN, upper=None, seconds=time.perf_counter() - t0,
                           message=f"lam_max(D) is NaN/Inf at {search.nonfinite} grid points: "
@@ -129,19 +172,11 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
     cex = sound_counterexamples(problem, counterexamples_from(search, n, above=0.0))
     near_tie = search.best_value > 0 and not cex
     if cex:
-        common["worst"] = cex[0]
-        return MpdiResult(
-            status=Status.VIOLATED, upper=None, counterexamples=cex,
-            seconds=time.perf_counter() - t0,
-            message=(f"D is not negative semidefinite: lam_max(D) = {search.best_value:.4g} > 0 "
-                     f"at xhat={_fmt(cex[0].xhat)}, y={_fmt(cex[0].y)} (sound lower bound "
-                     f"{lower_text(cex[0].sound_bound)}); "
-                     f"{100 * search.above_fraction:.3g}% of {search.grid_points} grid points "
-                     "violate it"), **common)
+        return _violated(search, cex, n, t0)
     seeds = torch.as_tensor(search.top_points, dtype=torch.float64, device="cpu")
-    # the proof's boxes live and are bounded on settings.device, in rounds of its size
-    outcome = prove_mpdi(problem, seconds=settings.proof_seconds, max_boxes=settings.max_boxes,
-                         progress=progress, seeds=seeds,
+    # the proof's boxes live and are bounded on the problem's device, in rounds of its size
+    outcome = prove_mpdi(problem, max_boxes=settings.max_boxes, deadline=deadline,
+                         progress=progress, seeds=seeds, executor=executor,
                          batch=proof_batch(problem.device))
     if figures is not None and getattr(outcome, "boxes", None):
         figures["proof_boxes"] = outcome.boxes
@@ -173,18 +208,22 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
                      f"error of 0); best proved upper bound {best}: neither proved nor "
                      "violated"), **common)
     st = outcome.stats
-    ahead = completion_text(st.estimated_boxes, st.estimate_rel_stderr, st.boxes_processed)
-    serial_cpu = (settings.workers <= 1 and not settings.scheduler
-                  and not settings.device.startswith("cuda"))
-    spread = ("; or spread the proof over Dask workers (--workers, --scheduler) or a GPU "
-              "(--device cuda)" if serial_cpu else "")
+    found = (f"no counterexample (largest lam_max(D) found {common['lower']:.4g}), best "
+             f"proved upper bound {best}")
+    if st.stopped_by_cap:  # the registry names the cap in the message
+        why = f"proof stopped after {st.boxes_processed:,} boxes; {found}"
+    else:
+        ahead = completion_text(st.estimated_boxes, st.estimate_rel_stderr,
+                                st.boxes_processed)
+        serial_cpu = (settings.workers <= 1 and not settings.scheduler
+                      and torch.device(problem.device).type == "cpu")
+        spread = ("; a GPU (--device cuda) or Dask workers (--workers, --scheduler) evaluate "
+                  "more boxes in the same time" if serial_cpu else "")
+        why = (f"proof budget spent (max_boxes={settings.max_boxes:,} boxes); {found}; "
+               "raise max_boxes" + (f": {ahead}" if ahead else "") + spread)
     return MpdiResult(
         status=Status.UNKNOWN, upper=outcome.upper, proof=outcome.stats,
-        seconds=time.perf_counter() - t0,
-        message=(f"proof budget spent (proof_seconds={settings.proof_seconds:g}, max_boxes="
-                 f"{settings.max_boxes}); no counterexample (largest lam_max(D) found "
-                 f"{common['lower']:.4g}), best proved upper bound {best}; raise proof_seconds "
-                 "or max_boxes" + (f": {ahead}" if ahead else "") + spread), **common)
+        seconds=time.perf_counter() - t0, message=why, **common)
 
 
 def _fmt(values: list[float]) -> str:
@@ -200,12 +239,13 @@ class MpdiCheck(Check):
     title = "MPDI: D(x\u0302, y) \u2aaf 0"
     result_type = MpdiResult
     reads = ("grid_points", "float32_screen", "adversarial_starts", "adversarial_steps",
-             "top_counterexamples", "proof_seconds", "max_boxes", "seed")
+             "top_counterexamples", "max_boxes", "seed")
 
     def run(self, context: Context) -> MpdiResult:
         scratch: dict[str, Any] = {}
-        result = check_mpdi(context.problem, context.settings, progress=context.progress,
-                            figures=scratch)
+        result = check_mpdi(context.on_device(), context.settings, progress=context.progress,
+                            figures=scratch, executor=context.executor,
+                            deadline=context.deadline, coarse_first=context.fail_fast)
         boxes = scratch.get("proof_boxes")
         if boxes and boxes.get("lo"):
             context.figures.proof_boxes = ProofBoxes(
@@ -255,10 +295,11 @@ class MpdiCheck(Check):
             sampled=Quantity("max \u03bb_max(D) found (grid + ascent)", r.lower, signed=True,
                              bound="lower"),
             proved=upper,
-            setting=(Quantity("grid points \u2265", r.grid_points or s.get("grid_points")),
-                     Quantity("ascent starts", r.adversarial_starts),
-                     Quantity("proof budget", s.get("proof_seconds"), suffix=" s"),
-                     Quantity("box budget", s.get("max_boxes"))),
+            setting=(setting_quantity("grid_points", {"grid_points": r.grid_points
+                                                      or s.get("grid_points")}),
+                     setting_quantity("adversarial_starts",
+                                      {"adversarial_starts": r.adversarial_starts}),
+                     setting_quantity("max_boxes", s)),
             numbers=tuple(numbers), facts=tuple(facts))
 
 

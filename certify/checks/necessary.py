@@ -54,7 +54,7 @@ def _fmt(v: list[float] | np.ndarray | torch.Tensor) -> str:
 
 def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
                     settings: VerifySettings | None = None, *,
-                    progress: Progress = _NULL_PROGRESS, proof_seconds: float = 10.0,
+                    progress: Progress = _NULL_PROGRESS,
                     grid_points: int = 200_000) -> NecessaryResult:
     """Network-independent pre-flight (METHOD §3.5) for metric P and rate lam.
 
@@ -137,7 +137,7 @@ def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
             except ImportError:  # pragma: no cover - the prover is part of the package
                 bound_manifold_quantity = None
             if bound_manifold_quantity is not None:
-                up2, _ = bound_manifold_quantity(system, Pn, lam, seconds=proof_seconds)
+                up2, _ = bound_manifold_quantity(system, Pn, lam)  # a budget of boxes
                 if up2 is not None and (upper is None or up2 < upper):
                     upper = up2
         if upper is not None and upper <= 0:
@@ -153,7 +153,8 @@ def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
         else:
             status = Status.UNKNOWN
             msg = (f"largest q found {q_max:.4g} <= 0, but no sound bound <= 0 "
-                   f"(best {upper if upper is not None else 'none'}); raise proof_seconds")
+                   f"(best {upper if upper is not None else 'none'}) within the manifold "
+                   "bound's box budget")
     progress.update(task)
     progress.finish(task, msg)
     expl = _explain(status, Pn, lam, q_max, xw, y_w, rate_cap, price, upper, system)

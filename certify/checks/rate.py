@@ -9,18 +9,19 @@ contraction" (VIOLATED) needs a point where a sound lower bound of lam_max(He{P 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 import torch
 
 from certify.arith.text import lower_text, upper_text
-from certify.checks.base import Check, Context
+from certify.checks.base import Check, Context, setting_quantity
 from certify.checks.mpdi import counterexamples_from, joint_box
 from certify.model.kernels import pointwise_rate
 from certify.model.problem import Problem
 from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
-from certify.results import MpdiResult, RateResult, Status
+from certify.results import MpdiResult, ProofStats, RateResult, Status
 from certify.search.falsify import maximize_over_box
 from certify.search.witness import is_witness, rate_sign_lower
 from certify.settings import VerifySettings
@@ -29,7 +30,7 @@ from certify.settings import VerifySettings
 RATE_REL_TOL = 1e-4
 #: boxes after which the rate proof's tolerance relaxes to 1e-3 (the bound stays sound)
 RATE_FINE_BOXES = 16_384
-#: share of `rate_seconds` for the maximisation branch and bound; when it runs out before
+#: share of `rate_boxes` for the maximisation branch and bound; when it runs out before
 #: closing, the rest of the budget goes to MPDI decisions above the proved rate
 #: (`certify.prove.rate.raise_rate`). When the MPDI proof already proved the design rate
 #: and the branch and bound has not proved more after RATE_FINE_BOXES boxes, it hands over
@@ -44,14 +45,19 @@ RATE_LADDER_REL_TOL = 1e-3
 
 def check_rate(problem: Problem, settings: VerifySettings, *,
                progress: Progress | None = None, prove: bool = True,
-               mpdi: MpdiResult | None = None) -> RateResult:
-    """Bracket lam_cert: sampled upper value and, when `prove`, a proved lower bound.
+               mpdi: MpdiResult | None = None,
+               place: Callable[[Problem], Problem] | None = None,
+               deadline: float | None = None) -> RateResult:
+    """Bracket lam_cert: sampled upper value and, when `prove`, a proved lower bound (the
+    grid on `problem`, the proofs on `place(problem)`: the problem on the run's device,
+    `certify.checks.base.Context.on_device`; default `problem` itself).
 
     A PROVED MPDI at the design lam already proves lam_cert >= lam; the rate's own branch and
-    bound (a quarter of `rate_seconds`) can only raise that, and when it runs out before
+    bound (RATE_BNB_SHARE of `rate_boxes`) can only raise that, and when it runs out before
     closing, MPDI decisions at rates above the proved one use the rest of the budget
     (`certify.prove.rate.raise_rate`). No proof is attempted when sampling already shows a rate
-    <= 0 (then no bound exists whatever the proof says).
+    <= 0 (then no bound exists whatever the proof says). `deadline`: the run's wall-clock
+    cap (None: none).
     """
     progress = progress or NullProgress()
     t0 = time.perf_counter()
@@ -78,44 +84,47 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
         worst_cex.sound_bound = sign_lower
         witnessed = is_witness(sign_lower, strict=False)
     proved_lower = problem.lam if mpdi is not None and mpdi.status == Status.PROVED else None
+    proofs: list[ProofStats] = []
     if prove and search.nonfinite == 0 and sampled_upper > 0:
-        from certify.arith.device import on_settings_device
         from certify.prove.mpdi import prove_rate
 
         # the grid's worst point seeds the closing level: with it the proof stops at the
         # precision the report prints (RATE_REL_TOL) in fewer boxes than an unseeded
         # proof needs for 1e-3 (`bench/run.py`); where that precision is dear (bounds of
         # first order), the tolerance relaxes to 1e-3 after RATE_FINE_BOXES boxes. On
-        # settings.device, in rounds of the CPU's size: the same boxes and bound on every
-        # device (up to the last bits of rounding)
+        # the problem's device, in rounds of the CPU's size: the same boxes and bound on
+        # every device (up to the last bits of rounding)
         seeds = [[*worst_cex.xhat, *worst_cex.y]] if worst_cex is not None else None
-        on_device = on_settings_device(problem, settings)
-        t_rate = time.perf_counter()
-        outcome = prove_rate(on_device, seconds=settings.rate_seconds * RATE_BNB_SHARE,
-                             max_boxes=settings.max_boxes,
-                             progress=progress, seeds=seeds, rel_tol=RATE_REL_TOL,
-                             coarse_after=(RATE_FINE_BOXES, 1e-3),
+        on_device = problem if place is None else place(problem)
+        outcome = prove_rate(on_device, max_boxes=max(1, int(settings.rate_boxes
+                                                             * RATE_BNB_SHARE)),
+                             deadline=deadline, progress=progress, seeds=seeds,
+                             rel_tol=RATE_REL_TOL, coarse_after=(RATE_FINE_BOXES, 1e-3),
                              give_up=None if proved_lower is None
                              else (RATE_FINE_BOXES, proved_lower))
+        proofs.append(outcome.stats)
         if outcome.lower is not None and outcome.lower == outcome.lower:
             proved_lower = outcome.lower if proved_lower is None else max(proved_lower,
                                                                           outcome.lower)
-        left = settings.rate_seconds - (time.perf_counter() - t_rate)
+        left = settings.rate_boxes - outcome.stats.boxes_processed
         # from the proved rate, or from 0 when none is positive (0 is then only where the
         # ladder starts: a rate counts as proved only when a decision proved it)
         start = proved_lower if proved_lower is not None and proved_lower > 0 else 0.0
-        if outcome.stats.budget_exhausted and sampled_upper > start and left > 0:
+        if (outcome.stats.budget_exhausted and not outcome.stats.stopped_by_cap
+                and sampled_upper > start and left > 0):
             from certify.prove.rate import raise_rate
 
-            ladder = raise_rate(on_device, start, sampled_upper, seconds=left,
-                                max_boxes=settings.max_boxes,
-                                rel_tol=RATE_LADDER_REL_TOL, progress=progress)
+            ladder = raise_rate(on_device, start, sampled_upper, max_boxes=left,
+                                deadline=deadline, rel_tol=RATE_LADDER_REL_TOL,
+                                progress=progress)
+            proofs += ladder.stats
             if ladder.lower > start:
                 proved_lower = ladder.lower
+    proof = ProofStats.total(proofs)
     seconds = time.perf_counter() - t0
     if search.nonfinite:
         return RateResult(Status.UNKNOWN, "the rate is NaN/Inf at some grid points",
-                          problem.lam, sampled_upper, None, worst_cex, seconds)
+                          problem.lam, sampled_upper, None, worst_cex, seconds, proof)
     if sampled_upper <= 0 and witnessed:
         status, msg = Status.VIOLATED, (
             f"no contraction: at xhat={worst_cex.xhat}, y={worst_cex.y} the pointwise rate is "
@@ -138,7 +147,8 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
                  else f"proved lower bound {lower_text(proved_lower, 4)}")
         status, msg = Status.UNKNOWN, (
             f"lam_cert <= {upper_text(sampled_upper, 4)} (sampled); {lower}")
-    return RateResult(status, msg, problem.lam, sampled_upper, proved_lower, worst_cex, seconds)
+    return RateResult(status, msg, problem.lam, sampled_upper, proved_lower, worst_cex, seconds,
+                      proof)
 
 
 # ----------------------------------------------------------------------------- check protocol
@@ -149,13 +159,13 @@ class RateCheck(Check):
     name = "rate"
     title = "Contraction rate \u03bb_cert"
     result_type = RateResult
-    reads = ("grid_points", "adversarial_starts", "adversarial_steps", "seed", "rate_seconds",
-             "max_boxes")
+    reads = ("grid_points", "adversarial_starts", "adversarial_steps", "seed", "rate_boxes")
     uses = ("mpdi",)
 
     def run(self, context: Context) -> RateResult:
         return check_rate(context.problem, context.settings, progress=context.progress,
-                          mpdi=context.result("mpdi"))
+                          mpdi=context.result("mpdi"), place=context.on_device,
+                          deadline=context.deadline)
 
     def present(self, r: RateResult, certificate: Any) -> Presentation:
         s = certificate.settings or {}
@@ -174,7 +184,7 @@ class RateCheck(Check):
                              bound="upper"),
             proved=lower,
             setting=(Quantity("design \u03bb =", r.lam_design),
-                     Quantity("B&B budget", s.get("rate_seconds"), suffix=" s")),
+                     setting_quantity("rate_boxes", s)),
             numbers=(Quantity("lam_design", r.lam_design, sig=6),
                      Quantity("sampled upper", r.sampled_upper, sig=6, bound="upper"),
                      Quantity("proved lower", r.proved_lower, sig=6, bound="lower")),

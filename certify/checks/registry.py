@@ -9,6 +9,14 @@ the exception's type and message); a check whose `needs` are missing or failed i
 and is reported as NOT APPLICABLE (`Status.NOT_APPLICABLE`, never SKIPPED, which means the
 user skipped it), with the reason; every other check still runs. Bad input
 (`CertifyError`) and interrupts are not isolated: they stop the run as they should.
+
+Deciding early: once a required check is VIOLATED (a sound counterexample) the verdict is
+NOT CERTIFIED whatever the rest find; `run_checks` says so through the progress at once and,
+with `fail_fast`, runs no other check (each is NOT RUN, saying why). The wall-clock cap
+(`Context.deadline`, the `max_seconds` setting): a check not started when it has passed is
+not run (UNKNOWN, saying so), and a check one of whose proofs it stopped
+(`ProofStats.stopped_by_cap` in the result's `proof`) is UNKNOWN, never PROVED from a cut
+proof, with the cap named in its message.
 """
 
 from __future__ import annotations
@@ -18,10 +26,11 @@ import logging
 import time
 from typing import Any
 
+from certify.budget import passed
 from certify.checks.base import Check, Context
 from certify.errors import CertifyError
 from certify.presentation import Presentation, present_failure
-from certify.progress import finish_step, start_step
+from certify.progress import finish_step, note, start_step
 from certify.results import CheckFailure, Status
 from certify.settings import CHECK_NAMES
 
@@ -116,17 +125,58 @@ def run_one(check: Check, context: Context, skip: tuple[str, ...] = ()) -> tuple
 def run_checks(context: Context, skip: tuple[str, ...] = (),
                names: tuple[str, ...] | list[str] = CHECK_NAMES) -> dict[str, float]:
     """Run every registered check not in `skip`, in dependency order; fills
-    `context.results` and returns the seconds each took (shown by `context.progress`)."""
+    `context.results` and returns the seconds each took (shown by `context.progress`).
+    With `context.fail_fast`, once a required check is VIOLATED no more run (module
+    docstring)."""
+    fail_fast = context.fail_fast
     timings: dict[str, float] = {}
+    decided: str | None = None  # the required check whose violation decided the verdict
     for check in run_order(names):
         if check.name in skip:
             continue
+        if decided is not None and fail_fast:
+            context.results[check.name] = CheckFailure(
+                Status.NOT_RUN, f"not run: the verdict was already decided ({decided} is "
+                "VIOLATED: a sound counterexample) and no report asked for its numbers")
+            continue
+        if passed(context.deadline):
+            context.results[check.name] = CheckFailure(
+                Status.UNKNOWN, f"not run: the wall-clock cap {cap_words(context)} was "
+                "reached before it started")
+            continue
         start_step(context.progress, check.name)
         result, seconds = run_one(check, context, skip)
+        cut_by_cap(result, context)
         context.results[check.name] = result
         timings[check.name] = seconds
         finish_step(context.progress, check.name, result.status.value, seconds)
+        if decided is None and check.name in context.required \
+                and result.status == Status.VIOLATED:
+            decided = check.name
+            rest = ("the other checks are not run" if fail_fast
+                    else "the other checks still run for the reports")
+            note(context.progress, f"verdict decided: NOT CERTIFIED, {check.name} is VIOLATED "
+                 f"({result.message}); {rest}")
     return timings
+
+
+def cap_words(context: Context) -> str:
+    """The wall-clock cap as the user set it: '--max-seconds 30' (a caller's own deadline
+    without the setting: 'of the run')."""
+    cap = context.settings.max_seconds
+    return "of the run" if cap is None else f"--max-seconds {cap:g}"
+
+
+def cut_by_cap(result: Any, context: Context) -> None:
+    """A result one of whose proofs the wall-clock cap stopped (`ProofStats.stopped_by_cap`
+    in its `proof`) is UNKNOWN, unless VIOLATED (a sound counterexample needs no finished
+    proof) or not a result of its own; its message then begins by naming the cap."""
+    proof = getattr(result, "proof", None)
+    if proof is None or not proof.stopped_by_cap or isinstance(result, CheckFailure) \
+            or result.status in (Status.VIOLATED, Status.ERROR, Status.NOT_APPLICABLE):
+        return
+    result.status = Status.UNKNOWN
+    result.message = f"stopped by the wall-clock cap {cap_words(context)}: {result.message}"
 
 
 def presentation(name: str, result: Any, certificate: Any) -> Presentation | None:

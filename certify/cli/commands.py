@@ -290,20 +290,19 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 # ----- run, report ------------------------------------------------------------------------
-def _csv(value: str | None) -> tuple[str, ...] | None:
-    return None if value is None else tuple(x.strip() for x in value.split(",") if x.strip())
-
-
 def _flag_settings(args: argparse.Namespace) -> dict[str, Any]:
-    return {
-        "grid_points": args.grid_points, "proof_seconds": args.proof_seconds,
-        "max_boxes": args.max_boxes, "noise": args.noise, "seed": args.seed,
-        "required": _csv(args.require), "skip": _csv(args.skip),
-        "allow_unknown": True if args.allow_unknown else None, "sim_time": args.sim_time,
-        "adversarial_starts": args.adversarial_starts,
-        "workers": getattr(args, "workers", None), "scheduler": getattr(args, "scheduler", None),
-        "device": getattr(args, "device", None),
-    }
+    """The settings the options of `certify run` set (`certify.cli.config.FLAGS`, made from
+    the declarations): None where an option was not given."""
+    from certify.cli.config import FLAGS
+
+    return {name: getattr(args, name, None) for name in FLAGS}
+
+
+def _names(values: list[str] | None) -> tuple[str, ...] | None:
+    """A repeated, comma-separated option (--skip a --skip b,c) as one tuple of names."""
+    from certify.settings import split_names
+
+    return None if values is None else tuple(n for v in values for n in split_names(v))
 
 
 def _check_policy_flags(args: argparse.Namespace) -> None:
@@ -312,16 +311,16 @@ def _check_policy_flags(args: argparse.Namespace) -> None:
     left to the settings' own message."""
     from certify.settings import CERTIFICATE_CHECK, CHECK_NAMES
 
-    required, skip = _csv(args.require), _csv(args.skip)
+    required, skip = _names(args.required), _names(args.skip)
     if required is not None and CERTIFICATE_CHECK not in required \
             and set(required) <= set(CHECK_NAMES):
         others = ",".join(c for c in required if c != CERTIFICATE_CHECK)
-        raise CertifyError(f"--require {args.require!r}: the MPDI is the certificate and is "
-                           "always required; name the other checks beside it, e.g. "
+        raise CertifyError(f"--require {','.join(required)!r}: the MPDI is the certificate and "
+                           "is always required; name the other checks beside it, e.g. "
                            f"--require {','.join(filter(None, (CERTIFICATE_CHECK, others)))}")
     if skip is not None and CERTIFICATE_CHECK in skip:
-        raise CertifyError(f"--skip {args.skip}: the MPDI is the certificate and always runs; "
-                           "bound its time with --proof-seconds or --max-boxes instead")
+        raise CertifyError(f"--skip {','.join(skip)}: the MPDI is the certificate and always "
+                           "runs; bound its work with --max-boxes instead")
 
 
 def _run_inputs(args: argparse.Namespace) -> list[tuple[str, str | Path | None]]:
@@ -341,22 +340,47 @@ def _run_inputs(args: argparse.Namespace) -> list[tuple[str, str | Path | None]]
     return inputs
 
 
+def _design_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """--lam and --metric on a checkpoint: the design values verified instead of its own
+    (`certify.verify.verify(overrides=...)`), validated as far as they can be before the
+    checkpoint is read (the metric's size is checked against it after); the options that
+    only a model from elsewhere takes are refused here."""
+    if args.system is not None:  # a model from elsewhere: they are its design values
+        return {}
+    only_model = [flag for flag in ("--activation", "--structure")
+                  if getattr(args, flag[2:], None) is not None]
+    if only_model:
+        raise CertifyError(f"{', '.join(only_model)}: only for a model from elsewhere, given "
+                           "with --system SPEC (a checkpoint carries its own)")
+    from certify.spec.system import parse_metric, validate_lam
+
+    out: dict[str, Any] = {}
+    if args.lam is not None:
+        out["lam"] = validate_lam(args.lam, "--lam")
+    if args.metric is not None:
+        out["metric"] = parse_metric(args.metric)
+    return out
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """Verify a checkpoint; write the reports asked for; exit with the verdict's code.
 
     Everything that can be refused from the arguments alone (paths, a missing input, an
-    unknown system, the policy) is refused before torch is even imported."""
+    unknown system, the policy, every option's value) is refused before the checkpoint is
+    read. Without a report output the run stops once the verdict is decided (`fail_fast`:
+    a required check VIOLATED)."""
     check_paths(report_outputs(args), _run_inputs(args))
     if not Path(args.checkpoint).exists():
         what = "model" if args.system is not None else "checkpoint"
         raise CertifyError(f"{what} {args.checkpoint} not found")
     _check_policy_flags(args)
     from certify.cli.config import load_settings
-    from certify.cli.display import ProgressDisplay, budgets_from
+    from certify.cli.display import ProgressDisplay
 
     settings, config_path = load_settings(
         _flag_settings(args), Path(args.config) if args.config else None,
         use_pyproject=not args.no_config)
+    overrides = _design_overrides(args)
     from certify.arith.device import resolve_device
     from certify.certificate import exit_code
     from certify.cli.importing import checkpoint_for_run
@@ -366,21 +390,31 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     resolve_device(settings.device)  # bad device or scheduler: exit 2 before any work
     ckpt = checkpoint_for_run(args)
+    if "metric" in overrides:
+        from certify.spec.system import validate_metric
+
+        n = ckpt.problem.n
+        overrides["metric"] = validate_metric(overrides["metric"], n, "--metric")
     executor = executor_from_settings(settings)
+    wants_reports = any(getattr(args, k) for k in REPORT_FLAGS)
     try:
         if not args.quiet:
+            lam = overrides.get("lam", ckpt.problem.lam)
+            given = (f" (override; checkpoint {ckpt.problem.lam:g})" if "lam" in overrides
+                     else "")
             print(f"certify run {args.checkpoint}: system {ckpt.problem.system.name}, lam="
-                  f"{ckpt.problem.lam:g}, sha256 {ckpt.sha256[:12]}"
+                  f"{lam:g}{given}, sha256 {ckpt.sha256[:12]}"
+                  + (", metric overridden" if "metric" in overrides else "")
                   + (f", policy from {config_path}" if config_path else "")
                   + (f", on {executor.description}" if executor.remote else ""),
                   file=sys.stderr)
-        display = ProgressDisplay(quiet=args.quiet, budgets=budgets_from(settings),
-                                  interrupted=INTERRUPTS.check)
+        display = ProgressDisplay(quiet=args.quiet, interrupted=INTERRUPTS.check)
         args.display = display  # the error handler names the step that was running
         try:
             wants_figures = any(getattr(args, k) for k in ("html", "pdf", "json"))
             cert = verify(ckpt, settings, progress=display, figures=wants_figures,
-                          executor=executor)
+                          executor=executor, fail_fast=not wants_reports,
+                          overrides=overrides)
             INTERRUPTS.check()  # one Python dropped inside a finaliser during the checks
             write_outputs(cert, args, display)
         finally:

@@ -15,7 +15,7 @@ from certify.settings import CERTIFICATE_CHECK, CHECK_NAMES
 
 #: option destinations whose value is a list of check names (and which names each takes: the
 #: MPDI, the certificate, is never skipped), and those whose value is a path
-CHECK_LIST_DESTS = {"require": CHECK_NAMES,
+CHECK_LIST_DESTS = {"required": CHECK_NAMES,
                     "skip": tuple(c for c in CHECK_NAMES if c != CERTIFICATE_CHECK)}
 PATH_DESTS = ("html", "pdf", "json", "junit", "config", "output", "checkpoint", "certificate")
 #: positionals that take a built-in system name or a spec path

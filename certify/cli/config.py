@@ -1,4 +1,9 @@
-"""`[tool.certify]` in the user's pyproject.toml: the CI gate policy. Flags win over it."""
+"""`[tool.certify]` in the user's pyproject.toml: the CI gate policy. Flags win over it.
+
+Its keys are the settings' names (`certify.settings.DECLARATIONS`); a retired key
+(`certify.settings.RETIRED`) is refused with its replacement, an unknown one with the list
+of known ones.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +12,14 @@ from pathlib import Path
 from typing import Any
 
 from certify.errors import SettingsError
-from certify.settings import FIELD_NAMES, VerifySettings, make_settings
+from certify.settings import (
+    DECLARATIONS,
+    FIELD_NAMES,
+    RETIRED,
+    VerifySettings,
+    make_settings,
+    retired_message,
+)
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -40,11 +52,7 @@ def read_tool_table(path: Path) -> dict[str, Any]:
 
 
 #: the command-line flag of each setting that has one, for errors about a flag's value
-FLAGS = {"grid_points": "--grid-points", "proof_seconds": "--proof-seconds",
-         "max_boxes": "--max-boxes", "noise": "--noise", "seed": "--seed",
-         "required": "--require", "skip": "--skip", "allow_unknown": "--allow-unknown",
-         "sim_time": "--sim-time", "adversarial_starts": "--adversarial-starts",
-         "workers": "--workers", "scheduler": "--scheduler", "device": "--device"}
+FLAGS = {d.name: d.flag for d in DECLARATIONS if d.flag}
 
 
 def load_settings(flags: dict[str, Any], config: Path | None = None,
@@ -60,6 +68,9 @@ def load_settings(flags: dict[str, Any], config: Path | None = None,
         raise SettingsError(f"config file {config} not found")
     if path is not None:
         table = read_tool_table(path)
+        retired = sorted(set(table) & set(RETIRED))
+        if retired:
+            raise SettingsError(retired_message(retired[0], f"[tool.certify] in {path}:"))
         unknown = sorted(set(table) - set(FIELD_NAMES))
         if unknown:
             raise SettingsError(f"[tool.certify] in {path}: unknown key(s) {', '.join(unknown)} "

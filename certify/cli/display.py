@@ -8,8 +8,8 @@ certificate says what it rests on after "error bound" (never "certified" under a
 that is not CERTIFIED).
 
 On a terminal: `rich.progress` bars, one row per running step and one per task inside it
-(a grid sweep counts points; a proof shows its closed volume against its budget of seconds
-and sub-boxes). Elsewhere (CI logs, pipes): plain timestamped lines, and while a step runs a
+(a grid sweep counts points; a proof shows its closed volume and its boxes against the
+budget it reports). Elsewhere (CI logs, pipes): plain timestamped lines, and while a step runs a
 status line at least every `heartbeat` seconds, so a log never goes silent for long. The
 seconds printed for a step are the ones `verify()` records in the certificate (and JUnit).
 """
@@ -23,10 +23,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TextIO
 
-#: the prover's task names (certify.prove.mpdi) and the settings that budget them
-PROOF_BUDGETS = {"mpdi proof": "proof_seconds", "rate proof": "rate_seconds",
-                 "residual bound": "residual_seconds", "dk/dy bound": "lipschitz_seconds"}
-
 
 @dataclass
 class _Task:
@@ -36,12 +32,6 @@ class _Task:
     done: float = 0.0
     fields: dict[str, Any] = field(default_factory=dict)
     rich_id: Any = None
-
-
-def budgets_from(settings: Any) -> dict[str, tuple[float, int]]:
-    """(seconds, max_boxes) per proof task, from VerifySettings."""
-    return {task: (float(getattr(settings, key)), int(settings.max_boxes))
-            for task, key in PROOF_BUDGETS.items()}
 
 
 class ProgressDisplay:
@@ -55,7 +45,6 @@ class ProgressDisplay:
 
     def __init__(self, stream: TextIO | None = None, *, quiet: bool = False,
                  rich: bool | None = None, heartbeat: float = 2.0,
-                 budgets: dict[str, tuple[float, int]] | None = None,
                  interrupted: Callable[[], None] | None = None) -> None:
         self.stream = stream if stream is not None else sys.stderr
         self._interrupted = interrupted or (lambda: None)
@@ -63,7 +52,6 @@ class ProgressDisplay:
         isatty = getattr(self.stream, "isatty", lambda: False)()
         self.use_rich = (isatty if rich is None else rich) and not quiet
         self.heartbeat = heartbeat
-        self.budgets = budgets or {}
         #: the step running now (None between steps); read by the CLI's error handler
         self.current_step: str | None = None
         #: seconds shown for each finished step, as printed
@@ -113,6 +101,16 @@ class ProgressDisplay:
             else:
                 self._line(text)
 
+    def note(self, text: str) -> None:
+        """One line the run established on the way (e.g. that the verdict is decided)."""
+        with self._lock:
+            if self.quiet:
+                return
+            if self.use_rich and self._rich is not None:
+                self._rich.console.print("  " + text, highlight=False, markup=False)
+            else:
+                self._line(text)
+
     # ----- tasks inside a step (the Progress protocol) ---------------------------------
     def start(self, task: str, total: float | None = None) -> None:
         with self._lock:
@@ -154,16 +152,15 @@ class ProgressDisplay:
 
     # ----- drawing -----------------------------------------------------------------------
     def _info(self, state: _Task) -> str:
-        """A task's status in words: points swept, or volume closed against the budget."""
+        """A task's status in words: points swept, or volume closed and boxes against the
+        budget the proof reports."""
         f = state.fields
         if "proved" in f or state.total == 1.0:  # a proof: its total is the box's volume
             text = f"{100 * float(f.get('proved', 0.0)):.2f}% of the volume closed"
-            budget = self.budgets.get(state.name)
-            text += f", {int(f.get('boxes', 0)):,}" + (f" / {budget[1]:,}" if budget else "") \
+            budget = f.get("budget")
+            text += f", {int(f.get('boxes', 0)):,}" + (f" / {int(budget):,}" if budget else "") \
                 + " boxes"
-            elapsed = time.monotonic() - state.started
-            text += f", {elapsed:.0f}" + (f" / {budget[0]:g}" if budget else "") + " s"
-            return text
+            return text + f", {time.monotonic() - state.started:.0f} s"
         if state.total:
             return f"{state.done:,.0f} / {state.total:,.0f}"
         return ""

@@ -54,15 +54,12 @@ def run_import(args: argparse.Namespace) -> int:
 
 
 def checkpoint_for_run(args: argparse.Namespace) -> Any:
-    """What `certify run` verifies: the checkpoint, or with --system the imported model."""
+    """What `certify run` verifies: the checkpoint, or with --system the imported model
+    (with its design values: --lam, --metric, else the spec's)."""
     from certify.model import checkpoint as ckpt_mod
 
     path = args.checkpoint
-    if args.system is None:
-        given = [f"--{flag}" for flag in MODEL_FLAGS if getattr(args, flag, None) is not None]
-        if given:
-            raise CertifyError(f"{', '.join(given)}: only for a model from elsewhere, given "
-                               "with --system SPEC (a checkpoint carries its own)")
+    if args.system is None:  # --lam, --metric: overrides, applied by `verify`
         if Path(path).suffix.lower() == ".onnx" or (Path(path).is_file()
                                                      and is_torchscript(Path(path))):
             raise CertifyError(f"{path} is a model from elsewhere: give --system SPEC (the "

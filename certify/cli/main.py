@@ -8,6 +8,8 @@ line, no traceback, no report half-written), 141 when the reader of its output w
 (`certify systems | head -1`: quietly, as a Unix tool killed by SIGPIPE). This module
 imports only the standard library at start-up, so `certify --help`, `--version` and
 `certify systems` answer at once; each command imports what it needs (`certify.cli.commands`).
+Python warnings raised while a command runs (a numpy overflow, a torch notice) go to the
+debug log (`--debug` shows them), never onto the output a user or a CI log reads.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import argparse
 import contextlib
 import os
 import sys
+import warnings
 from typing import Any
 
 from certify.certificate import EXIT_BAD_INPUT, EXIT_INTERNAL_ERROR
@@ -65,7 +68,9 @@ def _main(argv: list[str] | None) -> int:
     try:
         from certify.cli import commands  # imported when a command runs, not for --help
 
-        return int(getattr(commands, f"cmd_{args.command}")(args))
+        with warnings.catch_warnings():  # restored after the command (in-process callers)
+            warnings.showwarning = _to_debug_log
+            return int(getattr(commands, f"cmd_{args.command}")(args))
     except CertifyError as exc:
         print(f"certify: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -75,6 +80,15 @@ def _main(argv: list[str] | None) -> int:
         return _internal_error(exc, args)
     except Exception as exc:  # a crash: never a verdict
         return _internal_error(exc, args)
+
+
+def _to_debug_log(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                  file: Any = None, line: str | None = None) -> None:
+    """`warnings.showwarning` while a command runs: the warning as one debug line."""
+    import logging
+
+    logging.getLogger("certify").debug("%s:%d: %s: %s", filename, lineno, category.__name__,
+                                       message)
 
 
 def _broken(stream: Any) -> bool:

@@ -1,16 +1,31 @@
 """The argument parser of `certify`: commands, flags, help texts (built from the registries).
 
-Building it imports only the standard library and the light parts of certify (settings, the
-built-in spec names), so `certify --help` and the one-line usage errors answer at once; the
-`train` command's own options come from `training.command` only when the command is `train`.
+The settings options of `certify run` are made from the declarations of
+`certify.settings.DECLARATIONS` (`add_setting_options`): flag, type, help and default each
+come from there, and the options of retired settings (`certify.settings.RETIRED`) are
+refused with their replacement. Building it imports only the standard library and the light
+parts of certify (settings, the built-in spec names), so `certify --help` and the one-line
+usage errors answer at once; the `train` command's own options come from `training.command`
+only when the command is `train`.
 """
 
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 from certify.certificate import EXIT_BAD_INPUT
-from certify.settings import CERTIFICATE_CHECK, CHECK_NAMES, WORKERS_PER_CPU
+from certify.settings import (
+    CHECK_NAMES,
+    DECLARATIONS,
+    RETIRED,
+    Checks,
+    Count,
+    Number,
+    Switch,
+    flag_of,
+    retired_message,
+)
 from certify.spec import builtin
 
 EXIT_CODES_TEXT = ("exit codes of run: 0 certified, 1 not certified, 2 bad input or usage, "
@@ -24,7 +39,8 @@ examples:
   certify train vdp --preset certified -o vdp.ckpt  train a gain network
   certify run vdp.ckpt --html r.html --junit r.xml  verify, write reports
   certify run vdp.ckpt --json - --quiet | jq .verdict
-  certify run vdp.ckpt --require mpdi,rate --skip simulation
+  certify run vdp.ckpt --require rate --skip simulation --skip dissipation
+  certify run vdp.ckpt --lam 0.45                   verify at another design rate
   certify run model.onnx --system spec.toml         verify a model trained elsewhere
   certify import model.onnx --system spec.toml -o model.ckpt
   certify report r.json --pdf r.pdf                 re-render without verifying
@@ -63,17 +79,66 @@ def _report_flags(p: argparse.ArgumentParser, json_help: str) -> None:
                         "store them in the JSON certificate")
 
 
+def _text_type(rule: Any, flag: str):
+    """The argparse `type` of an option with `rule`: its `from_text`, its error as the
+    one-line usage error (argparse names the option)."""
+    def parse(text: str) -> Any:
+        try:
+            return rule.from_text(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    parse.__name__ = flag.lstrip("-")
+    return parse
+
+
+class _Retired(argparse.Action):
+    """The option of a retired setting: refused, naming what replaced it."""
+
+    def __call__(self, parser: Any, namespace: Any, values: Any, option: Any = None) -> None:
+        parser.error(retired_message(self.dest, "", as_flag=True))
+
+
+def add_setting_options(p: argparse.ArgumentParser) -> None:
+    """The options of `certify run` that set a setting, one per declaration with a `flag`
+    (dest: the setting's name; default None, so that [tool.certify] applies where not
+    given); a repeated list option (--skip, --require) accumulates. Then the retired
+    settings' options, hidden, each refused with its replacement."""
+    for d in DECLARATIONS:
+        if d.flag is None:
+            continue
+        given = d.default not in (None, "", ()) and not isinstance(d.rule, Switch)
+        default = f" (default {d.default_text()})" if given else ""
+        kw: dict[str, Any] = dict(dest=d.name, default=None, help=d.help + default)
+        if isinstance(d.rule, Switch):
+            kw["action"] = "store_true"
+        elif isinstance(d.rule, Checks):
+            kw.update(action="append", metavar=d.metavar or "CHECKS")
+        else:
+            if isinstance(d.rule, (Count, Number)):
+                kw["type"] = _text_type(d.rule, d.flag)
+            kw["metavar"] = d.metavar or d.name.upper()
+        p.add_argument(d.flag, **kw)
+    for old in RETIRED:
+        p.add_argument(flag_of(old), dest=old, nargs="?", action=_Retired,
+                       help=argparse.SUPPRESS)
+
+
 def systems_text() -> str:
     """The built-in systems, as help text names them (read from the package's spec files)."""
     return ", ".join(builtin.names())
 
 
-def _model_flags(p: argparse.ArgumentParser, system_help: str) -> None:
+def _model_flags(p: argparse.ArgumentParser, system_help: str, *, run: bool = False) -> None:
     """The flags that turn a model from elsewhere (ONNX, TorchScript, state_dict) into a
-    verification problem (`certify import`, `certify run MODEL --system SPEC`)."""
+    verification problem (`certify import`, `certify run MODEL --system SPEC`); for `run`,
+    --lam and --metric also override a checkpoint's own design values."""
+    whose = "the checkpoint's or the spec's" if run else "the spec's"
+    also = ("; on a checkpoint an override of its own, recorded in the certificate" if run
+            else "")
     p.add_argument("--system", metavar="SPEC", help=system_help)
-    p.add_argument("--lam", type=float, help="contraction rate (default: the spec's)")
-    p.add_argument("--metric", help="metric P as [[a,b],[b,c]] (default: the spec's)")
+    p.add_argument("--lam", type=float, help=f"design contraction rate (default: {whose}{also})")
+    p.add_argument("--metric", help=f"metric P as [[a,b],[b,c]] (default: {whose}{also})")
     p.add_argument("--activation", metavar="NAME",
                    help="the activation of a state_dict (it carries none), e.g. tanh")
     p.add_argument("--structure", choices=("direct", "structural"),
@@ -122,44 +187,15 @@ def build_parser(with_train: bool = True) -> argparse.ArgumentParser:
     p.set_defaults(command="train")
 
     names = ", ".join(CHECK_NAMES)
-    skippable = ", ".join(c for c in CHECK_NAMES if c != CERTIFICATE_CHECK)
     p = sub.add_parser("run", parents=[common], formatter_class=formatter,
                        help="verify a checkpoint and write the certificate",
                        epilog=f"checks: {names}.\n{EXIT_CODES_TEXT}.")
     p.add_argument("checkpoint", help="a checkpoint written by 'certify train' (.ckpt), or "
                    "a model from elsewhere (.onnx, TorchScript, state_dict) with --system")
     _model_flags(p, f"the system a model from elsewhere observes (built-in name: {systems}; "
-                    "or a spec path)")
+                    "or a spec path)", run=True)
     _report_flags(p, "write the JSON certificate ('-': stdout, the rest goes to stderr)")
-    p.add_argument("--grid-points", type=int, help="dense grid size over X x Y (default 1e6)")
-    p.add_argument("--proof-seconds", type=float, help="prover time budget (default 60)")
-    p.add_argument("--max-boxes", type=int, help="prover sub-box budget")
-    p.add_argument("--adversarial-starts", type=int, help="gradient-ascent starts")
-    p.add_argument("--noise", type=float, help="noise bound vbar (default 0.15)")
-    p.add_argument("--sim-time", type=float,
-                   help="simulated seconds (default: 10, longer when the proved bound is slow)")
-    p.add_argument("--seed", type=int, help="random seed (default 0)")
-    p.add_argument("--require", metavar="CHECKS",
-                   help=f"comma-separated checks that must pass; {CERTIFICATE_CHECK} (the "
-                        "certificate) is always one of them, and alone by default; from: "
-                        f"{names}")
-    p.add_argument("--skip", metavar="CHECKS",
-                   help=f"comma-separated checks not to run (never {CERTIFICATE_CHECK}, the "
-                        f"certificate); from: {skippable}")
-    p.add_argument("--allow-unknown", action="store_true",
-                   help="an UNKNOWN required check other than the MPDI does not fail the gate "
-                        "(the MPDI must be PROVED to certify; ERROR always fails)")
-    p.add_argument("--workers", type=int, metavar="N",
-                   help="run the grid and the proofs on a local Dask cluster of N processes "
-                        f"(default 1: in this process; at most {WORKERS_PER_CPU} per CPU)")
-    p.add_argument("--scheduler", metavar="ADDRESS",
-                   help="run them on a running Dask cluster, e.g. tcp://host:8786 "
-                        "(dask-jobqueue on SLURM/PBS, Kubernetes)")
-    p.add_argument("--device", metavar="DEVICE",
-                   help="torch device: cpu (default), cuda or cuda:N. The MPDI grid, the "
-                        "falsifier and the branch-and-bound proofs (MPDI, rate, residual, "
-                        "dk/dy) run there; the simulation, LipSDP and the pre-flight stay on "
-                        "the CPU")
+    add_setting_options(p)
     p.add_argument("--config", metavar="PATH", help="read [tool.certify] from this file")
     p.add_argument("--no-config", action="store_true", help="ignore pyproject.toml")
     p.add_argument("--quiet", "-q", action="store_true", help="only the verdict line")

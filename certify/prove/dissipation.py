@@ -30,7 +30,6 @@ V(t) <= e^(-alpha t) V(0) + (1 - e^(-alpha t)) (mu vbar^2 + mu_r eps_bar_P^2) / 
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -92,6 +91,7 @@ class DissipationOutcome:
     delta: float = 0.0
     candidates: list[dict] = field(default_factory=list)
     boxes: int = 0
+    stopped_by_cap: bool = False  # a proof was stopped by the run's wall-clock cap
 
 
 def _sub_boxes(lo: np.ndarray, hi: np.ndarray, total: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -343,13 +343,13 @@ def _shifts(P: np.ndarray, cover: Cover, mu_b: float, eta: float, mu_r: float
 
 
 def prove_dissipation(problem: Problem, *, vbar: float, eps_P: float = 0.0,
-                      seconds: float = 30.0, samples: int = 4096, seed: int = 0,
-                      ) -> DissipationOutcome:
+                      max_boxes: int, deadline: float | None = None, samples: int = 4096,
+                      seed: int = 0) -> DissipationOutcome:
     """Find and prove (alpha, mu, mu_r) minimising sqrt((mu vbar^2 + mu_r eps_P^2) / alpha)
     (see the module docstring). `eps_P`: a sound bound of sup ||P^(1/2) k(x, h(x))|| (0 for
     a structural gain). PROVED when every piece of the cover is proved for one candidate;
-    UNKNOWN otherwise (the budget `seconds` spent, or no candidate at the samples)."""
-    t0 = time.perf_counter()
+    UNKNOWN otherwise (the budget of `max_boxes` boxes over all proofs spent, the run's
+    wall-clock cap `deadline` passed, or no candidate at the samples)."""
     if not problem.structural and not math.isfinite(eps_P):
         return DissipationOutcome(Status.UNKNOWN, "no sound bound of the residual (eps_bar_P)")
     host = problem.on("cpu")  # the cover and the samples on the CPU, the proofs where asked
@@ -378,33 +378,35 @@ def prove_dissipation(problem: Problem, *, vbar: float, eps_P: float = 0.0,
     P = np.asarray(problem.P, dtype=np.float64)
     tried: list[dict] = []
     boxes = 0
+    capped = False
     for attempt, (room, grow) in enumerate(SCHEDULE):
-        # each attempt gets an equal share of what is left; after a failed one (a point where
-        # the shifted D is not negative definite, or out of time) the next gives the prover
-        # more room: the slowest rate whose sampled bound is within `room` of the best (the
-        # MPDI at alpha/4 keeps more margin everywhere), and a larger mu
-        budget = (seconds - (time.perf_counter() - t0)) / (len(SCHEDULE) - attempt)
-        if budget <= 0:
+        # each attempt gets an equal share of the boxes left; after a failed one (a point
+        # where the shifted D is not negative definite, or out of boxes) the next gives the
+        # prover more room: the slowest rate whose sampled bound is within `room` of the best
+        # (the MPDI at alpha/4 keeps more margin everywhere), and a larger mu
+        budget = (max_boxes - boxes) // (len(SCHEDULE) - attempt)
+        if budget <= 0 or capped:
             break
         cand = min((c for c in plan if c["bound"] <= room * plan[0]["bound"]),
                    key=lambda c: c["alpha"])
         mu_b = cand["mu_b"] * grow
         shifts = _shifts(P, cover, mu_b, cand["eta"], cand["mu_r"])
         status = Status.PROVED
-        start = time.perf_counter()
+        left = budget
         # every piece must be proved for the candidate to hold, so each proof may take all
         # the attempt has left (one that is not proved ends the attempt whatever the rest
-        # would do; a proved one stops early): a share per piece would turn a slow machine
-        # into failed attempts
+        # would do; a proved one stops early)
         for Q in shifts:
-            left = budget - (time.perf_counter() - start)
             if left <= 0:
                 status = Status.UNKNOWN
                 break
             sub = Problem(system=problem.system, network=problem.network, lam=problem.lam,
                           P=problem.P, device=problem.device, shift=Q)
-            out = prove_mpdi(sub, lam=cand["alpha"] / 4.0, seconds=max(1.0, left))
+            out = prove_mpdi(sub, lam=cand["alpha"] / 4.0, max_boxes=left, deadline=deadline,
+                             task="dissipation proof")
             boxes += out.stats.boxes_processed
+            left -= out.stats.boxes_processed
+            capped = capped or out.stats.stopped_by_cap
             if out.status != Status.PROVED:
                 status = out.status
                 break
@@ -420,6 +422,7 @@ def prove_dissipation(problem: Problem, *, vbar: float, eps_P: float = 0.0,
                 alpha=cand["alpha"], mu=mu, mu_residual=cand["mu_r"] or None,
                 vertices=len(cover.vertices), delta=cover.delta, candidates=tried,
                 boxes=boxes)
-    return DissipationOutcome(Status.UNKNOWN, "no candidate (alpha, mu) proved within "
-                              f"{seconds:g} s", vertices=len(cover.vertices), delta=cover.delta,
-                              candidates=tried, boxes=boxes)
+    within = "before the wall-clock cap" if capped else f"within {max_boxes:,} boxes"
+    return DissipationOutcome(Status.UNKNOWN, f"no candidate (alpha, mu) proved {within}",
+                              vertices=len(cover.vertices), delta=cover.delta,
+                              candidates=tried, boxes=boxes, stopped_by_cap=capped)

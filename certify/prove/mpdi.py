@@ -19,7 +19,7 @@ import torch
 
 from certify.arith.boxes import Box, initial_grid
 from certify.arith.intervals import ROUNDING, up
-from certify.budget import OutOfTime
+from certify.budget import OutOfTime, cap_deadline, passed
 from certify.enclose.mpdi import (
     choose_preconditioner,
     estimate_crown_gain,
@@ -42,21 +42,13 @@ from certify.search.bnb import SETUP_SECONDS_ANYWAY, branch_and_bound
 from certify.search.evaluation import BoxEval
 from certify.search.tree_estimate import completion_text, estimate_tree
 from certify.search.witness import is_witness, mpdi_lower
+from certify.settings import DEFAULTS
 
 __all__ = ["ProofOutcome", "RateOutcome", "prove_mpdi", "prove_rate", "ROUNDING"]
 
 #: the MPDI proof's first round is batch / COARSE_START boxes where the plain interval bound
 #: closes boxes on the problem (`prove_mpdi`)
 COARSE_START = 4
-#: the time limit of an unfinished proof's tree estimate: this share of the proof's
-#: `seconds`, at least ESTIMATE_MIN_SECONDS (`prove_mpdi`)
-ESTIMATE_SHARE = 0.25
-ESTIMATE_MIN_SECONDS = 2.0
-
-
-def estimate_seconds(seconds: float) -> float:
-    """The time limit of the tree estimate after a proof with budget `seconds` ran out."""
-    return max(ESTIMATE_MIN_SECONDS, ESTIMATE_SHARE * seconds)
 
 
 @dataclass
@@ -113,7 +105,7 @@ def mpdi_options(problem: Problem, lam: float, pc: Preconditioner,
     has the answer); where the linear bounds follow the Taylor models, the remainder
     reduction that chooses their boxes (`estimate_crown_gain`). Deterministic in the
     problem, so every worker of a distributed proof builds the same. `deadline`: a proof's
-    budget, `certify.budget.OutOfTime` past it while the probes run."""
+    wall-clock cap (None: none), `certify.budget.OutOfTime` past it while the probes run."""
     rlo, rhi = root_box(problem)
     options = box_bound_options(problem, lam, pc=pc, technique=technique, crown=crown,
                                 screen=0.0, decide=True, root_width=rhi - rlo)
@@ -211,10 +203,10 @@ def mpdi_decision(problem: Problem, lam: float, technique: Technique = Technique
                   crown: bool = True, batch: int = 1024, deadline: float | None = None
                   ) -> DecisionSetup:
     """The `DecisionSetup` of `prove_mpdi` at rate `lam` (also used by bench/tree_size.py,
-    which follows the same tree). `deadline` (a `time.perf_counter()` value): the probes
-    that choose the bounds read the clock between their pieces and raise
-    `certify.budget.OutOfTime` once it has passed (they choose only, so the setup does not
-    depend on it otherwise)."""
+    which follows the same tree). The probes that choose the bounds are bounded work;
+    `deadline` (a `time.perf_counter()` value; None: no cap, the clock is not read): they
+    read the clock between their pieces and raise `certify.budget.OutOfTime` once it has
+    passed (they choose only, so the setup does not depend on it otherwise)."""
     pc = _mpdi_preconditioner(problem, lam, technique, deadline)
     lo, hi = root_box(problem)
     # where the plain bound probe closes part of the root split into 1024 boxes, coarser
@@ -229,8 +221,9 @@ def mpdi_decision(problem: Problem, lam: float, technique: Technique = Technique
                          batch // COARSE_START if coarse else batch)
 
 
-def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 60.0,
-               max_boxes: int = 2_000_000, progress: Progress | None = None,
+def prove_mpdi(problem: Problem, *, lam: float | None = None,
+               max_boxes: int = DEFAULTS.max_boxes, seconds: float | None = None,
+               deadline: float | None = None, progress: Progress | None = None,
                seeds: object | None = None, batch: int = 1024, taylor: bool | str = True,
                keep_leaves: int = 5000, crown: bool = True,
                executor: object | None = None, task: str = "mpdi proof",
@@ -238,42 +231,48 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
     """Decide D(xhat, y) <= 0 over X x Y for rate `lam` (default problem.lam) and P.
 
     PROVED: every sub-box has a sound bound lam_max(D) <= 0. VIOLATED: a point (a box
-    centre or one of `seeds` [m, n+p]) with float64 lam_max(D) > 0. UNKNOWN: budget spent
-    (`seconds`, `max_boxes`) or NaN/Inf in some bound; `upper` is then the best bound.
-    `taylor=False` uses plain interval arithmetic only (for comparison); `crown=False` keeps
-    the forward Taylor models without backward linear bound propagation (the pre-issue-9 prover).
-    `executor`: where the rounds' boxes are evaluated (default `current_executor()`; the
-    verdict and bounds do not depend on it). `task`: the name the progress display shows.
-    `seconds` counts from this call (the set-up of the bounds too) and holds within a few
-    seconds however slow a box is (`certify.search.bnb.RoundClock`: boxes a round had no time for
-    stay open with their parent's bound, and the proof is then UNKNOWN); the set-up itself
-    stops at max(seconds, SETUP_SECONDS_ANYWAY) and a cheap first round is always evaluated,
-    so that a small budget on a cheap problem still gives a bound; `box_seconds`: an
-    estimate of a box's cost, e.g. from an earlier proof on the problem (spares the timing
-    probes of the first round).
-    A proof that spent its budget estimates, by random descents (batches of `estimate_points`
-    while the standard error is above 20%, within 16 batches and 5% of the boxes the proof
-    evaluated), how many boxes a complete one needs (`certify.search.tree_estimate`; in `stats` and
-    the message); the estimate has its own time limit, `estimate_seconds(seconds)`, after the
-    proof's.
+    centre or one of `seeds` [m, n+p]) with float64 lam_max(D) > 0. UNKNOWN: the box budget
+    `max_boxes` spent, the wall-clock cap stopped it, or NaN/Inf in some bound; `upper` is
+    then the best bound. `taylor=False` uses plain interval arithmetic only (for
+    comparison); `crown=False` keeps the forward Taylor models without backward linear bound
+    propagation. `executor`: where the rounds' boxes are evaluated (default
+    `current_executor()`; the verdict and bounds do not depend on it). `task`: the name the
+    progress display shows.
+    The budget is work: `max_boxes` boxes, honoured exactly, so the outcome is the same on
+    any machine. The optional wall-clock cap (None: none, the clock is never read): `seconds`
+    from this call and/or a `deadline` (a `time.perf_counter()` value), the earlier binding;
+    it counts the set-up of the bounds too and holds within a few seconds however slow a box
+    is (`certify.search.bnb.RoundClock`: boxes a round had no time for stay open with their
+    parent's bound, and the proof is then UNKNOWN, `stats.stopped_by_cap`); the set-up
+    itself stops at SETUP_SECONDS_ANYWAY past the call at the earliest and a cheap first
+    round is always evaluated, so that a small cap on a cheap problem still gives a bound;
+    `box_seconds`: an estimate of a box's cost, e.g. from an earlier proof on the problem
+    (spares the timing probes of the first round under a cap).
+    A proof that spent its box budget estimates, by random descents (batches of
+    `estimate_points` while the standard error is above 20%, within 16 batches and 5% of the
+    boxes the proof evaluated: bounded work), how many boxes a complete one needs
+    (`certify.search.tree_estimate`; in `stats` and the message); under a cap, within what
+    is left of it.
     """
     from certify.search.distributed.executor import current_executor
 
     started = time.perf_counter()
+    deadline = cap_deadline(deadline, seconds, started)
     progress = progress or NullProgress()
     lam = float(problem.lam if lam is None else lam)
     technique = Technique.of(taylor)
     try:
         setup = mpdi_decision(problem, lam, technique, crown, batch,
-                              deadline=started + max(seconds, SETUP_SECONDS_ANYWAY))
+                              deadline=None if deadline is None
+                              else max(deadline, started + SETUP_SECONDS_ANYWAY))
     except OutOfTime:
-        return _spent_in_setup(problem, seconds, max_boxes, time.perf_counter() - started)
+        return _spent_in_setup(max_boxes, time.perf_counter() - started)
     lo, hi = setup.lo, setup.hi
     n = problem.n
     executor = current_executor() if executor is None else executor
     out = branch_and_bound(
         lo, hi, setup.evaluate, threshold=0.0,
-        seconds=seconds, max_boxes=max_boxes, batch=batch, first_round=setup.first_round,
+        max_boxes=max_boxes, deadline=deadline, batch=batch, first_round=setup.first_round,
         progress=progress, task=task,
         seeds=seed_box(seeds, lo.shape[0], problem.device), keep_leaves=keep_leaves,
         executor=executor,
@@ -286,28 +285,30 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
                                pt[:, :n], pt[:, n:], problem.shift_t)[0])
         cex = Counterexample(xhat=pt[0, :n].tolist(), y=pt[0, n:].tolist(), value=v,
                              sound_bound=float(mpdi_lower(problem, pt, lam)[0]))
+    st = out.stats
     if out.violated and cex is not None and is_witness(cex.sound_bound):
         status = Status.VIOLATED
         msg = f"lam_max(D) = {cex.value:.6g} > 0 at xhat={cex.xhat}, y={cex.y}"
     elif out.complete and out.upper <= 0 and math.isfinite(out.upper):
         status = Status.PROVED
-        msg = f"proved max lam_max(D) <= {out.upper:.6g} over {out.stats.boxes_processed} boxes"
+        msg = f"proved max lam_max(D) <= {out.upper:.6g} over {st.boxes_processed} boxes"
         cex = None if cex is None or cex.value <= 0 else cex
     else:
         status = Status.UNKNOWN
         why = (f"{out.stuck} boxes gave NaN/Inf or hit the depth limit" if out.stuck
-               else "proof budget spent")
-        msg = (f"{why} (seconds={seconds}, max_boxes={max_boxes}); best upper bound "
-               f"{out.upper:.6g}, proved volume {out.stats.proved_volume_fraction:.4f}; "
-               "raise proof_seconds or max_boxes")
-        if out.stats.budget_exhausted and not out.stuck and estimate_points > 0:
+               else "stopped by the wall-clock cap" if st.stopped_by_cap
+               else f"box budget spent (max_boxes={max_boxes})")
+        msg = (f"{why}; best upper bound {out.upper:.6g}, proved volume "
+               f"{st.proved_volume_fraction:.4f}")
+        if st.budget_exhausted and not out.stuck and estimate_points > 0 \
+                and not passed(deadline):
             # more descents while the estimate is rough, within 5% of the proof's boxes
-            st = out.stats
             first_depth = int(initial_grid(lo, hi, setup.first_round).depth[0])
             est = estimate_tree(setup.evaluate, lo, hi, setup.first_round, estimate_points,
                                 target_rel_stderr=0.2, max_points=16 * estimate_points,
                                 max_evaluations=max(4096, st.boxes_processed // 20),
-                                seconds=estimate_seconds(seconds),
+                                seconds=None if deadline is None
+                                else deadline - time.perf_counter(),
                                 box_seconds=st.seconds / max(st.boxes_processed, 1),
                                 levels=max(1, st.max_depth - first_depth + 1))
             if math.isfinite(est.boxes):
@@ -316,22 +317,22 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None, seconds: float = 6
             msg += "; " + tail if tail else ""
     upper = out.upper if math.isfinite(out.upper) else float("inf")
     return ProofOutcome(status=status, upper=upper, lower=out.lower, counterexample=cex,
-                        stats=out.stats, boxes=out.leaves, message=msg)
+                        stats=st, boxes=out.leaves, message=msg)
 
 
-def _spent_in_setup(problem: Problem, seconds: float, max_boxes: int,
-                    elapsed: float) -> ProofOutcome:
-    """The UNKNOWN outcome of a decision whose budget ran out before its first round."""
+def _spent_in_setup(max_boxes: int, elapsed: float) -> ProofOutcome:
+    """The UNKNOWN outcome of a decision the wall-clock cap stopped before its first round."""
     stats = ProofStats(boxes_processed=0, seconds=elapsed, budget_exhausted=True,
-                       rounding=ROUNDING, volume_history=[[0.0, 0.0], [elapsed, 0.0]])
+                       stopped_by_cap=True, rounding=ROUNDING,
+                       volume_history=[[0.0, 0.0], [elapsed, 0.0]])
     return ProofOutcome(status=Status.UNKNOWN, upper=float("inf"), lower=-math.inf,
                         counterexample=None, stats=stats,
-                        message=(f"proof budget spent (seconds={seconds}, max_boxes="
-                                 f"{max_boxes}) while the bounds were being set up, before "
-                                 "the first box; raise proof_seconds"))
+                        message=("stopped by the wall-clock cap while the bounds were being "
+                                 f"set up, before the first box (max_boxes={max_boxes})"))
 
 
-def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_000_000,
+def prove_rate(problem: Problem, *, max_boxes: int = DEFAULTS.rate_boxes,
+               seconds: float | None = None, deadline: float | None = None,
                progress: Progress | None = None, tol: float = 1e-9, rel_tol: float = 1e-3,
                batch: int = 1024, seeds: object | None = None,
                coarse_after: tuple[int, float] | None = None,
@@ -351,9 +352,11 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     `coarse_after`: see `branch_and_bound` (the tolerance relaxes after that many boxes).
     `give_up = (N, rate)`: after N boxes, stop (budget spent) unless the bound so far
     already proves more than `rate` (`branch_and_bound`'s give_up at phi = -2 rate).
-    `seconds` counts from this call and holds however slow a box is (as in `prove_mpdi`).
+    Budget: `max_boxes` boxes; optional wall-clock cap `seconds` from this call and/or
+    `deadline` (as in `prove_mpdi`; `stats.stopped_by_cap` when it stopped the proof).
     """
     started = time.perf_counter()
+    deadline = cap_deadline(deadline, seconds, started)
     if problem.shift is not None:
         raise ValueError("the proved rate is defined for D without a constant term (shift)")
     progress = progress or NullProgress()
@@ -365,11 +368,13 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
     level = Level(rel_tol, tol)
     try:
         gain = estimate_crown_gain(problem.network, lo, hi,
-                                   deadline=started + max(seconds, SETUP_SECONDS_ANYWAY))
-    except OutOfTime:  # no time left for a single box: no bound
+                                   deadline=None if deadline is None
+                                   else max(deadline, started + SETUP_SECONDS_ANYWAY))
+    except OutOfTime:  # the cap left no time for a single box: no bound
         return RateOutcome(lower=None, upper_sampled=math.inf,
                            stats=ProofStats(seconds=time.perf_counter() - started,
-                                            budget_exhausted=True, rounding=ROUNDING),
+                                            budget_exhausted=True, stopped_by_cap=True,
+                                            rounding=ROUNDING),
                            worst=None)
 
     options = box_bound_options(problem, 0.0, pc=pc, crown_gain=gain, root_width=hi - lo)
@@ -389,7 +394,7 @@ def prove_rate(problem: Problem, *, seconds: float = 60.0, max_boxes: int = 2_00
         return BoxEval(upper=ub, centre_value=val, score=bb.score, counts=bb.counts)
 
     out = branch_and_bound(lo, hi, evaluate, threshold=None, tol=tol, rel_tol=rel_tol,
-                           seconds=seconds, max_boxes=max_boxes, batch=batch,
+                           max_boxes=max_boxes, deadline=deadline, batch=batch,
                            progress=progress, task="rate proof", coarse_after=coarse_after,
                            give_up=None if give_up is None else (give_up[0], -2.0 * give_up[1]),
                            seeds=seed_box(seeds, lo.shape[0], problem.device),

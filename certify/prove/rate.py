@@ -5,12 +5,12 @@ decides with the decision-mode bounds."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from certify.model.problem import Problem
 from certify.progress import Progress
 from certify.prove.mpdi import prove_mpdi
-from certify.results import Status
+from certify.results import ProofStats, Status
 
 
 @dataclass
@@ -22,6 +22,8 @@ class RateLadder:
     upper: float
     violated: bool
     attempts: list[tuple[float, str, float]]  # (rate, status, seconds)
+    #: each decision's stats, in order
+    stats: list[ProofStats] = field(default_factory=list)
 
 
 #: boxes the first target may take; each later one at most LADDER_GROWTH times the boxes of
@@ -31,8 +33,8 @@ LADDER_FIRST_BOXES = 16_384
 LADDER_GROWTH = 8
 
 
-def raise_rate(problem: Problem, lower: float, upper: float, *, seconds: float,
-               max_boxes: int = 2_000_000, rel_tol: float = 1e-4,
+def raise_rate(problem: Problem, lower: float, upper: float, *, max_boxes: int,
+               rel_tol: float = 1e-4, deadline: float | None = None,
                progress: Progress | None = None) -> RateLadder:
     """Raise a proved lower bound `lower` on lam_cert towards a sampled upper value `upper`
     by MPDI decisions: lam_cert >= t iff D(t) <= 0 on X x Y, which `prove_mpdi(lam=t)`
@@ -44,29 +46,30 @@ def raise_rate(problem: Problem, lower: float, upper: float, *, seconds: float,
 
     Each target halves the gap to `upper`, until it is below rel_tol |upper|. A target gets
     at most LADDER_GROWTH times the boxes of the last proved one (LADDER_FIRST_BOXES for the
-    first; all within `max_boxes` each and `seconds` in all): the proofs grow as the margin
-    shrinks, and the first target not decided ends the ladder. The caps are in boxes, not
-    seconds, so where `seconds` does not run out the ladder climbs to the same rate on a
-    slow machine as on a fast one (with caps of 4x the last proof's time it stopped at 1.115
-    or 1.118 on vdp2_lmi, by the machine's load). A VIOLATED target (a sound witness) is an
-    upper bound and the ladder goes on below it."""
-    t_start = time.perf_counter()
+    first), within the `max_boxes` left of the ladder's budget: the proofs grow as the
+    margin shrinks, and the first target not decided ends the ladder. Every cap is in
+    boxes, so the ladder climbs to the same rate on a slow machine as on a fast one (with
+    caps of 4x the last proof's time it stopped at 1.115 or 1.118 on vdp2_lmi, by the
+    machine's load). A VIOLATED target (a sound witness) is an upper bound and the ladder
+    goes on below it. `deadline`: the run's optional wall-clock cap (None: none); a decision
+    it stops ends the ladder (`ProofStats.stopped_by_cap` in `stats`)."""
     cap = LADDER_FIRST_BOXES
+    left = max_boxes
+    stats: list[ProofStats] = []
     box_seconds = None  # a box's cost, measured by the last decision (spares its probes)
     attempts: list[tuple[float, str, float]] = []
     violated = False
-    while upper - lower > rel_tol * abs(upper):
-        left = seconds - (time.perf_counter() - t_start)
-        if left <= 0.05:
-            break
+    while upper - lower > rel_tol * abs(upper) and left > 0:
         target = 0.5 * (lower + upper)
         if not lower < target < upper:  # no float between them
             break
         t0 = time.perf_counter()
-        out = prove_mpdi(problem, lam=target, seconds=left, max_boxes=min(max_boxes, cap),
+        out = prove_mpdi(problem, lam=target, max_boxes=min(left, cap), deadline=deadline,
                          progress=progress, task=f"rate decision at {target:.6g}",
                          estimate_points=0, box_seconds=box_seconds)
         took = time.perf_counter() - t0
+        stats.append(out.stats)
+        left -= out.stats.boxes_processed
         if out.stats.boxes_processed > 0 and out.stats.boxes_per_second > 0:
             box_seconds = 1.0 / out.stats.boxes_per_second
         attempts.append((target, out.status.value, round(took, 3)))
@@ -77,4 +80,4 @@ def raise_rate(problem: Problem, lower: float, upper: float, *, seconds: float,
             upper, violated = target, True
         else:
             break
-    return RateLadder(lower, upper, violated, attempts)
+    return RateLadder(lower, upper, violated, attempts, stats)

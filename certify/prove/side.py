@@ -6,6 +6,8 @@ Each is a maximisation `certify.search.bnb.branch_and_bound` over boxes with bou
 `certify.enclosures` / `certify.enclose.side` (outward rounding as in
 `certify.arith.intervals.ROUNDING`); the cheap interval bound runs first and the linear bounds only
 on boxes above the closing level (`certify.prove.mpdi.Level`). NaN/Inf leave the bound None.
+Each is budgeted in boxes (`max_boxes`), with an optional wall-clock cap (`seconds` from the
+call and/or a `deadline`, a `time.perf_counter()` value; None: none), as `prove_mpdi`.
 """
 
 from __future__ import annotations
@@ -29,14 +31,19 @@ from certify.prove.mpdi import Level, root_box, seed_box
 from certify.results import ProofStats
 from certify.search.bnb import branch_and_bound
 from certify.search.evaluation import BoxEval
+from certify.settings import DEFAULTS
 from certify.spec.enclosures import h_enclosure
 from certify.spec.system import System
 
 __all__ = ["bound_residual", "bound_dk_dy", "bound_manifold_quantity",
            "kernel_basis_with_error"]
 
+#: the box budget of the manifold bound of the pre-flight (`certify.checks.necessary`)
+MANIFOLD_BOXES = 100_000
 
-def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_000_000,
+
+def bound_residual(problem: Problem, *, max_boxes: int = DEFAULTS.residual_boxes,
+                   seconds: float | None = None, deadline: float | None = None,
                    progress: Progress | None = None, rel_tol: float = 1e-3,
                    batch: int = 1024, seeds: object | None = None
                    ) -> tuple[float | None, list[float] | None, ProofStats]:
@@ -62,19 +69,22 @@ def bound_residual(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 
         return BoxEval(upper=ub, centre_value=cen, score=None)
 
     out = branch_and_bound(X[:, 0].clone(), X[:, 1].clone(), evaluate, threshold=None,
-                           rel_tol=rel_tol, tol=1e-12, seconds=seconds, max_boxes=max_boxes,
-                           batch=batch, progress=progress, task="residual bound", project=None,
+                           rel_tol=rel_tol, tol=1e-12, seconds=seconds, deadline=deadline,
+                           max_boxes=max_boxes, batch=batch, progress=progress,
+                           task="residual bound", project=None,
                            seeds=seed_box(seeds, X.shape[0], problem.device))
     upper = out.upper if math.isfinite(out.upper) else None
     worst = out.best_point.tolist() if out.best_point is not None else None
     return upper, worst, out.stats
 
 
-def bound_dk_dy(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_000_000,
+def bound_dk_dy(problem: Problem, *, max_boxes: int = DEFAULTS.lipschitz_boxes,
+                seconds: float | None = None, deadline: float | None = None,
                 progress: Progress | None = None, rel_tol: float = 1e-3,
-                batch: int = 1024) -> float | None:
+                batch: int = 1024) -> tuple[float | None, ProofStats]:
     """Sound upper bound on sup over X x Y of ||dk/dy||_2 (by the Frobenius norm of the
-    entry magnitudes; exact for p = 1). None when a box stayed NaN/Inf."""
+    entry magnitudes; exact for p = 1), None when a box stayed NaN/Inf; and the proof's
+    stats."""
     lo, hi = root_box(problem)
 
     level = Level(rel_tol, 1e-12)
@@ -90,9 +100,9 @@ def bound_dk_dy(problem: Problem, *, seconds: float = 30.0, max_boxes: int = 1_0
         return BoxEval(upper=ub, centre_value=cen, score=None)
 
     out = branch_and_bound(lo, hi, evaluate, threshold=None, rel_tol=rel_tol, tol=1e-12,
-                           seconds=seconds, max_boxes=max_boxes, batch=batch,
-                           progress=progress, task="dk/dy bound", project=None)
-    return out.upper if math.isfinite(out.upper) else None
+                           seconds=seconds, deadline=deadline, max_boxes=max_boxes,
+                           batch=batch, progress=progress, task="dk/dy bound", project=None)
+    return (out.upper if math.isfinite(out.upper) else None), out.stats
 
 
 def kernel_basis_with_error(C: np.ndarray) -> tuple[np.ndarray, float]:
@@ -111,8 +121,8 @@ def kernel_basis_with_error(C: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def bound_manifold_quantity(system: System, P: np.ndarray | torch.Tensor, lam: float, *,
-                            seconds: float = 10.0, max_boxes: int = 500_000,
-                            rel_tol: float = 1e-4
+                            max_boxes: int = MANIFOLD_BOXES, seconds: float | None = None,
+                            deadline: float | None = None, rel_tol: float = 1e-4
                             ) -> tuple[float | None, list[float] | None]:
     """Sound upper bound of q(xhat) = lam_max(Z^T (He{P Jf} + 2 lam P) Z) over
     {xhat in X : h(xhat) in Y}, Z an orthonormal basis of ker dh/dxhat.
@@ -160,8 +170,8 @@ def bound_manifold_quantity(system: System, P: np.ndarray | torch.Tensor, lam: f
         return BoxEval(upper=ub, centre_value=q, score=None)
 
     out = branch_and_bound(X[:, 0].clone(), X[:, 1].clone(), evaluate, threshold=None,
-                           rel_tol=rel_tol, tol=1e-12, seconds=seconds, max_boxes=max_boxes,
-                           batch=256, task="manifold bound", project=None)
+                           rel_tol=rel_tol, tol=1e-12, seconds=seconds, deadline=deadline,
+                           max_boxes=max_boxes, batch=256, task="manifold bound", project=None)
     upper = out.upper if not math.isnan(out.upper) else None
     if upper is not None and upper == math.inf:
         upper = None

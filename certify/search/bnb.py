@@ -30,14 +30,18 @@ concatenated in order, so the boxes, bounds and verdict are those of the serial 
 same box budget and lag (up to the last bits of BLAS products whose blocking depends on the
 chunk size; bounds stay sound either way).
 
-The time budget (`seconds`, counted from `started`) holds within a few seconds whatever a
-box costs (`RoundClock`): a round evaluated in this process is evaluated in one call where its
-predicted time fits (the cost per box is measured on every evaluation, and before the first
-round by two small timing probes of it, thrown away), so a run that finishes within its
-budget evaluates the same boxes in the same calls as with no clock (and a first round of at
-most SETUP_SECONDS_ANYWAY is evaluated even when a caller's set-up used the budget up); a
-round that may not fit is evaluated in chunks sized to the time left, the clock read between
-them, and a round on an executor is waited for until the deadline, then cancelled.
+Budgets: `max_boxes` counts the boxes evaluated, and a run honours it exactly (its first
+round and its last are clipped to what is left), so where it binds a run evaluates the
+same boxes on any machine. An optional wall-clock cap (`deadline`, or `seconds` counted from
+`started`; None: no cap, and the clock is never read to decide anything) holds within a few
+seconds whatever a box costs (`RoundClock`): a round evaluated in this process is evaluated
+in one call where its predicted time fits (the cost per box is measured on every
+evaluation, and before the first round by two small timing probes of it, thrown away), so a
+run that finishes within its cap evaluates the same boxes in the same calls as with no
+clock (and a first round of at most SETUP_SECONDS_ANYWAY is evaluated even when a caller's
+set-up used the cap up); a round that may not fit is evaluated in chunks sized to the time
+left, the clock read between them, and a round on an executor is waited for until the
+deadline, then cancelled. A run the cap stopped says so (`ProofStats.stopped_by_cap`).
 Soundness of a round cut short: a box not evaluated keeps its parent's bound (a bound over a
 superset; a first-round box has none: NaN, so the upper bound is +inf), stays open and is not
 counted as processed; the run stops there, so its verdict is UNKNOWN unless every box closed
@@ -58,6 +62,7 @@ import torch
 
 from certify.arith.boxes import Box, initial_grid, split
 from certify.arith.intervals import ROUNDING
+from certify.budget import cap_deadline
 from certify.progress import NullProgress, Progress
 from certify.results import ProofStats
 from certify.search.evaluation import BoxEval, add_counts, join
@@ -311,7 +316,8 @@ class BranchAndBound:
 
     def __init__(self, root_lo: torch.Tensor, root_hi: torch.Tensor,
                  evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], rule: ClosingRule,
-                 *, deadline: float, max_boxes: int, batch: int, first_round: int | None,
+                 *, deadline: float | None, max_boxes: int, batch: int,
+                 first_round: int | None,
                  max_depth: int, lag: int, progress: Progress, task: str, leaves: Leaves,
                  executor: Any = None, remote: tuple[Callable[..., BoxEval], Any] | None = None,
                  box_seconds: float | None = None, t0: float | None = None) -> None:
@@ -327,11 +333,13 @@ class BranchAndBound:
         self.scale = (self.root_hi - self.root_lo).clamp_min(1e-300)
         self.root_vol = float(self.scale.prod())
         self.batch = batch
-        self.first_round = (batch if first_round is None else max(1, min(first_round, batch)))
+        first = batch if first_round is None else max(1, min(first_round, batch))
+        self.first_round = min(first, max_boxes)  # `initial_grid` makes at most this many
 
         self.frontier = Frontier(self.d, device=self.root_lo.device)
-        self.clock = RoundClock(evaluate, deadline, box_seconds)
-        self.rounds = RoundPipeline(self.clock, executor, remote)
+        #: the rounds against the cap; None without one (each round one call, no clock read)
+        self.clock = None if deadline is None else RoundClock(evaluate, deadline, box_seconds)
+        self.rounds = RoundPipeline(self.clock or evaluate, executor, remote)
         self.in_flight: deque[tuple[Box, torch.Tensor]] = deque()
         self.best = -math.inf
         self.best_point: torch.Tensor | None = None
@@ -359,11 +367,12 @@ class BranchAndBound:
         self.progress.start(self.task, total=1.0)
         if seeds is not None and len(seeds) > 0:
             self._evaluate_seeds(seeds)
-        self.first_wait = time.perf_counter() + SETUP_SECONDS_ANYWAY
+        if self.deadline is not None:
+            self.first_wait = time.perf_counter() + SETUP_SECONDS_ANYWAY
         first = initial_grid(self.root_lo, self.root_hi, self.first_round)
         self._dispatch(first, torch.full((len(first),), math.nan, dtype=torch.float64,
                                          device=self.root_lo.device))  # the root: no bound
-        budget_hit = False
+        stop = None
         try:
             while True:
                 self._merge_due()
@@ -372,14 +381,13 @@ class BranchAndBound:
                     self._report(now)
                 stop = self._stop(now)
                 if stop is not None:
-                    budget_hit = stop == "budget"
                     break
                 self._next_round()
             while self.in_flight:  # stopped: merge what was dispatched (the bound covers it)
                 self._merge()
         finally:
             self.rounds.cancel()
-        return self._outcome(budget_hit)
+        return self._outcome(stop)
 
     def _evaluate_seeds(self, seeds: Box) -> None:
         """Falsification points first (degenerate boxes give exact centre values)."""
@@ -397,17 +405,22 @@ class BranchAndBound:
             self._merge()
 
     def _report(self, now: float) -> None:
+        """The progress of the run (the clock read here only times the reports)."""
         self.history.append([now - self.t0, self.closed_vol])
-        self.progress.update(self.task, 0.0, proved=self.closed_vol, boxes=self.processed)
+        self.progress.update(self.task, 0.0, proved=self.closed_vol, boxes=self.processed,
+                             budget=self.max_boxes)
         self.last_report = now
 
     def _stop(self, now: float) -> str | None:
-        """"done" (nothing open, or a violation), "budget" (time, boxes, a round cut short,
-        or `give_up`), else None."""
+        """"done" (nothing open, or a violation), "cap" (the wall-clock cap passed, or a
+        round it cut short), "budget" (no boxes left for a round, a round its evaluation
+        left unfinished, or `give_up`), else None."""
         if len(self.frontier) == 0 or self.violated:
             return "done"
-        if (now > self.deadline or self.cut_short or self.clock.expired
-                or self.processed >= self.max_boxes):
+        if self.deadline is not None and (now > self.deadline or self.cut_short
+                                          or self.clock.expired):
+            return "cap"
+        if self.cut_short or self.max_boxes - self.processed < 2:
             return "budget"
         if self.give_up is not None and self.processed >= self.give_up[0]:
             if max(self.closed_max, self.frontier.open_max(), self.stuck_max) > self.give_up[1]:
@@ -418,8 +431,10 @@ class BranchAndBound:
     def _next_round(self) -> None:
         """The boxes to refine: the worst ones; in decision mode half of the batch is the
         boxes nearest to closing instead, so that a budgeted run closes regions early while
-        the worst boxes (counterexamples) are still refined. Bisected and dispatched."""
-        lo, hi, depth, wscore, ub = self.frontier.take(self.batch, self.rule.decision,
+        the worst boxes (counterexamples) are still refined; fewer where the box budget
+        has not room for a batch's children. Bisected and dispatched."""
+        take = min(self.batch, (self.max_boxes - self.processed) // 2)  # 2 children each
+        lo, hi, depth, wscore, ub = self.frontier.take(take, self.rule.decision,
                                                        with_upper=True)
         kids = split(Box(lo, hi, depth), split_dimensions(lo, hi, wscore, self.scale))
         self.max_depth_seen = max(self.max_depth_seen, int(kids.depth.max()))
@@ -490,8 +505,8 @@ class BranchAndBound:
             self.closed_max = max(self.closed_max, float(ub.max()))
             self.leaves.record(lo, hi, 0)
 
-    def _outcome(self, budget_hit: bool) -> BnBOutcome:
-        budget_exhausted = budget_hit and len(self.frontier) > 0
+    def _outcome(self, stop: str | None) -> BnBOutcome:
+        budget_exhausted = stop in ("budget", "cap") and len(self.frontier) > 0
         elapsed = time.perf_counter() - self.t0
         self.history.append([elapsed, self.closed_vol])
         upper = max(self.closed_max, self.frontier.open_max(), self.stuck_max)
@@ -507,6 +522,7 @@ class BranchAndBound:
             proved_volume_fraction=min(self.closed_vol, 1.0),
             max_depth=self.max_depth_seen,
             budget_exhausted=budget_exhausted,
+            stopped_by_cap=budget_exhausted and stop == "cap",
             rounding=ROUNDING,
             volume_history=_thin(self.history, 200),
             stages=self.stages,
@@ -529,8 +545,9 @@ def branch_and_bound(
     coarse_after: tuple[int, float] | None = None,
     give_up: tuple[int, float] | None = None,
     stop_on_violation: bool = True,
-    seconds: float = 60.0,
-    max_boxes: int = 2_000_000,
+    max_boxes: int,
+    seconds: float | None = None,
+    deadline: float | None = None,
     batch: int = 1024,
     first_round: int | None = None,
     max_depth: int = 80,
@@ -558,11 +575,12 @@ def branch_and_bound(
     N boxes have been evaluated, the run stops as if its budget were spent when the largest
     bound of the merged boxes, open or closed, is still above `level` (the caller has a
     better way past that level); the check only chooses when to stop, the bound is then
-    formed as for any budgeted run. Budgets: `seconds` (wall clock from `started`, a
-    `time.perf_counter()` value, default the call: a caller's own set-up counts in its
-    budget) and `max_boxes` (boxes evaluated); the time budget is held inside long rounds
-    (module docstring, `RoundClock`; `box_seconds`: a caller's estimate of the seconds a box
-    costs, e.g. from an earlier run on the same problem, which spares the timing probes).
+    formed as for any budgeted run. Budget: `max_boxes` (boxes evaluated, honoured
+    exactly). Optional wall-clock cap (None: none): `deadline` (a `time.perf_counter()`
+    value) or `seconds` from `started` (default the call: a caller's own set-up counts),
+    the earlier of the two; held inside long rounds (module docstring, `RoundClock`;
+    `box_seconds`: a caller's estimate of the seconds a box costs, e.g. from an earlier run
+    on the same problem, which spares the timing probes).
     `first_round`: the root is first split into about that many equal boxes
     (default and at most `batch`). `executor` / `remote`: where each round's children are
     evaluated; `lag`: rounds in flight before the oldest is merged (module docstring). The
@@ -571,7 +589,7 @@ def branch_and_bound(
     (`BoxEval.counts`) are summed over the merged rounds into `stats.stages`.
     """
     t0 = time.perf_counter()
-    deadline = (t0 if started is None else started) + seconds
+    deadline = cap_deadline(deadline, seconds, t0 if started is None else started)
     if remote is not None and executor is not None:
         from certify.search.distributed.executor import round_batch
 

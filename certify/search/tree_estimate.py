@@ -17,9 +17,10 @@ out.
 
 Nothing here is a bound or part of a verdict: the estimate only tells a user whether a
 larger budget is worth it (`certify.prove.mpdi.prove_mpdi`), and bench/tree_size.py measures
-the prover with it. Its own time limit (`estimate_tree(seconds=...)`) keeps a network whose
-boxes are slow from turning a budgeted proof into a long one: the batches of descents are
-sized to it and a batch not finished in time is left out (no batch finished: no estimate).
+the prover with it. Its work is bounded in descents and box evaluations; an optional time
+limit (`estimate_tree(seconds=...)`, what is left of a run's wall-clock cap) sizes the
+batches of descents to it and leaves out a batch not finished in time (no batch finished:
+no estimate).
 """
 
 from __future__ import annotations

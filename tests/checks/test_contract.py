@@ -39,8 +39,9 @@ from certify.verify import verify
 from ..conftest import random_network
 
 SETTINGS = VerifySettings(grid_points=4000, adversarial_starts=6, adversarial_steps=20,
-                          proof_seconds=5, rate_seconds=3, residual_seconds=3,
-                          lipschitz_seconds=3, dissipation_seconds=5, sim_time=0.5, sim_dt=0.01,
+                          max_boxes=40_000, rate_boxes=20_000, residual_boxes=20_000,
+                          lipschitz_boxes=20_000, dissipation_boxes=40_000, sim_time=0.5,
+                          sim_dt=0.01,
                           sim_initial_conditions=2)
 
 

@@ -69,10 +69,10 @@ def test_a_step_and_a_task_of_the_same_name_do_not_collide():
 
 def test_plain_lines_never_go_silent_during_a_long_step():
     out = io.StringIO()
-    d = ProgressDisplay(out, heartbeat=0.1, budgets={"mpdi proof": (60.0, 2_000_000)})
+    d = ProgressDisplay(out, heartbeat=0.1)
     d.start_step("mpdi")
     d.start("mpdi proof", total=1.0)
-    d.update("mpdi proof", 0.0, proved=0.4512, boxes=12_345)
+    d.update("mpdi proof", 0.0, proved=0.4512, boxes=12_345, budget=2_000_000)
     # a long stretch with no event from the check: wait for the heartbeat's line itself (the
     # event), however late a busy machine schedules its thread; 60 s only catches a heartbeat
     # that never comes (it is due after 0.1 s)
@@ -85,7 +85,6 @@ def test_plain_lines_never_go_silent_during_a_long_step():
     status = [line for line in out.getvalue().splitlines() if "running" in line]
     assert status, out.getvalue()
     assert "mpdi proof 45.12% of the volume closed, 12,345 / 2,000,000 boxes" in status[0]
-    assert "/ 60 s" in status[0]
 
 
 def test_rich_display_shows_each_step_once_with_its_time():

@@ -230,5 +230,5 @@ def test_bound_preset_writes_a_checkpoint_whose_contraction_is_proved(tmp_path) 
     assert np.allclose(ck.problem.network.K.numpy(), res.design.K)
     assert ck.training["preset"] == "bound" and ck.training["returned"] == "linear"
     out = prove_mpdi(Problem(system, ck.problem.network, ck.problem.lam, ck.problem.P),
-                     seconds=120.0, estimate_points=0)
+                     estimate_points=0)
     assert out.status is Status.PROVED

@@ -30,7 +30,14 @@ from certify.model import checkpoint
 from certify.model.kernels import mpdi_lam_max
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
-from certify.results import LipschitzResult, MetricResult, Status, from_jsonable, to_jsonable
+from certify.results import (
+    LipschitzResult,
+    MetricResult,
+    ProofStats,
+    Status,
+    from_jsonable,
+    to_jsonable,
+)
 from certify.spec.system import load_system
 from tests.conftest import random_network
 
@@ -178,9 +185,9 @@ def test_local_lipschitz_proof_runs_only_where_the_global_bound_leaves_room():
     calls = []
 
     def local(value: float):
-        def run() -> float:
+        def run() -> tuple[float, ProofStats]:
             calls.append(value)
-            return value
+            return value, ProofStats(boxes_processed=1)
         return run
 
     affine = _problem(random_network(2, 1, hidden=(), seed=3))

@@ -20,7 +20,7 @@ from ..planted import linear_problem
 # the Lipschitz check beside the MPDI, which always runs (it is the certificate) on a short
 # budget: the verdict is the MPDI's, the Lipschitz result is what these tests read
 ONLY_LIPSCHITZ = ("--require", "mpdi,lipschitz", "--skip",
-                  "simulation,rate,residual,necessary,bounds", "--proof-seconds", "2")
+                  "simulation,rate,residual,necessary,bounds", "--max-boxes", "20000")
 
 
 @pytest.fixture

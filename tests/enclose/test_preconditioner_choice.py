@@ -117,7 +117,7 @@ def test_linear_metric_problem_decides_as_its_closed_form() -> None:
     assert lc > 0.05 and np.linalg.cond(P) > 3
     for lam, want in ((0.95 * lc, Status.PROVED), (1.05 * lc, Status.VIOLATED)):
         prob = linear_problem(A, C, K, lam=lam, P=P)
-        out = prove_mpdi(prob, seconds=60)
+        out = prove_mpdi(prob)
         assert out.status == want, (lam, lc, out.message)
 
 
@@ -179,5 +179,5 @@ def test_ties_in_closed_probes_go_to_the_smaller_bound() -> None:
     prob = checkpoint.load(str(path)).problem
     pc = choose_preconditioner(prob, prob.lam)
     assert pc.kind == "none"
-    out = prove_mpdi(prob, seconds=60.0)
+    out = prove_mpdi(prob)
     assert out.status is Status.PROVED and out.stats.boxes_processed <= 2048

@@ -179,7 +179,7 @@ def test_a_proof_returns_its_stage_counts_in_its_statistics() -> None:
     """A completed decision proof: the screen bounded every box the proof evaluated (it runs
     on every box of every round), and the stages' counts are in `ProofStats.stages`."""
     prob = _problem(2, 2, 8.0)
-    out = prove_mpdi(prob, seconds=1e9, max_boxes=4000)
+    out = prove_mpdi(prob, max_boxes=4000)
     assert out.status in (Status.PROVED, Status.UNKNOWN, Status.VIOLATED)
     st = out.stats
     assert st.stages, st

@@ -38,11 +38,10 @@ POLICY = """
 grid_points = 1500
 adversarial_starts = 4
 adversarial_steps = 15
-proof_seconds = 1.5
 max_boxes = 3000
-rate_seconds = 1
-residual_seconds = 1
-lipschitz_seconds = 1
+rate_boxes = 3000
+residual_boxes = 3000
+lipschitz_boxes = 3000
 top_counterexamples = 3
 """
 

@@ -18,7 +18,7 @@ from ..cli_helpers import run_cli
 
 NEW = {"lorenz": (3, 1), "vdp2": (4, 2), "vdp3": (6, 3)}
 
-SMALL_RUN = ("--grid-points", "3000", "--proof-seconds", "3", "--max-boxes", "4000",
+SMALL_RUN = ("--grid-points", "3000", "--max-boxes", "4000",
              "--adversarial-starts", "4", "--sim-time", "0.5", "--no-config")
 
 
@@ -88,7 +88,7 @@ def test_shipped_lorenz_example_is_certified(capsys):
     from pathlib import Path
 
     path = Path(__file__).parents[2] / "examples" / "lorenz_lmi.ckpt"
-    code, out, err = run_cli(capsys, "run", str(path), *SMALL_RUN, "--proof-seconds", "30",
+    code, out, err = run_cli(capsys, "run", str(path), *SMALL_RUN,
                              "--skip", "simulation,lipschitz,bounds", "--quiet")
     assert code == 0, out + err
     assert out.startswith("CERTIFIED")

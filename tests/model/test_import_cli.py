@@ -120,7 +120,9 @@ def test_run_needs_system_for_a_model_and_not_for_a_checkpoint(workdir, capsys):
     path = export(mlp("tanh", n=2, p=1, out=2), "m.onnx", "onnx17", Z)
     assert "give --system SPEC" in refused(capsys, "run", path)
     ckpt = save_linear(workdir / "lin.ckpt")
-    assert "--lam: only for a model from elsewhere" in refused(capsys, "run", ckpt, "--lam", "1")
+    # --lam and --metric override a checkpoint's own (tests/cli); the model flags do not apply
+    assert "--activation: only for a model from elsewhere" in refused(
+        capsys, "run", ckpt, "--activation", "tanh")
     assert "is a certify checkpoint: run it without --system" in refused(
         capsys, "run", ckpt, "--system", "spec.toml")
     assert "needs --system SPEC" in refused(capsys, "import", path, "-o", "x.ckpt")

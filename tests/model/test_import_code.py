@@ -171,7 +171,7 @@ def test_duplicate_archive_members_are_refused(workdir):
 def test_a_clean_torchscript_file_certifies_with_only_json_on_stdout(workdir):
     """The accepted path for contrast: stdout is exactly the certificate."""
     Path("pyproject.toml").write_text("[tool.certify]\ngrid_points = 2000\n"
-                                      "adversarial_starts = 2\nproof_seconds = 10\n")
+                                      "adversarial_starts = 2\n")
     torch.jit.script(mlp("tanh", n=2, p=1, out=2)).save("model.pt")
     proc = subprocess.run([sys.executable, "-m", "certify", "run", "model.pt", "--system",
                            "spec.toml", "--structure", "direct", "--json", "-", "--quiet",

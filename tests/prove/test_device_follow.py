@@ -45,9 +45,9 @@ def _summary(out) -> tuple:
 def test_prover_makes_every_tensor_on_its_problems_device(n: int, kwargs: dict) -> None:
     prob = _problem(3, n, 8.0)
     seeds = torch.zeros(2, n + 1, dtype=torch.float64)
-    plain = prove_mpdi(prob, seconds=1e9, max_boxes=1500, batch=256, seeds=seeds, **kwargs)
+    plain = prove_mpdi(prob, max_boxes=1500, batch=256, seeds=seeds, **kwargs)
     with default_device_meta():
-        followed = prove_mpdi(prob, seconds=1e9, max_boxes=1500, batch=256, seeds=seeds,
+        followed = prove_mpdi(prob, max_boxes=1500, batch=256, seeds=seeds,
                               **kwargs)
     assert plain.stats.boxes_processed > 0
     assert _summary(followed) == _summary(plain)
@@ -58,9 +58,9 @@ def test_prover_reports_a_violation_found_on_its_device() -> None:
     """The counterexample's float value and sound lower bound are computed on the problem's
     device too (a rate far too high: the proof finds a violation at once)."""
     prob = _problem(5, 3, 8.0)
-    plain = prove_mpdi(prob, lam=5.0, seconds=1e9, max_boxes=5000)
+    plain = prove_mpdi(prob, lam=5.0, max_boxes=5000)
     with default_device_meta():
-        followed = prove_mpdi(prob, lam=5.0, seconds=1e9, max_boxes=5000)
+        followed = prove_mpdi(prob, lam=5.0, max_boxes=5000)
     assert plain.status.value == "VIOLATED"
     assert _summary(followed) == _summary(plain)
     assert followed.counterexample.sound_bound == plain.counterexample.sound_bound > 0
@@ -69,9 +69,9 @@ def test_prover_reports_a_violation_found_on_its_device() -> None:
 @pytest.mark.slow
 def test_rate_proof_makes_every_tensor_on_its_problems_device() -> None:
     prob = _problem(1, 2, 8.0)
-    plain = prove_rate(prob, seconds=1e9, max_boxes=1500)
+    plain = prove_rate(prob, max_boxes=1500)
     with default_device_meta():
-        followed = prove_rate(prob, seconds=1e9, max_boxes=1500)
+        followed = prove_rate(prob, max_boxes=1500)
     assert plain.lower is not None
     assert (followed.lower, followed.stats.boxes_processed) == \
         (plain.lower, plain.stats.boxes_processed)
@@ -108,7 +108,7 @@ def test_mpdi_check_grid_ascent_and_proof_follow_the_device(above: bool) -> None
     base = linear_problem(A, C, K, lam=0.1, P=P_METRIC)
     prob = Problem(base.system, base.network, truth + (1e-3 if above else -1e-3), base.P)
     settings = VerifySettings(grid_points=500, adversarial_starts=4, adversarial_steps=10,
-                              proof_seconds=60.0, max_boxes=20_000)
+                              max_boxes=20_000)
     plain = check_mpdi(prob, settings)
     with default_device_meta():
         followed = check_mpdi(prob, settings)
@@ -130,11 +130,11 @@ def test_side_proofs_make_every_tensor_on_their_problems_device(structure: str) 
     base = _problem(2, 2, 8.0)
     net = random_network(2, 1, structure=structure, seed=4, scale=0.5)
     prob = Problem(base.system, net, base.lam, base.P)
-    plain = (bound_residual(prob, seconds=1e9, max_boxes=4000, seeds=[[0.1, -0.2]])[0],
-             bound_dk_dy(prob, seconds=1e9, max_boxes=4000))
+    plain = (bound_residual(prob, max_boxes=4000, seeds=[[0.1, -0.2]])[0],
+             bound_dk_dy(prob, max_boxes=4000)[0])
     with default_device_meta():
-        followed = (bound_residual(prob, seconds=1e9, max_boxes=4000, seeds=[[0.1, -0.2]])[0],
-                    bound_dk_dy(prob, seconds=1e9, max_boxes=4000))
+        followed = (bound_residual(prob, max_boxes=4000, seeds=[[0.1, -0.2]])[0],
+                    bound_dk_dy(prob, max_boxes=4000)[0])
     assert plain[1] is not None and (structure == "structural") == (plain[0] == 0.0)
     assert followed == plain
 

@@ -50,7 +50,7 @@ def test_L_P_of_a_linear_gain_is_the_norm_of_P_half_K():
     K = np.array([[2.0], [1.5]])
     pb = Problem(system=linear_system(A2, C2, P=P2), network=linear_gain(K), lam=0.1, P=P2)
     w = weighting(pb)
-    L_P = w.bound(bound_dk_dy(w.problem, seconds=20), w.dy_error)
+    L_P = w.bound(bound_dk_dy(w.problem)[0], w.dy_error)
     exact = float(np.linalg.norm(sqrtm(P2) @ K))
     assert exact <= L_P <= exact * (1 + 1e-9)
     # the unweighted constant is ||K||, and ||P^(1/2)|| ||K|| is what the loose bound uses
@@ -68,7 +68,7 @@ def test_sampled_weighted_noise_gain_never_exceeds_L_P(seed, structural, d, c):
                          seed=seed)
     pb = Problem(system=linear_system(A2, C2, P=P), network=net, lam=0.1, P=P)
     w = weighting(pb)
-    L_P = w.bound(bound_dk_dy(w.problem, seconds=5, max_boxes=3000, rel_tol=5e-2), w.dy_error)
+    L_P = w.bound(bound_dk_dy(w.problem, max_boxes=3000, rel_tol=5e-2)[0], w.dy_error)
     assert L_P is not None
     rng = np.random.default_rng(seed)
     box = np.concatenate([pb.system.X, pb.system.Y])
@@ -77,7 +77,7 @@ def test_sampled_weighted_noise_gain_never_exceeds_L_P(seed, structural, d, c):
     sampled = np.linalg.norm(np.einsum("ij,bjk->bik", sqrtm(P), J)[..., 0], axis=1).max()
     assert sampled <= L_P
     if not structural:  # eps_bar_P >= sampled ||P^(1/2) k(x, h(x))||
-        eps = w.bound(bound_residual(w.problem, seconds=5, max_boxes=3000)[0], w.value_error)
+        eps = w.bound(bound_residual(w.problem, max_boxes=3000)[0], w.value_error)
         x = z[:, :2]
         k = gain_terms(pb.system, pb.network, x, pb.system.h(x), with_dy=False).k.numpy()
         assert np.linalg.norm(k @ sqrtm(P), axis=1).max() <= eps
@@ -134,7 +134,7 @@ def test_joint_certificate_of_a_linear_observer_meets_the_sdp_optimum():
     over alpha and within the sampled scan's resolution of it."""
     K = np.array([[1.0], [0.5]])
     pb = Problem(system=linear_system(A2, C2, P=P2), network=linear_gain(K), lam=0.1, P=P2)
-    out = prove_dissipation(pb, vbar=0.15, seconds=120)
+    out = prove_dissipation(pb, vbar=0.15, max_boxes=600_000)
     assert out.status == Status.PROVED and out.vertices == 1
     proved = 0.15 * math.sqrt(out.mu / (out.alpha * np.linalg.eigvalsh(P2)[0]))
     best = _linear_optimum(A2, C2, K, P2, 0.15)
@@ -222,7 +222,7 @@ def test_residual_share_covers_the_steady_error_it_forces():
     net.requires_grad_(False)
     pb = Problem(system=linear_system(A2, C2, P=P2), network=net, lam=0.1, P=P2)
     eps_P = float(np.linalg.norm(sqrtm(P2) @ c)) * (1 + 1e-12)
-    out = prove_dissipation(pb, vbar=0.0, eps_P=eps_P, seconds=60)
+    out = prove_dissipation(pb, vbar=0.0, eps_P=eps_P, max_boxes=600_000)
     assert out.status == Status.PROVED and out.mu_residual
     proved = math.sqrt(out.mu_residual * eps_P ** 2 / out.alpha / np.linalg.eigvalsh(P2)[0])
     e_star = np.linalg.solve(A2 - K @ C2, c)
@@ -231,9 +231,9 @@ def test_residual_share_covers_the_steady_error_it_forces():
 
 def test_one_slow_piece_of_the_cover_may_use_the_whole_attempt(monkeypatch):
     """Every piece must be proved for a candidate, so a piece is given all the attempt has
-    left, not a share: a first piece that needs half the attempt's budget (a slow machine)
-    is proved, and the candidate with it. A fake prover on a fake clock (no wall time):
-    each piece costs what is listed, proved if its budget covers that, else UNKNOWN."""
+    left, not a share: a first piece that needs half the attempt's boxes is proved, and the
+    candidate with it. A fake prover: each piece costs the boxes listed, proved if its
+    budget covers them, else UNKNOWN."""
     import types
     from pathlib import Path
 
@@ -242,22 +242,19 @@ def test_one_slow_piece_of_the_cover_may_use_the_whole_attempt(monkeypatch):
 
     problem = checkpoint.load(str(Path(__file__).parents[2] / "examples"
                                   / "vdp_certified.ckpt")).problem
-    seconds = 60.0
-    attempt = seconds / len(dm.SCHEDULE)  # the first attempt's budget (planning is free here)
-    clock = [0.0]
-    given: list[float] = []
+    budget = 600_000
+    attempt = budget // len(dm.SCHEDULE)  # the first attempt's budget
+    given: list[int] = []
 
-    def fake_prove(sub, *, lam, seconds):
-        cost = 0.5 * attempt if not given else 0.01 * attempt
-        given.append(seconds)
-        clock[0] += min(cost, seconds)
-        status = Status.PROVED if cost <= seconds else Status.UNKNOWN
-        return types.SimpleNamespace(status=status,
-                                     stats=types.SimpleNamespace(boxes_processed=1))
+    def fake_prove(sub, *, lam, max_boxes, deadline, task):
+        cost = attempt // 2 if not given else attempt // 100
+        given.append(max_boxes)
+        status = Status.PROVED if cost <= max_boxes else Status.UNKNOWN
+        return types.SimpleNamespace(status=status, stats=types.SimpleNamespace(
+            boxes_processed=min(cost, max_boxes), stopped_by_cap=False))
 
     monkeypatch.setattr(dm, "prove_mpdi", fake_prove)
-    monkeypatch.setattr(dm.time, "perf_counter", lambda: clock[0])
-    out = prove_dissipation(problem, vbar=0.15, seconds=seconds)
+    out = prove_dissipation(problem, vbar=0.15, max_boxes=budget)
     assert out.vertices > 2 and len(given) == out.vertices  # every piece, one attempt
     assert out.status == Status.PROVED and len(out.candidates) == 1
     assert given[0] == pytest.approx(attempt)

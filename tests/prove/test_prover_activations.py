@@ -108,5 +108,5 @@ def test_nan_weight_is_unknown_for_every_activation(act):
     problem = _random_mlp(act, LAM_CERT - 0.1)
     with torch.no_grad():
         problem.network.layers[1].weight[0, 0] = float("nan")
-    out = prove_mpdi(problem, seconds=1.0, max_boxes=64)
+    out = prove_mpdi(problem, max_boxes=64)
     assert out.status is Status.UNKNOWN and out.stats.proved_volume_fraction == 0.0

@@ -27,7 +27,7 @@ def test_ladder_climbs_to_the_closed_form_and_never_past_it() -> None:
     true = lam_cert_linear(A, C, K, P)
     assert true > 0
     prob = linear_problem(A, C, K, lam=0.5 * true, P=P)
-    out = raise_rate(prob, 0.5 * true, 1.001 * true, seconds=30.0, rel_tol=1e-4)
+    out = raise_rate(prob, 0.5 * true, 1.001 * true, max_boxes=2_000_000, rel_tol=1e-4)
     assert out.lower <= true  # sound: never above the true rate
     assert out.lower >= true * (1 - 2e-3), (out.lower, true, out.attempts)
     # targets above the true rate are refuted by a witness, not proved
@@ -38,8 +38,12 @@ def test_ladder_climbs_to_the_closed_form_and_never_past_it() -> None:
 def test_ladder_stops_at_the_budget() -> None:
     true = lam_cert_linear(A, C, K, P)
     prob = linear_problem(A, C, K, lam=0.5 * true, P=P)
-    out = raise_rate(prob, 0.5 * true, true, seconds=0.0)
+    out = raise_rate(prob, 0.5 * true, true, max_boxes=0)
     assert out.attempts == [] and out.lower == 0.5 * true
+    # a budget of a few boxes: the decisions together stay within it, whatever they prove
+    out = raise_rate(prob, 0.5 * true, true, max_boxes=8)
+    assert out.attempts and len(out.stats) == len(out.attempts)
+    assert sum(s.boxes_processed for s in out.stats) <= 8 and out.lower < true
 
 
 @pytest.mark.slow
@@ -56,7 +60,7 @@ def test_rate_check_on_vdp2_lmi_proves_above_the_design_rate() -> None:
     prob = checkpoint.load(str(path)).problem
     mpdi = MpdiResult(Status.PROVED, "proved at the design rate", -0.5, -0.39)
     for known in (mpdi, None):  # without a proved design rate the ladder starts from 0
-        res = check_rate(prob, VerifySettings(rate_seconds=6.0), mpdi=known)
+        res = check_rate(prob, VerifySettings(), mpdi=known)
         assert res.status is Status.PROVED
         assert res.proved_lower > 1.05 and res.proved_lower <= res.sampled_upper
 
@@ -72,7 +76,7 @@ def test_rate_proof_gives_up_below_a_rate_already_proved() -> None:
 
     path = Path(__file__).parents[2] / "examples" / "vdp2_lmi.ckpt"
     prob = checkpoint.load(str(path)).problem
-    kw = dict(seconds=60.0, max_boxes=8192, batch=512)
+    kw = dict(max_boxes=8192, batch=512)
     stopped = prove_rate(prob, give_up=(2048, 1.0), **kw)
     assert stopped.stats.budget_exhausted
     assert 2048 <= stopped.stats.boxes_processed < 4096
@@ -87,8 +91,7 @@ def test_ladder_climbs_as_far_when_the_machine_slows_down(monkeypatch) -> None:
     """The ladder's caps are boxes, not seconds: on examples/vdp2_lmi.ckpt the same targets
     are tried with the same outcomes when the clock runs 5x faster from the end of the first
     decision on (a machine loaded mid-run: with caps of 4x the last proof's time, the second
-    target was cut short and the ladder stopped at the first). Only the total `seconds` is
-    on the clock."""
+    target was cut short and the ladder stopped at the first). Nothing is on the clock."""
     import time
 
     import certify.prove.rate as rate_ladder
@@ -97,7 +100,7 @@ def test_ladder_climbs_as_far_when_the_machine_slows_down(monkeypatch) -> None:
     path = Path(__file__).parents[2] / "examples" / "vdp2_lmi.ckpt"
     prob = checkpoint.load(str(path)).problem
     args = (prob, 1.10, 1.1188308628907166)
-    kw = dict(seconds=300.0, rel_tol=2e-3)
+    kw = dict(rel_tol=2e-3, max_boxes=2_000_000)
     steady = raise_rate(*args, **kw)
     real = time.perf_counter
     since: list[float] = []  # real time when the load arrived

@@ -46,8 +46,8 @@ def test_seeded_rate_proof_is_sound_and_needs_fewer_boxes() -> None:
                                steps=50, top_k=1, seed=0)
     worst_rate = -search.best_value
     seed = torch.as_tensor(search.top_points, dtype=F64)[:1].tolist()
-    plain = prove_rate(problem, seconds=60.0, rel_tol=1e-4)
-    seeded = prove_rate(problem, seconds=60.0, rel_tol=1e-4, seeds=seed)
+    plain = prove_rate(problem, rel_tol=1e-4)
+    seeded = prove_rate(problem, rel_tol=1e-4, seeds=seed)
     for out in (plain, seeded):
         assert out.lower is not None and out.stats.proved_volume_fraction == 1.0
         assert out.lower <= worst_rate  # sound: never above a rate the network attains
@@ -65,8 +65,8 @@ def test_seeded_residual_proof_is_sound_and_needs_no_more_boxes() -> None:
     search = maximize_over_box(lambda x: residual_norm(problem, x), X[:, 0], X[:, 1],
                                grid_points=20_000, starts=8, steps=50, top_k=1, seed=0)
     worst = search.best_point.tolist()
-    plain, _, plain_stats = bound_residual(problem, seconds=60.0)
-    seeded, _, seeded_stats = bound_residual(problem, seconds=60.0, seeds=[worst])
+    plain, _, plain_stats = bound_residual(problem)
+    seeded, _, seeded_stats = bound_residual(problem, seeds=[worst])
     for upper in (plain, seeded):
         assert upper is not None
         assert search.best_value <= upper <= search.best_value * (1 + 2e-3)

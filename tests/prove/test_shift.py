@@ -53,7 +53,7 @@ def test_shifted_constant_matrix_is_decided_exactly(level):
     assert np.linalg.eigvalsh(_d0())[-1] < -0.05  # the MPDI alone holds with room
     Q = _shift_to(level)
     problem = dataclasses.replace(base, shift=Q)
-    out = prove_mpdi(problem, seconds=60, max_boxes=20_000)
+    out = prove_mpdi(problem, max_boxes=20_000)
     if level < 0:
         assert out.status == Status.PROVED and out.upper <= 0
     else:
@@ -61,7 +61,7 @@ def test_shifted_constant_matrix_is_decided_exactly(level):
         z = torch.zeros(1, problem.n + problem.p, dtype=torch.float64)
         assert float(mpdi_lower(problem, z)[0]) > 0  # a sound witness anywhere (D constant)
     # without Q the same network proves
-    assert prove_mpdi(base, seconds=60, max_boxes=20_000).status == Status.PROVED
+    assert prove_mpdi(base, max_boxes=20_000).status == Status.PROVED
 
 
 def test_point_kernel_adds_the_shift():
@@ -78,7 +78,7 @@ def test_the_rate_proof_refuses_a_shift():
 
     problem = dataclasses.replace(_base(), shift=_shift_to(-0.01))
     with pytest.raises(ValueError, match="constant term"):
-        prove_rate(problem, seconds=5)
+        prove_rate(problem)
 
 
 @pytest.mark.slow
@@ -91,7 +91,7 @@ def test_dask_workers_see_the_shift():
     try:
         for level, status in ((1e-3, Status.VIOLATED), (-1e-3, Status.PROVED)):
             problem = dataclasses.replace(_base(), shift=_shift_to(level))
-            out = prove_mpdi(problem, seconds=120, max_boxes=20_000, executor=ex)
+            out = prove_mpdi(problem, max_boxes=20_000, executor=ex)
             assert out.status == status
     finally:
         ex.close()

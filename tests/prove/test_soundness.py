@@ -57,8 +57,7 @@ def workdir(tmp_path, monkeypatch):
 def test_tie_is_never_violated_through_the_cli(workdir, capsys):
     path = save_problem(workdir / "tie.ckpt", _tie_problem())
     code, out, err = run_cli(capsys, "run", path, "--json", "c.json", "--skip",
-                             "simulation,lipschitz", "--proof-seconds", "3",
-                             "--max-boxes", "2000")
+                             "simulation,lipschitz", "--max-boxes", "2000")
     assert code in (0, 3), out + err
     cert = json.loads((workdir / "c.json").read_text())
     mpdi, rate = cert["checks"]["mpdi"], cert["checks"]["rate"]
@@ -140,7 +139,7 @@ def test_overflowing_network_is_never_proved(workdir, capsys):
 
     path = save_problem(workdir / "inf.ckpt", Problem(pr.system, net, pr.lam, pr.P))
     code, out, err = run_cli(capsys, "run", path, "--json", "c.json", "--skip", "simulation",
-                             "--proof-seconds", "2")
+                             "--max-boxes", "2000")
     assert code in (1, 3), out + err
     checks = json.loads((workdir / "c.json").read_text())["checks"]
     assert checks["mpdi"]["status"] != "PROVED" and checks["residual"]["status"] != "PROVED"
@@ -242,7 +241,7 @@ def test_a_lying_float32_screen_never_decides(monkeypatch, which):
     monkeypatch.setattr(mpdi_module, "GridKernel", _LyingScreen)
     problem = _tie_problem() if which == "tie" else planted_problem("corner")
     settings = VerifySettings(grid_points=5000, adversarial_starts=4, adversarial_steps=10,
-                              proof_seconds=20, float32_screen=True)
+                              max_boxes=400_000, float32_screen=True)
     r = mpdi_module.check_mpdi(problem, settings)
     if which == "tie":
         assert r.status.value in ("PROVED", "UNKNOWN")

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.certificate import Certificate, format_json  # noqa: E402
+from certify.certificate import SCHEMA_VERSION, Certificate, format_json  # noqa: E402
 from certify.checks.simulation import MAX_SAMPLES, keep_samples  # noqa: E402
 from certify.figuredata import (  # noqa: E402
     MAP_POINTS,
@@ -149,7 +149,7 @@ def test_older_certificates_are_read_and_brought_to_figure_size() -> None:
     data["figures"]["mpdi_map"] = fine
     data["schema_version"] = 2
     old = Certificate.from_dict(data)
-    assert old.schema_version == 3
+    assert old.schema_version == SCHEMA_VERSION
     m = old.figures.mpdi_map
     assert len(m.x) == len(m.y) == MAP_POINTS
     assert max(map(max, m.values)) == pytest.approx(max(map(max, fine["values"])), rel=1e-3)
@@ -221,7 +221,7 @@ def test_small_run_writes_a_small_json_that_re_renders_the_same_reports(tmp_path
     text = (tmp_path / "c.json").read_text()
     assert len(text.encode()) < 80_000 and text.count("\n") < 2000
     cert = json.loads(text)
-    assert cert["schema_version"] == 3
+    assert cert["schema_version"] == SCHEMA_VERSION
     runs = cert["checks"]["simulation"]["runs"]
     assert runs and all(run["x"] == [] and run["xhat"] == [] for run in runs)
     assert all(0 < len(run["t"]) <= MAX_SAMPLES for run in runs)

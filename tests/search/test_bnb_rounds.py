@@ -42,9 +42,9 @@ def _small_vdp() -> Problem:
 @pytest.mark.slow
 def test_chunked_rounds_match_the_serial_run() -> None:
     prob = _small_vdp()
-    serial = prove_mpdi(prob, seconds=60.0, max_boxes=3000, executor=SerialExecutor(), batch=16)
+    serial = prove_mpdi(prob, max_boxes=3000, executor=SerialExecutor(), batch=16)
     ex = ChunkedSerial()
-    chunked = prove_mpdi(prob, seconds=60.0, max_boxes=3000, executor=ex, batch=16)
+    chunked = prove_mpdi(prob, max_boxes=3000, executor=ex, batch=16)
     assert serial.stats.boxes_processed > 100  # several rounds ran
     assert ex.calls > 3
     assert serial.status is chunked.status
@@ -53,7 +53,7 @@ def test_chunked_rounds_match_the_serial_run() -> None:
 
 
 def test_chunked_rounds_still_find_a_planted_violation() -> None:
-    out = prove_mpdi(planted_problem("corner"), seconds=20.0, executor=ChunkedSerial())
+    out = prove_mpdi(planted_problem("corner"), executor=ChunkedSerial())
     assert out.status is Status.VIOLATED
 
 
@@ -90,7 +90,8 @@ def test_first_round_sets_the_coarsest_boxes() -> None:
     root = (torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64))
     counts = {}
     for first in (None, 16, 4):
-        out = branch_and_bound(*root, evaluate, threshold=0.0, batch=64, first_round=first)
+        out = branch_and_bound(*root, evaluate, threshold=0.0, batch=64, first_round=first,
+                               max_boxes=10_000)
         assert out.complete and out.upper <= 0
         counts[first] = out.stats.boxes_processed
     assert counts == {None: 64, 16: 16, 4: 28}

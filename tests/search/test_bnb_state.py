@@ -61,11 +61,12 @@ def test_a_run_leaves_its_state_readable() -> None:
     """The class run and the function agree; after the run the named state says what
     happened: nothing open, every box counted, the counts summed over the rounds."""
     root = (torch.zeros(2, dtype=F64), torch.ones(2, dtype=F64))
-    run = BranchAndBound(*root, _width_bound, ClosingRule(threshold=0.0), deadline=math.inf,
+    run = BranchAndBound(*root, _width_bound, ClosingRule(threshold=0.0), deadline=None,
                          max_boxes=10_000, batch=64, first_round=4, max_depth=80, lag=2,
                          progress=NullProgress(), task="t", leaves=Leaves((0, 1), 2, 100))
     out = run.run()
-    same = branch_and_bound(*root, _width_bound, threshold=0.0, batch=64, first_round=4)
+    same = branch_and_bound(*root, _width_bound, threshold=0.0, batch=64, first_round=4,
+                            max_boxes=10_000)
     assert out.complete and out.upper == same.upper and out.upper <= 0
     assert out.stats.boxes_processed == same.stats.boxes_processed == 28 == run.processed
     assert len(run.frontier) == 0 and not run.in_flight and not run.violated
@@ -90,8 +91,8 @@ def test_stage_counts_of_a_chunked_run_are_those_of_the_serial_run() -> None:
     """The box bound's counts travel with each chunk's evaluation and are summed as the
     rounds merge: a chunked executor reports what the serial run does."""
     prob = _small_vdp()
-    serial = prove_mpdi(prob, seconds=60.0, max_boxes=3000, executor=SerialExecutor(), batch=16)
-    chunked = prove_mpdi(prob, seconds=60.0, max_boxes=3000, executor=ChunkedSerial(),
+    serial = prove_mpdi(prob, max_boxes=3000, executor=SerialExecutor(), batch=16)
+    chunked = prove_mpdi(prob, max_boxes=3000, executor=ChunkedSerial(),
                          batch=16)
     assert serial.stats.stages and serial.stats.stages == chunked.stats.stages
     assert serial.stats.boxes_processed == chunked.stats.boxes_processed
@@ -106,7 +107,7 @@ def test_seeds_are_evaluated_first_and_not_counted_as_processed() -> None:
         return BoxEval(upper=torch.full((len(lo),), 2.0, dtype=F64), centre_value=c[:, 0] - 0.5)
 
     pt = torch.tensor([[0.9, 0.1]], dtype=F64)
-    out = branch_and_bound(*root, evaluate, threshold=0.0, batch=4,
+    out = branch_and_bound(*root, evaluate, threshold=0.0, batch=4, max_boxes=10_000,
                            seeds=Box(pt, pt.clone(), torch.zeros(1, dtype=torch.long)))
     assert out.violated and out.lower == 0.4
     assert torch.equal(out.best_point, pt[0])

@@ -22,7 +22,7 @@ def _evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
 
 def test_coarse_after_stops_at_the_coarse_tolerance_after_the_budget() -> None:
     lo, hi = torch.zeros(2, dtype=F64), torch.ones(2, dtype=F64)
-    kw = dict(batch=16, seconds=60.0, max_boxes=200_000, project=None)
+    kw = dict(batch=16, max_boxes=200_000, project=None)
     fine = branch_and_bound(lo, hi, _evaluate, rel_tol=1e-9, **kw)
     relaxed = branch_and_bound(lo, hi, _evaluate, rel_tol=1e-9, coarse_after=(128, 1e-2), **kw)
     coarse = branch_and_bound(lo, hi, _evaluate, rel_tol=1e-2, **kw)
@@ -41,7 +41,7 @@ def test_give_up_stops_only_while_the_bound_is_above_its_level() -> None:
     there as budget-spent, still with a sound bound (>= the true max 1); one whose bound is
     already below runs on to the same outcome as without it."""
     lo, hi = torch.zeros(2, dtype=F64), torch.ones(2, dtype=F64)
-    kw = dict(batch=16, seconds=60.0, max_boxes=200_000, project=None, rel_tol=1e-9)
+    kw = dict(batch=16, max_boxes=200_000, project=None, rel_tol=1e-9)
     plain = branch_and_bound(lo, hi, _evaluate, **kw)
     early = branch_and_bound(lo, hi, _evaluate, give_up=(128, 1.0 + 1e-12), **kw)
     late = branch_and_bound(lo, hi, _evaluate, give_up=(128, 2.0), **kw)

@@ -1,8 +1,9 @@
-"""Time budgets hold however slow a box is: the rounds are evaluated against the clock
-(`certify.search.bnb.RoundClock`), a round cut short leaves its unevaluated boxes open with their
-parent's bound (never closed, not counted), an executor's round not back by the deadline is
-cancelled, the set-up of a proof counts in its budget, and the tree estimate keeps to its own
-time limit. A run its budget does not bind evaluates the same calls as with no clock.
+"""The optional wall-clock cap (`seconds`, `deadline`) holds however slow a box is: the rounds
+are evaluated against the clock (`certify.search.bnb.RoundClock`), a round cut short leaves its
+unevaluated boxes open with their parent's bound (never closed, not counted), an executor's
+round not back by the deadline is cancelled, the set-up of a proof counts in its cap, and the
+tree estimate keeps to its own time limit. A run its cap does not bind evaluates the same
+calls as with no clock.
 
 The assertions on time are upper bounds with a generous margin (the machine is shared); the
 slow evaluations sleep, so they cost the same under any load."""
@@ -87,7 +88,8 @@ def test_a_slow_first_round_keeps_the_budget() -> None:
     near the deadline with the first round unfinished: no box closed, the bound unknown."""
     t = time.perf_counter()
     out = branch_and_bound(torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64),
-                           sleepy(0.02), threshold=0.0, seconds=2.0, batch=1024)
+                           sleepy(0.02), threshold=0.0, seconds=2.0, batch=1024,
+                           max_boxes=10**6)
     assert time.perf_counter() - t < 2.0 + MARGIN
     assert not out.complete and out.stats.budget_exhausted
     assert out.upper == math.inf  # first-round boxes not evaluated have no bound at all
@@ -110,7 +112,7 @@ def test_boxes_a_round_did_not_evaluate_keep_their_parents_bound() -> None:
                        done=None if bool(done.all()) else done)
 
     out = branch_and_bound(torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64),
-                           partial, threshold=0.0, seconds=1e9, batch=16)
+                           partial, threshold=0.0, max_boxes=10**6, batch=16)
     assert rounds == [16, 32]  # nothing dispatched after the cut round
     assert out.stats.boxes_processed == 16 + 10
     assert not out.complete and out.stats.budget_exhausted
@@ -154,7 +156,7 @@ def test_an_executors_round_not_back_by_the_deadline_is_cancelled() -> None:
 
     t = time.perf_counter()
     out = branch_and_bound(torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64),
-                           width_eval, threshold=0.0, seconds=0.5, batch=1024,
+                           width_eval, threshold=0.0, seconds=0.5, batch=1024, max_boxes=10**6,
                            executor=Threaded(), remote=(chunk, {}))
     assert time.perf_counter() - t < 0.5 + MARGIN
     assert out.stats.boxes_processed == 0 and out.upper == math.inf and not out.complete
@@ -186,7 +188,7 @@ def test_a_tiny_budget_on_a_cheap_problem_still_bounds_its_first_round() -> None
     out = prove_mpdi(prob, seconds=1e-3)
     assert math.isfinite(out.upper) and out.stats.boxes_processed > 0
     assert out.status is not Status.VIOLATED
-    assert bound_dk_dy(prob, seconds=1e-3) is not None
+    assert bound_dk_dy(prob, seconds=1e-3)[0] is not None
 
 
 def slow_problem() -> Problem:
@@ -210,6 +212,7 @@ def test_a_three_second_proof_budget_holds_on_a_slow_network() -> None:
     # 3 s, the estimate's own limit (2 s) and the margin
     assert took < 3.0 + 2.0 + 15.0, took
     assert out.status is Status.UNKNOWN and out.stats.budget_exhausted
+    assert out.stats.stopped_by_cap and "wall-clock cap" in out.message
 
 
 def test_the_tree_estimate_keeps_its_time_limit() -> None:

@@ -233,7 +233,7 @@ def serial_proof():
     from certify.prove.mpdi import prove_mpdi
 
     problem = _vdp_certified().problem
-    return problem, prove_mpdi(problem, seconds=1e9, max_boxes=BUDGET)
+    return problem, prove_mpdi(problem, max_boxes=BUDGET)
 
 
 def _same(a, b) -> None:
@@ -252,7 +252,7 @@ def test_mpdi_proof_on_dask_equals_serial(dask2, serial_proof):
 
     problem, serial = serial_proof
     with using(dask2):
-        remote = prove_mpdi(problem, seconds=1e9, max_boxes=BUDGET)
+        remote = prove_mpdi(problem, max_boxes=BUDGET)
     assert serial.stats.budget_exhausted and remote.stats.budget_exhausted
     built = dask2.client.run(_cached_keys)  # the boxes really went to the workers
     assert any(k.startswith("mpdi-boxes:") for keys in built.values() for k in keys)
@@ -289,7 +289,7 @@ def test_killed_worker_mid_proof_changes_nothing(doomed2, serial_proof):
     victim = list(doomed2.worker_pids().values())[1]
     killer = _KillDuringRound(doomed2, victim)
     with using(killer):
-        remote = prove_mpdi(problem, seconds=1e9, max_boxes=BUDGET)
+        remote = prove_mpdi(problem, max_boxes=BUDGET)
     assert killer.killed_at == 2 and killer.calls >= 2  # killed mid-proof, between rounds
     assert gone(victim)
     _same(serial, remote)

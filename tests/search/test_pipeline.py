@@ -83,7 +83,8 @@ def _sine_bnb(offset: float, executor=None, jitter: float = 0.0, **kw):
     evaluate = lambda lo, hi: sine_eval(offset, lo, hi)  # noqa: E731
     remote = (sine_chunk, {"offset": offset, "jitter": jitter})
     kw.setdefault("batch", 32)
-    return branch_and_bound(*ROOT, evaluate, threshold=0.0, seconds=1e9, executor=executor,
+    kw.setdefault("max_boxes", 2_000_000)
+    return branch_and_bound(*ROOT, evaluate, threshold=0.0, executor=executor,
                             remote=remote if executor is not None else None, **kw)
 
 
@@ -265,7 +266,7 @@ def test_rounds_too_large_for_the_gpu_run_in_halves_with_the_same_outcome(offset
         return sine_eval(offset, lo, hi)
 
     plain = _sine_bnb(offset, max_boxes=3000)
-    halved = branch_and_bound(*ROOT, small_gpu, threshold=0.0, seconds=1e9, batch=32,
+    halved = branch_and_bound(*ROOT, small_gpu, threshold=0.0, batch=32,
                               max_boxes=3000)
     _same(plain, halved)
     assert max(refused) == 64 and max(done) <= 12  # rounds of 2 x 32 children, halved
@@ -277,4 +278,4 @@ def test_one_box_the_gpu_cannot_hold_is_an_error_not_a_verdict():
         raise torch.cuda.OutOfMemoryError("CUDA out of memory (simulated)")
 
     with pytest.raises(torch.cuda.OutOfMemoryError):
-        branch_and_bound(*ROOT, no_memory, threshold=0.0, seconds=1e9, batch=32)
+        branch_and_bound(*ROOT, no_memory, threshold=0.0, batch=32, max_boxes=3000)

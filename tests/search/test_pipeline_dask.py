@@ -104,10 +104,10 @@ def test_serial_one_and_two_workers_agree_with_rounds_in_flight(clusters, case):
         kw = {"max_boxes": BUDGET, "batch": BATCH}
     else:
         kw = {"lam": VIOLATED_RATE * problem.lam, "batch": BATCH}
-    serial = prove_mpdi(problem, seconds=1e9, executor=SerialExecutor(), **kw)
+    serial = prove_mpdi(problem, executor=SerialExecutor(), **kw)
     for ex in clusters:
         counted = CountingInFlight(ex)
-        remote = prove_mpdi(problem, seconds=1e9, executor=counted, **kw)
+        remote = prove_mpdi(problem, executor=counted, **kw)
         assert counted.rounds >= 4 and counted.max_in_flight == 2  # pipelined
         _same(serial, remote)
     if case == "budget":
@@ -120,10 +120,10 @@ def test_killed_worker_with_rounds_in_flight_changes_nothing(doomed2):
     """A worker SIGKILLed with a round in flight (and never restarted) changes nothing."""
     problem = _vdp_problem()
     kw = {"max_boxes": BUDGET, "batch": BATCH}
-    serial = prove_mpdi(problem, seconds=1e9, executor=SerialExecutor(), **kw)
+    serial = prove_mpdi(problem, executor=SerialExecutor(), **kw)
     victim = list(doomed2.worker_pids().values())[0]
     killer = KillWithRoundsInFlight(doomed2, victim, at=8)
-    remote = prove_mpdi(problem, seconds=1e9, executor=killer, **kw)
+    remote = prove_mpdi(problem, executor=killer, **kw)
     assert killer.in_flight_at_kill == 1 and killer.rounds > 8  # mid-proof, pipelined
     assert gone(victim)  # it really died
     _same(serial, remote)

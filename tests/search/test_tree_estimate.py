@@ -29,7 +29,7 @@ def test_random_descents_end_in_the_proofs_own_leaves() -> None:
         closed.append((lo[shut], hi[shut]))
         return out
 
-    proof = branch_and_bound(setup.lo, setup.hi, recording, threshold=0.0, seconds=120.0,
+    proof = branch_and_bound(setup.lo, setup.hi, recording, threshold=0.0, max_boxes=10**6,
                              first_round=setup.first_round)
     assert proof.complete
     leaf_lo = torch.cat([c[0] for c in closed])
@@ -59,9 +59,9 @@ def test_stuck_points_are_left_out_of_the_estimate() -> None:
 @pytest.mark.slow
 def test_an_unknown_proof_reports_how_many_boxes_a_complete_one_takes() -> None:
     problem, _ = make_instance(InstanceSpec(2, 10, 2.0, 2, 0.02, 0))
-    cut = prove_mpdi(problem, max_boxes=200, seconds=60.0)
+    cut = prove_mpdi(problem, max_boxes=200)
     assert cut.status is Status.UNKNOWN
-    whole = prove_mpdi(problem, seconds=60.0)
+    whole = prove_mpdi(problem)
     assert whole.status is Status.PROVED and whole.stats.estimated_boxes is None
     est = cut.stats.estimated_boxes
     assert est is not None and 0.5 < est / whole.stats.boxes_processed < 2.0, (
