@@ -234,14 +234,16 @@ class BoundsResult:
 
 @dataclass
 class DissipationResult:
-    """The joint dissipation certificate: with V = e^T P e, the proved inequality
+    """The dissipation certificate: with V = e^T P e, the proved inequality
     V' <= -alpha V + mu ||v||^2 (+ mu_residual ||P^(1/2) r||^2 for a direct gain, r its
     residual, with `eps_bar` >= sup ||P^(1/2) r||), so that V -> at most
     (mu vbar^2 + mu_residual eps_bar^2) / alpha.
 
-    `vertices` counts the vertices of the enclosure of dk/dy over X x Y for which the
-    inequality was proved; `candidates` records each (alpha, mu) tried, with the sampled
-    bound it aimed at and the prover's verdict (dicts with keys alpha, mu, bound, status)."""
+    `route`: "path" (one proof with dk/dy at the same point as the contraction) or "cover"
+    (one proof per piece of a cover of dk/dy; None in certificates before the path route);
+    `vertices` counts the pieces proved (1 for the path); `candidates` records each
+    (alpha, mu) tried, with the sampled bound it aimed at, the route and the prover's
+    verdict (dicts with keys route, alpha, mu, bound, status)."""
 
     status: Status
     message: str
@@ -253,6 +255,7 @@ class DissipationResult:
     candidates: list[dict] = field(default_factory=list)
     boxes: int = 0
     seconds: float = 0.0
+    route: str | None = None
 
 
 @dataclass

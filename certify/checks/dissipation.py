@@ -20,22 +20,18 @@ from certify.arith.text import lower_text, upper_text
 from certify.checks.base import Check, Context
 from certify.model.problem import Problem
 from certify.presentation import Presentation, Quantity
-from certify.results import DissipationResult, MpdiResult, ResidualResult, Status
+from certify.results import DissipationResult, ResidualResult, Status
 from certify.settings import VerifySettings
 
 
 def check_dissipation(problem: Problem, settings: VerifySettings, *,
-                      mpdi: MpdiResult | None = None,
                       residual: ResidualResult | None = None) -> DissipationResult:
     """Choose and prove (alpha, mu) for `problem` at the settings' noise level, within
     `settings.dissipation_seconds` (see the module docstring for the statuses)."""
     from certify.arith.device import on_settings_device
-    from certify.prove.dissipation import prove_dissipation
+    from certify.prove.dissipation import DEFAULT_BOXES, prove_dissipation
 
     t0 = time.perf_counter()
-    if mpdi is not None and mpdi.status == Status.VIOLATED:
-        return DissipationResult(Status.NOT_APPLICABLE, "not applicable: the MPDI is violated, "
-                                 "so no contraction bounds the error")
     eps_P = 0.0
     if not problem.structural:
         eps_P = residual.upper_P if residual is not None else None
@@ -43,27 +39,25 @@ def check_dissipation(problem: Problem, settings: VerifySettings, *,
             return DissipationResult(Status.NOT_APPLICABLE, "not applicable: no sound bound "
                                      "of ||P^(1/2) k(x, h(x))|| (residual check)")
     out = prove_dissipation(on_settings_device(problem, settings), vbar=settings.noise,
-                            eps_P=eps_P, seconds=settings.dissipation_seconds,
-                            seed=settings.seed)
+                            eps_P=eps_P, max_boxes=DEFAULT_BOXES, seed=settings.seed)
     return DissipationResult(
         status=out.status, message=out.message, alpha=out.alpha, mu=out.mu,
         mu_residual=out.mu_residual, eps_bar=eps_P if out.mu_residual else None,
         vertices=out.vertices, candidates=out.candidates, boxes=out.boxes,
-        seconds=time.perf_counter() - t0)
+        route=out.route or None, seconds=time.perf_counter() - t0)
 
 
 class DissipationCheck(Check):
     """V = e^T P e with V' <= -alpha V + mu ||v||^2 (+ mu_r ||P^(1/2) r||^2), proved over X x Y."""
 
     name = "dissipation"
-    title = "Joint dissipation certificate"
+    title = "Dissipation certificate"
     result_type = DissipationResult
     reads = ("noise", "dissipation_seconds", "seed")
-    uses = ("mpdi", "residual")
+    uses = ("residual",)
 
     def run(self, context: Context) -> DissipationResult:
         return check_dissipation(context.problem, context.settings,
-                                 mpdi=context.result("mpdi"),
                                  residual=context.result("residual"))
 
     def present(self, r: DissipationResult, certificate: Any) -> Presentation:
@@ -77,13 +71,17 @@ class DissipationCheck(Check):
             numbers=(Quantity("alpha", r.alpha, sig=6, bound="lower"),
                      Quantity("mu", r.mu, sig=6, bound="upper"),
                      Quantity("mu_residual", r.mu_residual, sig=6, bound="upper"),
-                     Quantity("vertices of dk/dy's cover", r.vertices),
+                     Quantity("route", r.route),
+                     Quantity("pieces proved", r.vertices),
                      Quantity("boxes", r.boxes)),
             facts=(Quantity("Status", r.status.value),
                    Quantity("Rate of V (alpha)", r.alpha, "not proved", sig=6, bound="lower"),
                    Quantity("Noise gain (mu)", r.mu, "not proved", sig=6, bound="upper"),
                    Quantity("Residual gain", r.mu_residual, "none (structural gain)", sig=6,
                             bound="upper"),
+                   Quantity("Certificate", {"path": "path (one proof, dk/dy at the same "
+                                            "point)", "cover": "cover of dk/dy (one proof per "
+                                            "piece)"}.get(r.route or "", None), "none"),
                    Quantity("Pieces proved", r.vertices),
                    Quantity("Candidates tried", len(r.candidates))))
 

@@ -134,7 +134,7 @@ def test_joint_certificate_of_a_linear_observer_meets_the_sdp_optimum():
     over alpha and within the sampled scan's resolution of it."""
     K = np.array([[1.0], [0.5]])
     pb = Problem(system=linear_system(A2, C2, P=P2), network=linear_gain(K), lam=0.1, P=P2)
-    out = prove_dissipation(pb, vbar=0.15, seconds=120)
+    out = prove_dissipation(pb, vbar=0.15)
     assert out.status == Status.PROVED and out.vertices == 1
     proved = 0.15 * math.sqrt(out.mu / (out.alpha * np.linalg.eigvalsh(P2)[0]))
     best = _linear_optimum(A2, C2, K, P2, 0.15)
@@ -222,18 +222,18 @@ def test_residual_share_covers_the_steady_error_it_forces():
     net.requires_grad_(False)
     pb = Problem(system=linear_system(A2, C2, P=P2), network=net, lam=0.1, P=P2)
     eps_P = float(np.linalg.norm(sqrtm(P2) @ c)) * (1 + 1e-12)
-    out = prove_dissipation(pb, vbar=0.0, eps_P=eps_P, seconds=60)
+    out = prove_dissipation(pb, vbar=0.0, eps_P=eps_P)
     assert out.status == Status.PROVED and out.mu_residual
     proved = math.sqrt(out.mu_residual * eps_P ** 2 / out.alpha / np.linalg.eigvalsh(P2)[0])
     e_star = np.linalg.solve(A2 - K @ C2, c)
     assert np.linalg.norm(e_star) <= proved
 
 
-def test_one_slow_piece_of_the_cover_may_use_the_whole_attempt(monkeypatch):
-    """Every piece must be proved for a candidate, so a piece is given all the attempt has
-    left, not a share: a first piece that needs half the attempt's budget (a slow machine)
-    is proved, and the candidate with it. A fake prover on a fake clock (no wall time):
-    each piece costs what is listed, proved if its budget covers that, else UNKNOWN."""
+def test_one_costly_piece_of_the_cover_may_use_the_whole_attempt(monkeypatch):
+    """Every piece must be proved for a candidate, so a piece is given all the boxes the
+    attempt has left, not a share: a first piece that needs half the attempt's boxes is
+    proved, and the candidate with it. A fake prover: each piece costs what is listed,
+    proved if its box budget covers that, else UNKNOWN."""
     import types
     from pathlib import Path
 
@@ -242,22 +242,20 @@ def test_one_slow_piece_of_the_cover_may_use_the_whole_attempt(monkeypatch):
 
     problem = checkpoint.load(str(Path(__file__).parents[2] / "examples"
                                   / "vdp_certified.ckpt")).problem
-    seconds = 60.0
-    attempt = seconds / len(dm.SCHEDULE)  # the first attempt's budget (planning is free here)
-    clock = [0.0]
-    given: list[float] = []
+    boxes = 80_000
+    attempt = int(boxes * dm.SCHEDULE[0][2])  # the first attempt's share
+    given: list[int] = []
 
-    def fake_prove(sub, *, lam, seconds):
-        cost = 0.5 * attempt if not given else 0.01 * attempt
-        given.append(seconds)
-        clock[0] += min(cost, seconds)
-        status = Status.PROVED if cost <= seconds else Status.UNKNOWN
-        return types.SimpleNamespace(status=status,
-                                     stats=types.SimpleNamespace(boxes_processed=1))
+    def fake_prove(sub, *, lam, max_boxes, seconds, estimate_points):
+        cost = attempt // 2 if not given else 10
+        given.append(max_boxes)
+        status = Status.PROVED if cost <= max_boxes else Status.UNKNOWN
+        return types.SimpleNamespace(status=status, counterexample=None,
+                                     stats=types.SimpleNamespace(boxes_processed=min(cost,
+                                                                                     max_boxes)))
 
     monkeypatch.setattr(dm, "prove_mpdi", fake_prove)
-    monkeypatch.setattr(dm.time, "perf_counter", lambda: clock[0])
-    out = prove_dissipation(problem, vbar=0.15, seconds=seconds)
+    out = prove_dissipation(problem, vbar=0.15, max_boxes=boxes, route="cover")
     assert out.vertices > 2 and len(given) == out.vertices  # every piece, one attempt
     assert out.status == Status.PROVED and len(out.candidates) == 1
-    assert given[0] == pytest.approx(attempt)
+    assert given[0] == attempt and given[1] == attempt - attempt // 2
