@@ -42,11 +42,11 @@ import torch
 
 from certify.arith.text import upper_text
 from certify.checks.base import Check, Context
-from certify.checks.bounds import BOUND_NAMES, bound_curve, initial_value, settle_time
 from certify.figuredata import FIGURE_DIGITS, round_list
 from certify.model.problem import Problem
 from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
+from certify.prove.error_bound import BOUND_NAMES, bound_curve, initial_value, settle_time
 from certify.results import BoundResult, BoundsResult, SimulationResult, SimulationRun, Status
 from certify.settings import DEFAULT_SIM_TIME, VerifySettings
 from certify.simulate.integrate import bounded_noise, gaussian_noise, simulate_doubled

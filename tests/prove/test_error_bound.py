@@ -12,12 +12,13 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.checks.bounds import check_bounds, inverse_diagonal_upper, settle_time
+from certify.checks.bounds import check_bounds
 from certify.model.kernels import gain_terms
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
 from certify.presentation import error_headline, upper_text
 from certify.prove.dissipation import dk_dy_cover, prove_dissipation, upper_shift
+from certify.prove.error_bound import inverse_diagonal_upper, settle_time
 from certify.prove.side import bound_dk_dy, bound_residual
 from certify.prove.weighted import weighting
 from certify.results import DissipationResult, Status
