@@ -193,6 +193,13 @@ class BoundResult:
     bias: float | None  # ultimate bound b at vbar
     bias_per_unit_noise: float | None  # d b / d vbar
     formula: str = ""
+    #: a bound in stages (the metric that follows the state, `certify.prove.metric`): after
+    #: the dissipation bound's settle time, piece k holds from `start` seconds on:
+    #: ||e|| <= gain sqrt(e^(-alpha (t - start)) entry + (1 - e^(-alpha (t - start))) v_inf),
+    #: dicts with keys start, alpha, entry, v_inf, tau; None for a one-piece bound
+    pieces: list[dict] | None = None
+    #: limits of |e_i| as t -> infinity where the bound has its own (None: from P)
+    components: list[float] | None = None
 
 
 @dataclass
@@ -217,6 +224,9 @@ class BoundsResult:
     vacuous: bool = False
     #: the joint dissipation bound (`certify.checks.dissipation`): V' <= -alpha V + mu |v|^2
     dissipation: BoundResult | None = None
+    #: the bound with a metric that follows the state (`certify.checks.metric_bound`), in
+    #: stages after the dissipation bound
+    metric: BoundResult | None = None
     #: the headline, from the applicable bound with the smallest ultimate value (`best`):
     #: ||e(t)|| <= `headline` for every t >= `settle_time` from any start with x, xhat in X,
     #: and |e_i(t)| <= `per_component`[i] * `headline` / `ultimate` likewise
@@ -228,8 +238,8 @@ class BoundsResult:
 
     def bounds(self) -> list[BoundResult]:
         """Every bound computed, applicable or not, in a fixed order."""
-        return [b for b in (self.theorem3, self.iss, self.iss_metric, self.dissipation)
-                if b is not None]
+        return [b for b in (self.theorem3, self.iss, self.iss_metric, self.dissipation,
+                            self.metric) if b is not None]
 
 
 @dataclass
@@ -256,6 +266,29 @@ class DissipationResult:
     boxes: int = 0
     seconds: float = 0.0
     route: str | None = None
+
+
+@dataclass
+class MetricBoundResult:
+    """The error bound with a metric that follows the state (`certify.prove.metric`): the
+    metric (`PolyMetric.to_dict`), its proved constants (m_min: M >= m_min I; a: M <= a P;
+    gamma_h and gamma per state: the paths' reach), the stages (dicts with keys tau, alpha,
+    mu, entry, v_inf, boxes), the plant box in which the bound holds after the first stage,
+    and the ultimate bound on ||e|| at the settings' noise (`ultimate`)."""
+
+    status: Status
+    message: str
+    metric: dict[str, Any] | None = None
+    m_min: float | None = None
+    a: float | None = None
+    gamma_h: float | None = None
+    gamma: list[float] = field(default_factory=list)
+    stages: list[dict] = field(default_factory=list)
+    plant_box: list[list[float]] | None = None
+    ultimate: float | None = None
+    boxes: int = 0
+    candidates: list[dict] = field(default_factory=list)
+    seconds: float = 0.0
 
 
 @dataclass
@@ -358,6 +391,7 @@ RESULT_TYPES: dict[str, type] = {
     "necessary": NecessaryResult,
     "metric": MetricResult,
     "dissipation": DissipationResult,
+    "metric_bound": MetricBoundResult,
     "bounds": BoundsResult,
     "simulation": SimulationResult,
 }

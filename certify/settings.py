@@ -17,8 +17,8 @@ from certify.errors import SettingsError
 
 #: the checks `verify()` runs (each is `CHECK` in certify/checks/<name>.py), in this order
 #: unless one needs another's result (see certify.checks.registry)
-CHECK_NAMES = ("necessary", "mpdi", "rate", "residual", "lipschitz", "dissipation", "bounds",
-               "simulation")
+CHECK_NAMES = ("necessary", "mpdi", "rate", "residual", "lipschitz", "dissipation",
+               "metric_bound", "bounds", "simulation")
 #: the check that is the certificate: always run, always required, whatever the policy says
 #: (a policy may add checks beside it, never drop it; see `validate`)
 CERTIFICATE_CHECK = "mpdi"

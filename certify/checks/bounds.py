@@ -22,23 +22,34 @@ from certify.errors import SettingsError
 from certify.model.problem import Problem
 from certify.presentation import Presentation, Quantity, error_headline
 from certify.prove.error_bound import (
+    HEADLINE_MARGIN,
     box_half_diagonal,
     describe_missing,
     dissipation_bound,
     fill_headline,
     iss_bound,
+    metric_bound,
     metric_constants,
+    settle_time,
     theorem3_bound,
     up_rel,
     validity_conditions,
+    worst_start,
 )
-from certify.results import BoundResult, BoundsResult, DissipationResult, Status
+from certify.results import (
+    BoundResult,
+    BoundsResult,
+    DissipationResult,
+    MetricBoundResult,
+    Status,
+)
 
 
 def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | None,
                  L: float | None, vbar: float, eps_bar_P: float | None = None,
                  L_P: float | None = None, L_is_local: bool = False,
-                 dissipation: DissipationResult | None = None) -> BoundsResult:
+                 dissipation: DissipationResult | None = None,
+                 metric: MetricBoundResult | None = None) -> BoundsResult:
     """Theorem 3 (as stated), the ISS bound and its metric variant at noise level `vbar`.
 
     All inputs must be sound: `lam_cert` a proved lower bound on the rate (metric
@@ -124,6 +135,16 @@ def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | N
                      L=Lf, theorem3=theorem3, iss=iss, iss_metric=iss_metric,
                      validity=validity, kappa_P=kappa, L_is_local=bool(L_is_local),
                      box_half_diagonal=half_diagonal, dissipation=joint)
+    if metric is not None:  # after the dissipation bound's settle time, in stages
+        X = np.asarray(problem.system.X, dtype=np.float64)
+        t1 = None
+        if joint is not None and joint.applicable:
+            t1 = settle_time(r, "dissipation", worst_start(joint, P, X),
+                             up_rel(HEADLINE_MARGIN * float(joint.bias)))
+        r.metric = metric_bound(metric, joint, t1)
+        if r.metric is not None and r.metric.applicable:
+            r.validity.append(f"(e) for the bound with the metric M(x), from t >= {t1:.3g} s on: "
+                              f"{r.metric.reason}; its paths stay where it was proved.")
     applicable = [b for b in r.bounds() if b.applicable]
     if applicable:
         fill_headline(r, P, np.asarray(problem.system.X, dtype=np.float64))
@@ -175,7 +196,7 @@ class BoundsCheck(Check):
     title = "Error bounds (Theorem 3, ISS)"
     result_type = BoundsResult
     reads = ("noise",)
-    uses = ("rate", "residual", "lipschitz", "dissipation")
+    uses = ("rate", "residual", "lipschitz", "dissipation", "metric_bound")
 
     def run(self, context: Context) -> BoundsResult:
         rate, res, lip, joint = (context.result(n) for n in
@@ -196,7 +217,7 @@ class BoundsCheck(Check):
             context.problem, lam_cert=lam_cert, eps_bar=res.upper if res is not None else None,
             L=lip.value if lip is not None else None, vbar=context.settings.noise,
             eps_bar_P=eps_bar_P, L_P=L_P, L_is_local=bool(local),
-            dissipation=joint)
+            dissipation=joint, metric=context.result("metric_bound"))
 
     def present(self, r: BoundsResult, certificate: Any) -> Presentation:
         """The proved side is the headline bound (||e|| after t >= settle_time, from the best

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from certify.model.metric import PolyMetric
 from certify.model.network import GainNetwork
 from certify.spec.system import System
 
@@ -69,11 +70,17 @@ class Problem:
     shift: np.ndarray | None = None  # [n, n] constant symmetric Q added to D (None: 0)
     #: the path certificate's noise input (module docstring); None: the MPDI's matrix
     noise: NoiseInput | None = None
+    #: a metric that follows the state (`certify.model.metric.PolyMetric`), for the error
+    #: bound of `certify.prove.metric`; None: the constant metric P only
+    metric: PolyMetric | None = None
 
     def __post_init__(self) -> None:
         self.network = self.network.double().eval()
         for param in self.network.parameters():
             param.requires_grad_(False)
+        if self.metric is not None and self.metric.n != self.system.n:
+            raise ValueError(f"the metric is for {self.metric.n} states; the system has "
+                             f"{self.system.n}")
         if self.noise is not None and self.lam != self.noise.alpha / 4.0:
             raise ValueError("a problem with a noise input is proved at lam = alpha / 4; got "
                              f"lam {self.lam!r} for alpha {self.noise.alpha!r}")
@@ -116,7 +123,8 @@ class Problem:
 
         net = copy.deepcopy(self.network).to(device)
         return Problem(system=self.system, network=net, lam=self.lam, P=self.P,
-                       device=str(device), shift=self.shift, noise=self.noise)
+                       device=str(device), shift=self.shift, noise=self.noise,
+                       metric=self.metric)
 
     @property
     def n(self) -> int:

@@ -33,10 +33,16 @@ import numpy as np
 
 from certify.arith.text import lower_text, upper_text
 from certify.model.problem import Problem
-from certify.results import BoundResult, BoundsResult, DissipationResult, Status
+from certify.results import (
+    BoundResult,
+    BoundsResult,
+    DissipationResult,
+    MetricBoundResult,
+    Status,
+)
 
 #: Names accepted by `bound_curve`.
-BOUND_NAMES = ("theorem3", "iss", "iss_metric", "dissipation")
+BOUND_NAMES = ("theorem3", "iss", "iss_metric", "dissipation", "metric")
 
 
 #: The headline bound is the best ultimate bound times this margin, reached at `settle_time`
@@ -284,6 +290,8 @@ def fill_headline(r: BoundsResult, P: np.ndarray, X: np.ndarray) -> None:
     r.settle_time = t_settle if math.isfinite(t_settle) else None  # ultimate 0: only as t -> inf
     if best.name == "theorem3":
         r.per_component = [r.ultimate] * P.shape[0]
+    elif best.components is not None:
+        r.per_component = [min(r.ultimate, c) for c in best.components]
     else:  # |e_i| <= W sqrt((P^-1)_ii), W <= bias sqrt(lam_min) <= bias / gain
         w_inf = up_rel(r.ultimate / float(best.gain) * (1 + NUDGE))  # type: ignore[arg-type]
         r.per_component = [min(r.ultimate, up_rel(w_inf * math.sqrt(d)))
@@ -329,6 +337,8 @@ def bound_curve(bounds: BoundsResult, which: str, start: float | np.ndarray,
     s_ = s[..., None] if s.ndim else s
     if which == "theorem3":
         return b.gain * s_ * decay + b.bias  # type: ignore[operator]
+    if which == "metric":
+        return _metric_curve(bounds, b, s_, t)
     if which == "dissipation":  # V(t) <= e^(-alpha t) V0 + (1 - e^(-alpha t)) V_inf
         w_inf = b.bias / b.gain  # type: ignore[operator]
         return b.gain * np.sqrt(s_ * s_ * decay + (1.0 - decay) * w_inf * w_inf)  # type: ignore
@@ -349,3 +359,56 @@ def ultimate_bound_per_unit_noise(*, lam_cert: float | None, eps_bar: float | No
     if lam_cert <= 0 or eps_bar < 0 or L < 0 or vbar < 0 or kappa_P < 1:  # type: ignore[operator]
         return None
     return up_rel(math.sqrt(kappa_P) * (eps_bar + L * vbar) / (2.0 * lam_cert))  # type: ignore[operator]
+
+
+def metric_bound(m: MetricBoundResult | None, stage1: BoundResult | None, t1: float | None
+                 ) -> BoundResult | None:
+    """The bound in stages of a proved `MetricBoundResult` (`certify.prove.metric`): the
+    dissipation bound `stage1` until its settle time `t1` (where V <= ENTRY^2 V_inf from
+    every start in X), then each stage's d^2 curve with d the metric's distance and
+    ||e|| <= d / sqrt(m_min), |e_i| <= gamma_i d."""
+    if m is None:
+        return None
+    formula = ("||e(t)|| <= the dissipation bound until t1, then sqrt(e^(-alpha (t - s)) c + "
+               "(1 - e^(-alpha (t - s))) d_inf^2 / m_min) per stage (Riemannian path "
+               "certificate with M(x) on tubes around the output manifold)")
+    if m.status != Status.PROVED or not m.stages or not m.m_min:
+        return not_applicable("metric", formula, f"not proved ({m.message})")
+    if stage1 is None or not stage1.applicable or t1 is None or not math.isfinite(t1):
+        return not_applicable("metric", formula, "the first stage (the dissipation bound) has "
+                              "no finite settle time")
+    gain = up_rel(1.0 / (math.sqrt(m.m_min) * (1.0 - NUDGE)))
+    pieces, start = [], float(t1)
+    for s in m.stages:
+        pieces.append(dict(start=start, alpha=float(s["alpha"]), entry=up_rel(s["entry"]),
+                           v_inf=up_rel(s["v_inf"]), tau=float(s["tau"])))
+        start = up_rel(start + float(s["duration"]))
+    d_inf = up_rel(math.sqrt(pieces[-1]["v_inf"]))
+    bias = up_rel(gain * d_inf)
+    if not math.isfinite(bias):
+        return not_applicable("metric", formula, "the bound is not a finite number")
+    box = ", ".join(f"[{lo:.4g}, {hi:.4g}]" for lo, hi in (m.plant_box or []))
+    return BoundResult(
+        name="metric", applicable=True,
+        reason=(f"the metric M(x) in {len(m.stages)} stage(s) after the dissipation bound "
+                f"(from t >= {t1:.3g} s); valid while the plant state stays in {box} and the "
+                "noise is bounded"),
+        rate=float(m.stages[-1]["alpha"]), gain=gain, bias=bias,
+        bias_per_unit_noise=None, formula=formula, pieces=pieces,
+        components=[up_rel(g * d_inf) for g in m.gamma])
+
+
+def _metric_curve(bounds: BoundsResult, b: BoundResult, start: np.ndarray, t: np.ndarray
+                  ) -> np.ndarray:
+    """The staged curve: the dissipation bound before the first piece; after, the smaller
+    of it and the piece in force (both are bounds there)."""
+    first = bound_curve(bounds, "dissipation", start, t)
+    out = first.copy()
+    for k, piece in enumerate(b.pieces or []):
+        end = b.pieces[k + 1]["start"] if k + 1 < len(b.pieces) else math.inf
+        tau = t - piece["start"]
+        decay = np.exp(-piece["alpha"] * np.maximum(tau, 0.0))
+        value = b.gain * np.sqrt(decay * piece["entry"] + (1.0 - decay) * piece["v_inf"])
+        use = (t >= piece["start"]) & (t < end)
+        out = np.where(use, np.minimum(first, value), out)
+    return out
