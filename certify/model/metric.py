@@ -92,14 +92,15 @@ class PolyMetric:
 
     # ---- points
     def monomials(self, x: torch.Tensor) -> torch.Tensor:
-        """x^(a_k) at points x [B, n] -> [B, K] (differentiable)."""
-        e = torch.as_tensor(self.exponents, device=x.device)
-        out = torch.ones(x.shape[0], len(e), dtype=x.dtype, device=x.device)
-        for i in range(self.n):
-            for k in range(len(e)):
-                if int(e[k, i]):
-                    out[:, k] = out[:, k] * x[:, i] ** int(e[k, i])
-        return out
+        """x^(a_k) at points x [B, n] -> [B, K] (differentiable: no in-place updates)."""
+        cols = []
+        for e in self.exponents:
+            m = torch.ones(x.shape[0], dtype=x.dtype, device=x.device)
+            for i, a in enumerate(e):
+                if a:
+                    m = m * x[:, i] ** int(a)
+            cols.append(m)
+        return torch.stack(cols, 1)
 
     def value(self, x: torch.Tensor) -> torch.Tensor:
         """M(x) at points x [B, n] -> [B, n, n]."""

@@ -217,6 +217,52 @@ def plan(terms: PointTerms, vbar: float) -> list[dict]:
     return sorted(out, key=lambda c: (c["bound"], c["alpha"]))
 
 
+def _needed(system: System, net: GainNetwork, metric: PolyMetric, alpha: float, fn: str):
+    """At points z [N, d] (differentiable): the mu (*) needs there at rate alpha (NaN where
+    X = X0 + (alpha/2) M is not negative definite), or (fn "margin") lam_max(X)."""
+    n = system.n
+
+    def value(z: torch.Tensor) -> torch.Tensor:
+        N = point_matrix(system, net, metric, alpha, 1.0, z)
+        X, MB = N[:, :n, :n], 2.0 * N[:, :n, n:]
+        if fn == "margin":
+            return torch.linalg.eigvalsh(X)[:, -1]
+        L, info = torch.linalg.cholesky_ex(-X)
+        ok = info == 0
+        L = torch.where(ok[:, None, None], L, torch.eye(n, dtype=_F64).expand_as(L))
+        Z = torch.linalg.solve_triangular(L, MB, upper=False)
+        mu = torch.linalg.eigvalsh(Z.transpose(1, 2) @ Z)[:, -1] / 2.0
+        return torch.where(ok, mu, torch.full_like(mu, float("nan")))
+
+    return value
+
+
+def sharpen(system: System, net: GainNetwork, metric: PolyMetric, terms: PointTerms,
+            domain: MetricDomain, alpha: float, starts: int = 8, steps: int = 30) -> PointTerms:
+    """`terms` with the points projected ascent reaches, inside the domain, from the worst
+    samples for rate alpha (where (*) needs the most mu, and where X is least negative): a
+    plan that misses them is refuted by the prover at the price of a proof."""
+    from certify.search.falsify import projected_ascent
+
+    lo, hi = domain.root()
+    n = system.n
+
+    def inside(z: torch.Tensor) -> torch.Tensor:
+        if domain.tau is None:
+            return torch.ones(len(z), dtype=torch.bool)
+        return (z[:, n:] - system.h(z[:, :n])).norm(dim=1) <= domain.tau
+
+    found = []
+    for fn in ("mu", "margin"):
+        f = _needed(system, net, metric, alpha, fn)
+        with torch.no_grad():
+            v = torch.nan_to_num(f(terms.z), nan=math.inf)
+        best, _ = projected_ascent(f, terms.z[torch.argsort(v, descending=True)[:starts]],
+                                   lo, hi, steps, feasible=inside)
+        found.append(best)
+    return terms.add(PointTerms.at(system, net, metric, torch.cat(found)))
+
+
 def _evaluator(system: System, net: GainNetwork, metric: PolyMetric, alpha: float, mu: float,
                domain: MetricDomain):
     """The branch and bound's box evaluation of (*) on `domain` (module docstring)."""
@@ -482,6 +528,9 @@ def _prove_on_tube(system: System, net: GainNetwork, metric: PolyMetric, vbar: f
     for grow in GROWTH:
         for _ in range(3):
             cands = plan(terms, vbar)
+            if cands:
+                terms = sharpen(system, net, metric, terms, domain, cands[0]["alpha"])
+                cands = plan(terms, vbar)
             if not cands or used >= boxes:
                 return None, None, used
             cand = cands[0]
