@@ -186,51 +186,76 @@ def metric_step(pts: DesignPoints, exponents: np.ndarray, F: np.ndarray, J: np.n
     return PolyMetric(exponents, coeffs), float(x[-1])
 
 
-def gain_step(pts: DesignPoints, metric: PolyMetric, alpha: float
-              ) -> tuple[np.ndarray, float] | None:
-    """The linear gain K [n, p] minimising mu at rate alpha for the metric, k = K (w - h)."""
+def gain_step(pts: DesignPoints, metric: PolyMetric, alpha: float,
+              schedule: np.ndarray | None = None) -> tuple[np.ndarray, float] | None:
+    """The gain schedule minimising mu at rate alpha for the metric: k = K(x) (w - h(x)) with
+    K(x) = sum_j x^(b_j) K_j over the exponents `schedule` [J, n] (None: a constant K, the
+    linear gain). Returns the coefficients K_j [J, n, p] (or K [n, p] for a constant gain)
+    and mu. With r = w - h: F = f + K r, J_F = Jf + (dK/dx) r - K H, B = K, all affine in
+    the K_j."""
     N, n = pts.f.shape
     p = pts.H.shape[1]
     d = n + p
+    sched = np.zeros((1, n), dtype=np.int64) if schedule is None else np.asarray(schedule)
+    psi, dpsi = _features(sched, pts.x)  # [N, J], [N, J, n]
     xt = torch.as_tensor(pts.x)
     M = metric.value(xt).numpy()
     dM = metric.partials(xt).numpy()  # [N, n(i), n, n]
-    nv = n * p + 1
+    nJ = len(sched)
+    nv = nJ * n * p + 1
     C = np.zeros((N, nv, d, d))
     C0 = np.zeros((N, d, d))
     MJ = M @ pts.Jf
     C0[:, :n, :n] = np.einsum("Nkij,Nk->Nij", dM, pts.f) + MJ + MJ.transpose(0, 2, 1) + alpha * M
-    for a in range(n):
-        for b in range(p):
-            v = a * p + b
-            E = np.zeros((n, p))
-            E[a, b] = 1.0
-            MEH = M @ np.einsum("ij,Njk->Nik", E, pts.H)
-            C[:, v, :n, :n] = dM[:, a] * pts.r[:, b, None, None] - MEH - MEH.transpose(0, 2, 1)
-            ME = M @ E
-            C[:, v, :n, n:] = ME
-            C[:, v, n:, :n] = ME.transpose(0, 2, 1)
+    for j in range(nJ):
+        for a in range(n):
+            for b in range(p):
+                v = (j * n + a) * p + b
+                E = np.zeros((n, p))
+                E[a, b] = 1.0
+                Kx = psi[:, j, None, None] * E  # this coefficient's K(x) [N, n, p]
+                Kr = Kx @ pts.r[:, :, None]  # [N, n, 1]
+                dKr = np.einsum("Ni,ab,Nb->Nai", dpsi[:, j], E, pts.r)  # (dK/dx r) [N, n, n]
+                Jk = dKr - Kx @ pts.H
+                MJk = M @ Jk
+                C[:, v, :n, :n] = (np.einsum("Nkij,Nk->Nij", dM, Kr[:, :, 0]) + MJk
+                                   + MJk.transpose(0, 2, 1))
+                MB = M @ Kx
+                C[:, v, :n, n:] = MB
+                C[:, v, n:, :n] = MB.transpose(0, 2, 1)
     C[:, -1, n:, n:] = -np.eye(p)
     status, x = _solve_psd(C, C0, [])
     if x is None:
         return None
-    return x[:-1].reshape(n, p), float(x[-1])
+    coeffs = x[:-1].reshape(nJ, n, p)
+    return (coeffs[0] if schedule is None else coeffs), float(x[-1])
+
+
+def schedule_terms(pts: DesignPoints, schedule: np.ndarray, coeffs: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """F, J_F, B at the points for the gain schedule k = K(x) (w - h(x)) (`gain_step`)."""
+    psi, dpsi = _features(np.asarray(schedule), pts.x)
+    Kx = np.einsum("Nj,jab->Nab", psi, coeffs)
+    dK = np.einsum("Nji,jab->Nabi", dpsi, coeffs)
+    F = pts.f + np.einsum("Nab,Nb->Na", Kx, pts.r)
+    J = pts.Jf + np.einsum("Nabi,Nb->Nai", dK, pts.r) - Kx @ pts.H
+    return F, J, Kx
 
 
 def linear_terms(pts: DesignPoints, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """F, J_F, B at the points for the linear gain k = K (w - h(x))."""
-    F = pts.f + pts.r @ K.T
-    J = pts.Jf - np.einsum("ij,Njk->Nik", K, pts.H)
-    B = np.broadcast_to(K, (len(F),) + K.shape).copy()
-    return F, J, B
+    return schedule_terms(pts, np.zeros((1, pts.x.shape[1]), dtype=np.int64),
+                          np.asarray(K, dtype=np.float64)[None])
 
 
 @dataclass
 class MetricDesign:
-    """A designed metric (and gain), its rate, noise gain and sampled bound per unit noise
-    sqrt(mu / alpha) (M >= I at the grid: m_min about 1)."""
+    """A designed metric and gain schedule (`schedule` exponents [J, n], `K` coefficients
+    [J, n, p]; one zero exponent: the linear gain K[0]), its rate, noise gain and sampled
+    bound per unit noise sqrt(mu / alpha) (M >= I at the grid: m_min about 1)."""
 
     metric: PolyMetric
+    schedule: np.ndarray
     K: np.ndarray
     alpha: float
     mu: float
@@ -238,6 +263,10 @@ class MetricDesign:
     @property
     def per_unit_noise(self) -> float:
         return math.sqrt(self.mu / self.alpha)
+
+    @property
+    def linear(self) -> bool:
+        return len(self.schedule) == 1 and not self.schedule.any()
 
 
 def _best_alpha(solve, alphas) -> tuple[float, object, float] | None:
@@ -254,31 +283,36 @@ def _best_alpha(solve, alphas) -> tuple[float, object, float] | None:
 
 def design_metric(system: System, K0: np.ndarray, *, degree: int = 2, tau: float | None = 0.6,
                   even: bool = True, rounds: int = 3, alphas: np.ndarray | None = None,
-                  pts: DesignPoints | None = None) -> MetricDesign | None:
-    """A polynomial metric of `degree` (monomials of even degree only when `even`) and a
-    linear gain starting from K0 [n, p], alternating `metric_step` and `gain_step` `rounds`
-    times at the best alpha of a scan (then a local one around it). None when no step is
-    feasible."""
+                  schedule_degree: int | None = None, pts: DesignPoints | None = None
+                  ) -> MetricDesign | None:
+    """A polynomial metric of `degree` (monomials of even degree only when `even`) and a gain
+    starting from the linear K0 [n, p]: linear, or with `schedule_degree` a schedule K(x) of
+    that degree (every monomial); `metric_step` and `gain_step` alternate `rounds` times at
+    the best alpha of a scan (then a local one around it). None when no step is feasible."""
     pts = pts or design_points(system, tau)
     exps = even_monomials(system.n, degree) if even else all_monomials(system.n, degree)
-    K = np.asarray(K0, dtype=np.float64).reshape(system.n, system.p)
+    n, p = system.n, system.p
+    sched = (np.zeros((1, n), dtype=np.int64) if schedule_degree is None
+             else all_monomials(n, schedule_degree))
+    coeffs = np.zeros((len(sched), n, p))
+    coeffs[0] = np.asarray(K0, dtype=np.float64).reshape(n, p)
     alphas = np.linspace(0.5, 4.0, 8) if alphas is None else alphas
 
-    def with_gain(K):
-        F, J, B = linear_terms(pts, K)
+    def with_gain(coeffs):
+        F, J, B = schedule_terms(pts, sched, coeffs)
         return lambda a: metric_step(pts, exps, F, J, B, a)
 
-    best = _best_alpha(with_gain(K), alphas)
+    best = _best_alpha(with_gain(coeffs), alphas)
     if best is None:
         return None
     alpha, (metric, mu), _ = best
     for _ in range(rounds):
-        g = gain_step(pts, metric, alpha)
+        g = gain_step(pts, metric, alpha, None if schedule_degree is None else sched)
         if g is None:
             break
-        K = g[0]
-        local = _best_alpha(with_gain(K), alpha * np.array([0.85, 0.93, 1.0, 1.08, 1.17]))
+        coeffs = g[0][None] if schedule_degree is None else g[0]
+        local = _best_alpha(with_gain(coeffs), alpha * np.array([0.85, 0.93, 1.0, 1.08, 1.17]))
         if local is None:
             break
         alpha, (metric, mu), _ = local
-    return MetricDesign(metric=metric, K=K, alpha=alpha, mu=mu)
+    return MetricDesign(metric=metric, schedule=sched, K=coeffs, alpha=alpha, mu=mu)
