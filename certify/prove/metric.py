@@ -85,6 +85,10 @@ DEFAULT_BOXES = 200_000
 SIDE_BOXES = 20_000
 #: the growth of the sampled noise gain the prover is asked to prove, in turn
 GROWTH = (1.03, 1.1, 1.3)
+#: the rate proved is the slowest whose sampled bound is within ROOM of the best: near the
+#: optimum the bound is flat in alpha, and a slower rate leaves (*) a margin where the
+#: samples did not look
+ROOM = 1.02
 #: the entry level of the second stage: the first stage's ultimate V times this squared
 ENTRY = 1.1
 #: rates scanned (geometric, up to the fastest sampled rate), golden-section steps after
@@ -533,12 +537,14 @@ def _prove_on_tube(system: System, net: GainNetwork, metric: PolyMetric, vbar: f
                 cands = plan(terms, vbar)
             if not cands or used >= boxes:
                 return None, None, used
-            cand = cands[0]
+            cand = min((c for c in cands if c["bound"] <= ROOM * cands[0]["bound"]),
+                       key=lambda c: c["alpha"])
             mu = cand["mu"] * grow
             out = prove_inequality(system, net, metric, cand["alpha"], mu, domain,
                                    max_boxes=boxes - used)
             used += out.boxes
-            tried.append(dict(tau=tau, alpha=cand["alpha"], mu=mu, status=out.status.value))
+            tried.append(dict(tau=tau, alpha=cand["alpha"], mu=mu, status=out.status.value,
+                              boxes=out.boxes))
             if out.status == Status.PROVED:
                 return cand["alpha"], mu, used
             if out.status != Status.VIOLATED or out.point is None:
