@@ -77,7 +77,8 @@ def present_failure(result: CheckFailure) -> Presentation:
 # ----------------------------------------------------------------------------- error headline
 
 #: what each error bound of `BoundsResult.bounds()` is, in words
-BOUND_TITLES = {"dissipation": "joint dissipation certificate",
+BOUND_TITLES = {"dissipation": "dissipation certificate",
+                "metric": "metric M(x) in stages after the dissipation certificate",
                 "iss_metric": "metric-weighted ISS bound", "iss": "ISS bound",
                 "theorem3": "Theorem 3 as stated"}
 

@@ -223,6 +223,13 @@ class BoundResult:
     bias: float | None  # ultimate bound b at vbar
     bias_per_unit_noise: float | None  # d b / d vbar
     formula: str = ""
+    #: a bound in stages (the metric that follows the state, `certify.prove.metric`): after
+    #: the dissipation bound's settle time, piece k holds from `start` seconds on:
+    #: ||e|| <= gain sqrt(e^(-alpha (t - start)) entry + (1 - e^(-alpha (t - start))) v_inf),
+    #: dicts with keys start, alpha, entry, v_inf, tau; None for a one-piece bound
+    pieces: list[dict] | None = None
+    #: limits of |e_i| as t -> infinity where the bound has its own (None: from P)
+    components: list[float] | None = None
 
 
 @dataclass
@@ -247,6 +254,9 @@ class BoundsResult:
     vacuous: bool = False
     #: the joint dissipation bound (`certify.checks.dissipation`): V' <= -alpha V + mu |v|^2
     dissipation: BoundResult | None = None
+    #: the bound with a metric that follows the state (`certify.checks.metric_bound`), in
+    #: stages after the dissipation bound
+    metric: BoundResult | None = None
     #: the headline, from the applicable bound with the smallest ultimate value (`best`):
     #: ||e(t)|| <= `headline` for every t >= `settle_time` from any start with x, xhat in X,
     #: and |e_i(t)| <= `per_component`[i] * `headline` / `ultimate` likewise
@@ -258,20 +268,22 @@ class BoundsResult:
 
     def bounds(self) -> list[BoundResult]:
         """Every bound computed, applicable or not, in a fixed order."""
-        return [b for b in (self.theorem3, self.iss, self.iss_metric, self.dissipation)
-                if b is not None]
+        return [b for b in (self.theorem3, self.iss, self.iss_metric, self.dissipation,
+                            self.metric) if b is not None]
 
 
 @dataclass
 class DissipationResult:
-    """The joint dissipation certificate: with V = e^T P e, the proved inequality
+    """The dissipation certificate: with V = e^T P e, the proved inequality
     V' <= -alpha V + mu ||v||^2 (+ mu_residual ||P^(1/2) r||^2 for a direct gain, r its
     residual, with `eps_bar` >= sup ||P^(1/2) r||), so that V -> at most
     (mu vbar^2 + mu_residual eps_bar^2) / alpha.
 
-    `vertices` counts the vertices of the enclosure of dk/dy over X x Y for which the
-    inequality was proved; `candidates` records each (alpha, mu) tried, with the sampled
-    bound it aimed at and the prover's verdict (dicts with keys alpha, mu, bound, status)."""
+    `route`: "path" (one proof with dk/dy at the same point as the contraction) or "cover"
+    (one proof per piece of a cover of dk/dy; None in certificates before the path route);
+    `vertices` counts the pieces proved (1 for the path); `candidates` records each
+    (alpha, mu) tried, with the sampled bound it aimed at, the route and the prover's
+    verdict (dicts with keys route, alpha, mu, bound, status)."""
 
     status: Status
     message: str
@@ -285,6 +297,31 @@ class DissipationResult:
     seconds: float = 0.0
     #: the effort of its proofs together (`ProofStats.total`; None: no proof ran)
     proof: ProofStats | None = None
+    route: str | None = None
+
+
+
+@dataclass
+class MetricBoundResult:
+    """The error bound with a metric that follows the state (`certify.prove.metric`): the
+    metric (`PolyMetric.to_dict`), its proved constants (m_min: M >= m_min I; a: M <= a P;
+    gamma_h and gamma per state: the paths' reach), the stages (dicts with keys tau, alpha,
+    mu, entry, v_inf, boxes), the plant box in which the bound holds after the first stage,
+    and the ultimate bound on ||e|| at the settings' noise (`ultimate`)."""
+
+    status: Status
+    message: str
+    metric: dict[str, Any] | None = None
+    m_min: float | None = None
+    a: float | None = None
+    gamma_h: float | None = None
+    gamma: list[float] = field(default_factory=list)
+    stages: list[dict] = field(default_factory=list)
+    plant_box: list[list[float]] | None = None
+    ultimate: float | None = None
+    boxes: int = 0
+    candidates: list[dict] = field(default_factory=list)
+    seconds: float = 0.0
 
 
 @dataclass
@@ -387,6 +424,7 @@ RESULT_TYPES: dict[str, type] = {
     "necessary": NecessaryResult,
     "metric": MetricResult,
     "dissipation": DissipationResult,
+    "metric_bound": MetricBoundResult,
     "bounds": BoundsResult,
     "simulation": SimulationResult,
 }

@@ -9,7 +9,8 @@ and the settings rows (`settings_rows`) are made from `DECLARATIONS`, so a setti
 renamed or documented here alone.
 
 Budgets count work, never seconds: each proof has a budget of boxes (`max_boxes` for the
-MPDI, `rate_boxes`, `residual_boxes`, `lipschitz_boxes`, `dissipation_boxes`), so a
+MPDI, `rate_boxes`, `residual_boxes`, `lipschitz_boxes`, `dissipation_boxes`,
+`metric_boxes`), so a
 checkpoint gets the same certificate on a busy machine as on a quiet one. `max_seconds`, off
 by default, caps the wall clock of a whole run; a proof it stops is UNKNOWN and says so.
 The per-proof seconds of older versions (`RETIRED`) are refused with their replacement.
@@ -33,8 +34,8 @@ from certify.errors import SettingsError
 #: unless one needs another's result (see certify.checks.registry). The MPDI, the
 #: certificate, comes first: once it is VIOLATED the verdict is decided
 #: (`certify.checks.registry.run_checks`)
-CHECK_NAMES = ("mpdi", "necessary", "rate", "residual", "lipschitz", "dissipation", "bounds",
-               "simulation")
+CHECK_NAMES = ("mpdi", "necessary", "rate", "residual", "lipschitz", "dissipation",
+               "metric_bound", "bounds", "simulation")
 #: the check that is the certificate: always run, always required, whatever the policy says
 #: (a policy may add checks beside it, never drop it; see `validate`)
 CERTIFICATE_CHECK = "mpdi"
@@ -258,7 +259,11 @@ class VerifySettings:
     dissipation_boxes: int = setting(
         400_000, _BOXES, flag="--dissipation-boxes", label="dissipation proof budget",
         unit=" boxes", metavar="N",
-        help="box budget of the joint dissipation certificate (all its proofs)")
+        help="box budget of the dissipation certificate (all its proofs)")
+    metric_boxes: int = setting(
+        300_000, _BOXES, flag="--metric-boxes", label="metric proof budget", unit=" boxes",
+        metavar="N",
+        help="box budget of the stages with a metric that follows the state (all of them)")
     max_seconds: float | None = setting(
         None, Number(0.0, optional=True), flag="--max-seconds", label="wall-clock cap",
         unit=" s", metavar="S", none="none",

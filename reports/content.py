@@ -20,7 +20,7 @@ DASH = "\u2014"
 
 #: the order checks appear in every report
 CHECK_ORDER = ("necessary", "metric", "mpdi", "rate", "residual", "lipschitz", "dissipation",
-               "bounds", "simulation")
+               "metric_bound", "bounds", "simulation")
 
 STATUS_COLOURS = {  # text colour, background
     "PROVED": ("#14532d", "#dcfce7"),

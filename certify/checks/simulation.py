@@ -21,10 +21,10 @@ from typing import Any
 import numpy as np
 
 from certify.checks.base import Check, Context
-from certify.checks.bounds import BOUND_NAMES, bound_curve, initial_value, settle_time
 from certify.model.problem import Problem
 from certify.presentation import Presentation, Quantity
 from certify.progress import Progress
+from certify.prove.error_bound import BOUND_NAMES, bound_curve, initial_value, settle_time
 from certify.results import BoundsResult, SimulationResult, Status
 from certify.settings import VerifySettings
 from certify.simulate.evidence import simulate_against_bounds

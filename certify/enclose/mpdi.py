@@ -152,16 +152,13 @@ def diagonal_scaling(problem: Problem, lam: float) -> torch.Tensor | None:
     """|D_ii|^-1/2 [n] at the centre of X x Y (float64 point values; any positive M serves,
     `certify.enclose.preconditioner`) where those magnitudes span more than SCALE_SPREAD, else
     None (also where one is 0 or not finite)."""
-    from certify.model.kernels import contraction_matrix, gain_terms
+    from certify.model.kernels import problem_matrix
 
     root = _root_box(problem)
     c = (0.5 * (root[:, 0] + root[:, 1]))[None]
     n = problem.n
     with torch.no_grad():
-        dk = gain_terms(problem.system, problem.network, c[:, :n], c[:, n:],
-                        with_dy=False).dk_dx
-        D = contraction_matrix(problem.system.jac_f(c[:, :n]), dk, problem.P_t, lam,
-                               problem.shift_t)[0]
+        D = problem_matrix(problem, lam, c[:, :n], c[:, n:])[0]
     mag = D.diagonal().abs()
     if not bool(torch.isfinite(mag).all()) or not bool((mag > 0).all()):
         return None

@@ -80,8 +80,10 @@ def mixed_rows_apply(problem: Problem, pc: Preconditioner) -> bool:
     congruence M = I with P != I (pc.kind "none", chosen by `certify.enclose.mpdi.
     choose_preconditioner`) and a direct network, whose Jacobian P dN/dx they bound with
     the rows P mixes. The one place this fact is tested; `BoxBoundOptions.mixed_rows` holds
-    it."""
-    return pc.kind == "none" and problem.network.structure == "direct"
+    it. Not for the path certificate's larger matrix (a noise input): the rows it mixes are
+    those of the MPDI's."""
+    return (pc.kind == "none" and problem.network.structure == "direct"
+            and problem.noise is None)
 
 
 @dataclass(frozen=True, eq=False)

@@ -49,9 +49,10 @@ from certify.arith.taylor import TM
 from certify.enclose.mixed import TopLayerRemainder, contraction_tm_mixed
 from certify.enclose.network_interval import gain_enclosure
 from certify.enclose.options import BoxBoundOptions, CrownGain, Technique
+from certify.enclose.path import closed_loop_box, closed_loop_tm, jacobian_columns
 from certify.enclose.preconditioner import Preconditioner, congruence
 from certify.enclose.structured import entrywise, independent_upper
-from certify.enclose.taylor import HERTZ_MAX_N, jcl_taylor, tm_congruence, tm_lam_upper
+from certify.enclose.taylor import HERTZ_MAX_N, tm_congruence, tm_lam_upper
 from certify.enclose.top_rank import rank_loewner_upper
 from certify.model.problem import Problem
 
@@ -192,7 +193,7 @@ class PlainInterval:
 
     def bound(self, boxes: Boxes, options: BoxBoundOptions, state: BoxState) -> StageResult:
         _, gb = state.interval_enclosures()
-        Ab = iadd(congruence(options.pc, iadd(gb.jf, gb.dk_dx)),
+        Ab = iadd(congruence(options.pc, closed_loop_box(options.problem, gb)),
                   bcast(options.constant, len(boxes)))
         plain = lam_max_upper_interval(Ab, level=options.decide_level)
         return StageResult(plain, state.score)
@@ -210,6 +211,9 @@ class MeanValue:
     screens = False
 
     def applies(self, options: BoxBoundOptions) -> bool:
+        if options.technique is Technique.MEAN_VALUE and options.problem.noise is not None:
+            raise ValueError("the mean-value form bounds the MPDI's matrix only (no noise "
+                             "input)")
         return options.technique is Technique.MEAN_VALUE
 
     def select(self, options: BoxBoundOptions, state: BoxState) -> torch.Tensor:
@@ -245,8 +249,7 @@ class TaylorModels:
         return state.open()
 
     def bound(self, boxes: Boxes, options: BoxBoundOptions, state: BoxState) -> StageResult:
-        problem = options.problem
-        Jt = jcl_taylor(problem.system, problem.network, boxes.lo, boxes.hi)
+        Jt = closed_loop_tm(options.problem, boxes.lo, boxes.hi)
         A = tm_congruence(options.pc, Jt, options.constant, boxes.zr)
         t, s, lv = tm_lam_upper(A, boxes.zr, parts=True, level=options.decide_level)
         return StageResult(t, options.split(s, boxes.zr), vertex=lv)
@@ -260,10 +263,9 @@ def linear_contraction_tm(problem: Problem, pc: Preconditioner, lo: torch.Tensor
     `constant` = M (2 lam P + Q) M^T."""
     from certify.enclose.crown import network_crown_tms
 
-    net = problem.network
-    net_tms = network_crown_tms(net, lo, hi, list(range(problem.n)), value=problem.structural)
-    return tm_congruence(pc, jcl_taylor(problem.system, net, lo, hi, net_tms=net_tms), constant,
-                         r)
+    net_tms = network_crown_tms(problem.network, lo, hi, jacobian_columns(problem),
+                                value=problem.structural)
+    return tm_congruence(pc, closed_loop_tm(problem, lo, hi, net_tms=net_tms), constant, r)
 
 
 class LinearBounds:
@@ -339,7 +341,7 @@ INDEPENDENT = UpperModel("independent errors", lambda options, top: top.rank is 
 #: the errors entrywise in the remainder: for n <= HERTZ_MAX_N, where Hertz's vertex bound
 #: treats an entrywise remainder exactly, it can beat the matrix forms
 ENTRYWISE = UpperModel("entrywise",
-                       lambda options, top: options.problem.n <= HERTZ_MAX_N,
+                       lambda options, top: options.problem.m <= HERTZ_MAX_N,
                        _entrywise_model)
 
 

@@ -23,6 +23,7 @@ import torch
 
 from certify.errors import CertifyError, CheckpointError
 from certify.files import atomic_write_bytes
+from certify.model.metric import PolyMetric
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
 from certify.spec.system import System, validate_lam, validate_metric
@@ -87,8 +88,11 @@ def _to_plain(obj: Any) -> Any:
 
 
 def save(path: str | Path, *, system: System, network: GainNetwork, lam: float,
-         P: Any = None, training: dict[str, Any] | None = None) -> str:
-    """Write a checkpoint atomically; returns its sha256."""
+         P: Any = None, training: dict[str, Any] | None = None,
+         metric: PolyMetric | None = None) -> str:
+    """Write a checkpoint atomically; returns its sha256. `metric`: a metric that follows the
+    state, stored under `state_metric` in its plain-data form (`PolyMetric.to_dict`, which
+    carries its own format version); checkpoints without it load as before."""
     P_arr = validate_metric(system.P if P is None else P, system.n, "checkpoint")
     lam = validate_lam(lam, "checkpoint: lam")
     state = {k: v.detach().to(torch.float64).clone() for k, v in network.state_dict().items()}
@@ -102,6 +106,7 @@ def save(path: str | Path, *, system: System, network: GainNetwork, lam: float,
         "architecture": network.architecture(),
         "state_dict": state,
         "training": _to_plain(training or {}),
+        **({"state_metric": metric.to_dict()} if metric is not None else {}),
         "versions": versions(),
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }
@@ -273,7 +278,13 @@ def load(path: str | Path) -> Checkpoint:
     except CertifyError as exc:
         raise CheckpointError(str(exc)) from None
     training = data.get("training") or {}
-    return Checkpoint(problem=Problem(system=system, network=net, lam=lam, P=P),
+    metric = None
+    if data.get("state_metric") is not None:
+        try:
+            metric = PolyMetric.from_dict(data["state_metric"], system.n)
+        except CertifyError as exc:
+            raise CheckpointError(f"checkpoint {path}: state_metric: {exc}") from None
+    return Checkpoint(problem=Problem(system=system, network=net, lam=lam, P=P, metric=metric),
                       path=str(path), sha256=sha256_file(path),
                       training=training if isinstance(training, dict) else {},
                       versions=dict(data.get("versions") or {}),

@@ -37,11 +37,37 @@ def sym(M: torch.Tensor) -> torch.Tensor:
     return 0.5 * (M + M.transpose(-1, -2))
 
 
-def contraction_matrix(Jf: torch.Tensor, dk_dx: torch.Tensor, P: torch.Tensor,
+def contraction_matrix(Jf: torch.Tensor, dk_dx: torch.Tensor | None, P: torch.Tensor,
                        lam: float, shift: torch.Tensor | None = None) -> torch.Tensor:
-    """D = He{P (Jf + dk/dxhat)} + 2 lam P (+ Q, `shift` [n, n], when given), [B, n, n]."""
-    D = sym(P @ (Jf + dk_dx)) + 2.0 * lam * P
+    """D = He{P (Jf + dk/dxhat)} + 2 lam P (+ Q, `shift` [n, n], when given), [B, n, n]
+    (`dk_dx` None: Jf is the whole Jacobian)."""
+    D = sym(P @ (Jf if dk_dx is None else Jf + dk_dx)) + 2.0 * lam * P
     return D if shift is None else D + shift.to(D.dtype)
+
+
+def path_jacobian(J: torch.Tensor, dk_dy: torch.Tensor) -> torch.Tensor:
+    """J~ = [[J, B], [0, 0]] [N, n + p, n + p] from J [N, n, n] and B = dk/dy [N, n, p]: the
+    Jacobian of the path certificate's matrix (`certify.model.problem`)."""
+    N, n, p = dk_dy.shape
+    bottom = torch.zeros(N, p, n + p, dtype=J.dtype, device=J.device)
+    return torch.cat([torch.cat([J, dk_dy], -1), bottom], -2)
+
+
+def problem_matrix(problem, lam: float, xhat: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """The matrix `problem` is about at a batch -> [N, m, m]: D = He{P J_cl} + 2 lam P (+ Q),
+    or with a noise input the path certificate's D~ (`certify.model.problem`)."""
+    noise = problem.noise is not None
+    terms = gain_terms(problem.system, problem.network, xhat, y, with_dy=noise)
+    J = problem.system.jac_f(xhat) + terms.dk_dx
+    if noise:
+        J = path_jacobian(J, terms.dk_dy)
+    return contraction_matrix(J, None, problem.P_t, lam, problem.shift_t)
+
+
+def problem_lam_max(problem, lam: float, xhat: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """lam_max of `problem_matrix` at a batch -> [N] (for a problem without a noise input,
+    `mpdi_lam_max` with the problem's P and constant term)."""
+    return lam_max(problem_matrix(problem, lam, xhat, y))
 
 
 def lam_max(S: torch.Tensor) -> torch.Tensor:

@@ -34,7 +34,7 @@ from certify.enclose.preconditioner import (
     with_shift,
 )
 from certify.enclose.stages import LINEAR_BOUNDS, MIXED_ROWS
-from certify.model.kernels import mpdi_lam_max, pointwise_rate
+from certify.model.kernels import pointwise_rate, problem_lam_max
 from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import Counterexample, ProofStats, Status
@@ -132,8 +132,7 @@ def _mpdi_evaluator(problem: Problem, options: BoxBoundOptions):
         ub = to_lam_max_D(bb.upper, P, pc)
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         c = 0.5 * (lo + hi)
-        val = mpdi_lam_max(problem.system, problem.network, P, lam, c[:, :n], c[:, n:],
-                           problem.shift_t)
+        val = problem_lam_max(problem, lam, c[:, :n], c[:, n:])
         return BoxEval(upper=ub, centre_value=val, score=bb.score, counts=bb.counts)
 
     return evaluate
@@ -281,8 +280,7 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None,
     cex = None
     if out.best_point is not None:
         pt = out.best_point[None]
-        v = float(mpdi_lam_max(problem.system, problem.network, problem.P_t, lam,
-                               pt[:, :n], pt[:, n:], problem.shift_t)[0])
+        v = float(problem_lam_max(problem, lam, pt[:, :n], pt[:, n:])[0])
         cex = Counterexample(xhat=pt[0, :n].tolist(), y=pt[0, n:].tolist(), value=v,
                              sound_bound=float(mpdi_lower(problem, pt, lam)[0]))
     st = out.stats
@@ -357,8 +355,9 @@ def prove_rate(problem: Problem, *, max_boxes: int = DEFAULTS.rate_boxes,
     """
     started = time.perf_counter()
     deadline = cap_deadline(deadline, seconds, started)
-    if problem.shift is not None:
-        raise ValueError("the proved rate is defined for D without a constant term (shift)")
+    if problem.shift is not None or problem.noise is not None:
+        raise ValueError("the proved rate is defined for D without a constant term or noise "
+                         "input")
     progress = progress or NullProgress()
     pc = make_preconditioner(problem.P_t)
     lo, hi = root_box(problem)

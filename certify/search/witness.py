@@ -97,13 +97,14 @@ def _point_box(z: torch.Tensor, device: torch.device | str | None = None
 
 
 def closed_loop_interval(problem, z: torch.Tensor) -> Interval:
-    """Enclosure of J_cl = Jf(xhat) + dk/dxhat(xhat, y) at points z = (xhat, y) [B, n+p]."""
-    from certify.arith.interval_ops import iadd
+    """Enclosure of J_cl = Jf(xhat) + dk/dxhat(xhat, y) at points z = (xhat, y) [B, n+p]; with
+    a noise input the path certificate's J~ [B, m, m] (`certify.enclose.path`)."""
     from certify.enclose.network_interval import gain_enclosure
+    from certify.enclose.path import closed_loop_box
 
     lo, hi = _point_box(z, problem.device)
     g, _ = gain_enclosure(problem.system, problem.network, lo, hi, order=1)
-    return iadd(g.jf, g.dk_dx)
+    return closed_loop_box(problem, g)
 
 
 def d_interval(P: torch.Tensor, J: Interval, lam: float,

@@ -10,15 +10,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.checks.bounds import (
-    bound_curve,
-    check_bounds,
-    initial_value,
-    ultimate_bound_per_unit_noise,
-)
+from certify.checks.bounds import check_bounds
 from certify.errors import SettingsError
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
+from certify.prove.error_bound import bound_curve, initial_value, ultimate_bound_per_unit_noise
 from certify.results import BoundsResult, Status, from_jsonable, to_jsonable
 from certify.spec.system import load_system
 

@@ -64,8 +64,7 @@ def _run_all(problem):
     }
     out["rate"] = check_rate(problem, s, mpdi=out["mpdi"])
     lam_cert = out["rate"].proved_lower
-    out["dissipation"] = check_dissipation(problem, s, mpdi=out["mpdi"],
-                                           residual=out["residual"])
+    out["dissipation"] = check_dissipation(problem, s, residual=out["residual"])
     out["bounds"] = check_bounds(problem, lam_cert=lam_cert, eps_bar=out["residual"].upper,
                                  L=out["lipschitz"].value, vbar=s.noise,
                                  dissipation=out["dissipation"])

@@ -116,7 +116,8 @@ def test_bash_completion_completes_commands_and_check_lists(tmp_path, capsys):
     # the MPDI is the certificate: --skip never offers it (it would be refused)
     assert complete("certify", "run", "x.ckpt", "--skip", "") == \
         [c for c in CHECK_NAMES if c != "mpdi"]
-    assert complete("certify", "run", "x.ckpt", "--skip", "rate,m") == []
+    assert complete("certify", "run", "x.ckpt", "--skip", "rate,m") == ["rate,metric_bound"]
+    assert complete("certify", "run", "x.ckpt", "--skip", "rate,mp") == []
     assert complete("certify", "completion", "") == ["bash", "zsh", "fish"]
     assert complete("certify", "train", "vdp", "--preset", "") == ["paper", "tiny", "certified",
                                                                     "bound"]

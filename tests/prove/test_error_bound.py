@@ -12,12 +12,13 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from certify.checks.bounds import check_bounds, inverse_diagonal_upper, settle_time
+from certify.checks.bounds import check_bounds
 from certify.model.kernels import gain_terms
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
 from certify.presentation import error_headline, upper_text
 from certify.prove.dissipation import dk_dy_cover, prove_dissipation, upper_shift
+from certify.prove.error_bound import inverse_diagonal_upper, settle_time
 from certify.prove.side import bound_dk_dy, bound_residual
 from certify.prove.weighted import weighting
 from certify.results import DissipationResult, Status
@@ -134,7 +135,7 @@ def test_joint_certificate_of_a_linear_observer_meets_the_sdp_optimum():
     over alpha and within the sampled scan's resolution of it."""
     K = np.array([[1.0], [0.5]])
     pb = Problem(system=linear_system(A2, C2, P=P2), network=linear_gain(K), lam=0.1, P=P2)
-    out = prove_dissipation(pb, vbar=0.15, max_boxes=600_000)
+    out = prove_dissipation(pb, vbar=0.15)
     assert out.status == Status.PROVED and out.vertices == 1
     proved = 0.15 * math.sqrt(out.mu / (out.alpha * np.linalg.eigvalsh(P2)[0]))
     best = _linear_optimum(A2, C2, K, P2, 0.15)
@@ -222,18 +223,18 @@ def test_residual_share_covers_the_steady_error_it_forces():
     net.requires_grad_(False)
     pb = Problem(system=linear_system(A2, C2, P=P2), network=net, lam=0.1, P=P2)
     eps_P = float(np.linalg.norm(sqrtm(P2) @ c)) * (1 + 1e-12)
-    out = prove_dissipation(pb, vbar=0.0, eps_P=eps_P, max_boxes=600_000)
+    out = prove_dissipation(pb, vbar=0.0, eps_P=eps_P)
     assert out.status == Status.PROVED and out.mu_residual
     proved = math.sqrt(out.mu_residual * eps_P ** 2 / out.alpha / np.linalg.eigvalsh(P2)[0])
     e_star = np.linalg.solve(A2 - K @ C2, c)
     assert np.linalg.norm(e_star) <= proved
 
 
-def test_one_slow_piece_of_the_cover_may_use_the_whole_attempt(monkeypatch):
-    """Every piece must be proved for a candidate, so a piece is given all the attempt has
-    left, not a share: a first piece that needs half the attempt's boxes is proved, and the
-    candidate with it. A fake prover: each piece costs the boxes listed, proved if its
-    budget covers them, else UNKNOWN."""
+def test_one_costly_piece_of_the_cover_may_use_the_whole_attempt(monkeypatch):
+    """Every piece must be proved for a candidate, so a piece is given all the boxes the
+    attempt has left, not a share: a first piece that needs half the attempt's boxes is
+    proved, and the candidate with it. A fake prover: each piece costs what is listed,
+    proved if its box budget covers that, else UNKNOWN."""
     import types
     from pathlib import Path
 
@@ -242,19 +243,21 @@ def test_one_slow_piece_of_the_cover_may_use_the_whole_attempt(monkeypatch):
 
     problem = checkpoint.load(str(Path(__file__).parents[2] / "examples"
                                   / "vdp_certified.ckpt")).problem
-    budget = 600_000
-    attempt = budget // len(dm.SCHEDULE)  # the first attempt's budget
+    boxes = 80_000
+    attempt = int(boxes * dm.SCHEDULE[0][2])  # the first attempt's share
     given: list[int] = []
 
-    def fake_prove(sub, *, lam, max_boxes, deadline, task):
-        cost = attempt // 2 if not given else attempt // 100
+    def fake_prove(sub, *, lam, max_boxes, deadline, estimate_points, task):
+        cost = attempt // 2 if not given else 10
         given.append(max_boxes)
         status = Status.PROVED if cost <= max_boxes else Status.UNKNOWN
-        return types.SimpleNamespace(status=status, stats=types.SimpleNamespace(
-            boxes_processed=min(cost, max_boxes), stopped_by_cap=False))
+        return types.SimpleNamespace(status=status, counterexample=None,
+                                     stats=types.SimpleNamespace(
+                                         boxes_processed=min(cost, max_boxes),
+                                         stopped_by_cap=False))
 
     monkeypatch.setattr(dm, "prove_mpdi", fake_prove)
-    out = prove_dissipation(problem, vbar=0.15, max_boxes=budget)
+    out = prove_dissipation(problem, vbar=0.15, max_boxes=boxes, route="cover")
     assert out.vertices > 2 and len(given) == out.vertices  # every piece, one attempt
     assert out.status == Status.PROVED and len(out.candidates) == 1
-    assert given[0] == pytest.approx(attempt)
+    assert given[0] == attempt and given[1] == attempt - attempt // 2

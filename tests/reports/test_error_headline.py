@@ -65,7 +65,7 @@ def test_headline_data_from_a_bounds_result():
     assert h.sentence(unicode=False) == "||e|| <= 1.26 for noise <= 0.05 after t >= 3.1 s"
     assert h.components_text() == "|e1| \u2264 0.392 (x1), |e2| \u2264 1.26 (x2)"
     assert h.size_text() == "useful (smaller than the box, half-diagonal 4.3)"
-    assert "joint dissipation certificate (dissipation)" in h.source_text()
+    assert "dissipation certificate (dissipation)" in h.source_text()
 
 
 def test_no_bound_says_why():
@@ -102,7 +102,7 @@ def test_terminal_headline_on_the_line_after_the_verdict(vacuous):
     assert head.startswith(f"error bound: \u2016e\u2016 \u2264 {big} for noise \u2264 0.05 "
                            "after t \u2265 3.1 s; |e1| \u2264 ")
     assert f"; {word} (" in head and "half-diagonal 4.3" in head and "(x2)" in head
-    assert "[from the joint dissipation certificate (dissipation)" in head
+    assert "[from the dissipation certificate (dissipation)" in head
     bounds_row = next(ln for ln in lines if ln.startswith("Error bounds"))
     assert ("PROVED \u2014 vacuous" in bounds_row) == vacuous
     # --quiet prints the same two lines
@@ -138,7 +138,7 @@ def test_html_headline_after_the_verdict(vacuous):
     assert "|e1| \u2264" in block and "(x1)" in block and "(x2)" in block
     assert f'class="headline {word} basis-certificate"' in block and f">{word}</span>" in block
     assert '<div class="what">Certified error bound</div>' in block
-    assert "joint dissipation certificate (dissipation)" in block
+    assert "dissipation certificate (dissipation)" in block
     row = html[html.index('id="row-bounds"'):]
     row = row[:row.index("</tr>")]
     if vacuous:  # never a plain green PROVED for the bounds row or its section

@@ -14,16 +14,17 @@ prover's box task (`certify.prove.mpdi.mpdi_box_chunk`) rebuilds its problem her
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 import torch
 
-from certify.model.problem import Problem
+from certify.model.problem import NoiseInput, Problem
 from certify.search.distributed.executor import payload_key, worker_cache
 
 #: the keys of `problem_payload` (a task's payload may carry more)
-PROBLEM_KEYS = ("spec", "name", "architecture", "state", "lam", "P", "shift")
+PROBLEM_KEYS = ("spec", "name", "architecture", "state", "lam", "P", "shift", "noise")
 
 
 def problem_payload(problem: Problem) -> dict[str, Any]:
@@ -35,7 +36,8 @@ def problem_payload(problem: Problem) -> dict[str, Any]:
             "architecture": net.architecture(), "state": state, "lam": float(problem.lam),
             "P": np.asarray(problem.P, dtype=np.float64).copy(),
             "shift": None if problem.shift is None
-            else np.asarray(problem.shift, dtype=np.float64).copy()}
+            else np.asarray(problem.shift, dtype=np.float64).copy(),
+            "noise": None if problem.noise is None else dataclasses.asdict(problem.noise)}
 
 
 def _build(payload: dict[str, Any]) -> Problem:
@@ -45,8 +47,9 @@ def _build(payload: dict[str, Any]) -> Problem:
     system = System.from_text(payload["spec"], origin=f"system {payload['name']}")
     net = GainNetwork.from_architecture(payload["architecture"]).double()
     net.load_state_dict({k: torch.as_tensor(v) for k, v in payload["state"].items()})
+    noise = payload.get("noise")
     return Problem(system=system, network=net, lam=payload["lam"], P=payload["P"],
-                   shift=payload.get("shift"))
+                   shift=payload.get("shift"), noise=None if noise is None else NoiseInput(**noise))
 
 
 def problem_from_payload(payload: dict[str, Any]) -> Problem:
