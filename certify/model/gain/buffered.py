@@ -26,6 +26,21 @@ from certify.model.gain.propagate import NetOutput
 from certify.model.gain.spec import GainSpec
 
 
+def tanh_and_d1_float32(x: torch.Tensor, f_out: torch.Tensor, d1_out: torch.Tensor) -> None:
+    """tanh(x) into f_out and 1 - tanh(x)^2 into d1_out, float32, as 2 sigmoid(2 x) - 1.
+
+    torch's float32 tanh kernel is several times slower than its sigmoid on the CPUs
+    measured (docs/performance.md, `bench/train.py`); this form is within 2 ulp(1) of tanh
+    in absolute terms (it gives up tanh's relative accuracy near 0, which a float32 training
+    step does not use). For training only: the checkpoint is float64, the verifier evaluates
+    tanh itself."""
+    one = torch.ones((), dtype=x.dtype, device=x.device)
+    torch.mul(x, 2.0, out=f_out)
+    torch.sigmoid(f_out, out=f_out)
+    f_out.mul_(2.0).sub_(1.0)
+    torch.addcmul(one, f_out, f_out, value=-1.0, out=d1_out)
+
+
 class ChunkBuffers:
     """Constants and work buffers for one chunk of C collocation points (m tangents)."""
 
@@ -49,6 +64,8 @@ class ChunkBuffers:
             self.G.append(torch.empty(rows, widths[i + 1], dtype=dt, device=dev))
             self.GX.append(torch.empty(rows, widths[i], dtype=dt, device=dev))
         self.gs = [torch.empty(self.C, w, dtype=dt, device=dev) for w in widths]
+        self.tmp = torch.empty(self.C, widths[1], dtype=dt, device=dev)  # reverse: layer 1
+        self.w0_tangent = torch.empty(m, widths[1], dtype=dt, device=dev)
         self.ones = torch.ones(self.R, dtype=dt, device=dev)
         self.grads = [torch.empty(b, a, dtype=dt, device=dev) if k == 0
                       else torch.empty(b, dtype=dt, device=dev)
@@ -94,13 +111,20 @@ class ChunkArithmetic(ChunkCompose):
             raise ValueError("ChunkArithmetic propagates first derivatives only")
         ch = self.ch
         a, s = ch.X[layer][:ch.R], ch.S[layer]
-        act.f_and_d1_into(pre, a, s)
+        if act.name == "tanh" and pre.dtype == torch.float32:
+            tanh_and_d1_float32(pre, a, s)
+        else:
+            act.f_and_d1_into(pre, a, s)
         return a, s, None
 
     def scale(self, s: torch.Tensor, T: torch.Tensor, layer: int) -> torch.Tensor:
         ch = self.ch
         A = ch.X[layer][ch.R:].view(ch.m, ch.C, -1)
-        torch.mul(s[:ch.C].unsqueeze(0), T, out=A)
+        if T.shape[1] == 1:  # the first layer's tangent, one row per column: no broadcast
+            for j in range(ch.m):  # over C (a slow path of torch.mul), a row each
+                torch.mul(s[:ch.C], T[j, 0], out=A[j])
+        else:
+            torch.mul(s[:ch.C].unsqueeze(0), T, out=A)
         return A
 
     def affine(self, a: torch.Tensor, T: torch.Tensor | None, S: None, W: torch.Tensor,
@@ -143,7 +167,9 @@ class ChunkArithmetic(ChunkCompose):
                 torch.mul(gA[0], w0t[0], out=gs)
                 for j in range(1, m):
                     gs.addcmul_(gA[j], w0t[j])
-                w0_tangent_grad = (gA * S[:C].unsqueeze(0)).sum(1).T
+                for j in range(m):  # sum over the points of gA_j * s, into a buffer
+                    torch.mul(gA[j], S[:C], out=ch.tmp)
+                    torch.sum(ch.tmp, 0, out=ch.w0_tangent[j])
             else:
                 U = ch.pre[i - 1][R:].view(m, C, -1)
                 torch.mul(gA[0], U[0], out=gs)
@@ -154,5 +180,5 @@ class ChunkArithmetic(ChunkCompose):
             act.chain_pre(gt, gs, ch.pre[i - 1][:R], X[:R], S, ch.G[i - 1][:R])
         G0 = ch.G[0]
         torch.mm(G0.T, ch.Z, out=grads[0])
-        grads[0][:, :m].add_(w0_tangent_grad)
+        grads[0][:, :m].add_(ch.w0_tangent.T)
         torch.mv(G0.T, ch.ones, out=grads[1])
