@@ -177,6 +177,7 @@ class Objective:
         self.widths = padded_widths([n + p, *[layer.weight.shape[0] for layer in net.layers]])
         self.trunk = self._trunk_spec()
         self.trunk_params = [t for layer in self.trunk.layers for t in layer]
+        self._view_cache: dict[int, list[torch.Tensor]] = {}
         x64, y64 = xhat.to(torch.float64), y.to(torch.float64)
         P64 = torch.as_tensor(P, dtype=torch.float64)
         K = net.K.to(torch.float64)
@@ -237,7 +238,14 @@ class Objective:
     def _load_trunk(self) -> None:
         """Copy the network's current weights into the padded trunk (a no-op without one)."""
         if self.trunk is not self.spec:
-            torch._foreach_copy_(self._real(self.trunk_params), self.params)
+            torch._foreach_copy_(self._views(self.trunk_params), self.params)
+
+    def _views(self, padded: list[torch.Tensor]) -> list[torch.Tensor]:
+        """`_real(padded)`, made once per list of buffers (a chunk's gradients, the trunk)."""
+        key = id(padded[0])
+        if key not in self._view_cache:
+            self._view_cache[key] = self._real(padded)
+        return self._view_cache[key]
 
     def _real(self, padded: list[torch.Tensor]) -> list[torch.Tensor]:
         """The blocks of padded tensors (W0, b0, W1, ...) that are the parameters' (views)."""
@@ -342,9 +350,9 @@ class Objective:
                     if prm.grad is None:
                         prm.grad = torch.empty_like(prm)
                 grads = [prm.grad for prm in self.params]
-                torch._foreach_copy_(grads, self._real(self.chunks[0].grads))
+                torch._foreach_copy_(grads, self._views(self.chunks[0].grads))
                 for ch in self.chunks[1:]:
-                    torch._foreach_add_(grads, self._real(ch.grads))
+                    torch._foreach_add_(grads, self._views(ch.grads))
         curv = self._curvature(grad)
         self.evaluations += 1
         mpdi_mean, bc_mean = mpdi / self.N, bc / self.N
