@@ -14,14 +14,18 @@ alike. Lines:
   evaluations, at the end of Adam, at L-BFGS evaluation 10 and at the end), with the final
   loss terms of both;
 - with `--certify`: `certify run --skip simulation` on each tree's vdp checkpoint (the verdict
-  and the MPDI check's sampled and proved numbers), in that tree.
+  and the MPDI check's sampled and proved numbers), in that tree;
+- with `--spread 2000,1500`: the before tree again with those chunk sizes (the same
+  mathematics, the float32 gradient summed in another order), its final losses beside the
+  default's: how far a rounding-level change alone moves the end of the L-BFGS phase, the
+  scale against which the two trees' final numbers are read.
 
 The paper preset is trained directly, not through `certify train`, which stops before
 training vdp and duffing at the design's P and lam (the pre-flight proves that no gain can
 pass there); the benchmark measures the training itself.
 
 Run: python bench/train.py [--before /work/before] [--after .] [--systems vdp,duffing]
-         [--repeat 3] [--certify]
+         [--repeat 3] [--certify] [--spread 2000,1500,3000]
 """
 
 from __future__ import annotations
@@ -43,14 +47,22 @@ from record import emit  # noqa: E402  (bench/record.py)
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: what a child runs (in the tree on its PYTHONPATH): train, save the checkpoint, print JSON
+#: what a child runs (in the tree on its PYTHONPATH): train, save the checkpoint, print JSON;
+#: a fifth argument other than 0 sets the objective's chunk size (points per chunk)
 CHILD = """
 import json, sys, time, numpy as np, torch
+import training.objective as objective
 from certify.model import checkpoint
 from certify.spec.system import load_system
 from training.objective import WORKERS
 from training.presets import make_config
 from training.train import train
+if int(sys.argv[4]):
+    init = objective.Objective.__init__
+    def sized(self, *a, **k):
+        k.setdefault("chunk_points", int(sys.argv[4]))
+        init(self, *a, **k)
+    objective.Objective.__init__ = sized
 system = load_system(sys.argv[1])
 config = make_config(system, "paper", seed=int(sys.argv[2]))
 result = train(system, config)
@@ -132,6 +144,9 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--certify", action="store_true",
                         help="also run `certify run` on each tree's vdp checkpoint")
+    parser.add_argument("--spread", default="", metavar="SIZES",
+                        help="also train the before tree with these chunk sizes (comma-"
+                             "separated): the final loss's spread under rounding")
     args = parser.parse_args()
     trees = {"after": Path(args.after).resolve()}
     if args.before:
@@ -143,7 +158,8 @@ def main() -> int:
             for label, tree in trees.items():
                 ckpt = keep / f"{name}-{label}.ckpt"
                 load = round(os.getloadavg()[0], 2)
-                wall, cpu, proc = run_child(tree, [name, str(args.seed), str(ckpt)], code=CHILD)
+                wall, cpu, proc = run_child(tree, [name, str(args.seed), str(ckpt), "0"],
+                                            code=CHILD)
                 if proc.returncode != 0:
                     emit({"run": label, "system": name, "exit": proc.returncode,
                           "stderr": proc.stderr[-500:]})
@@ -171,6 +187,21 @@ def main() -> int:
             line["after_over_before"] = {"total": round(a["total_s"] / b["total_s"], 3),
                                          "cpu": round(a["cpu_s"] / b["cpu_s"], 3)}
             line["history"] = compare_histories(runs["before"][0], runs["after"][0])
+        if args.spread and "before" in trees:
+            finals = {"default": runs["before"][0]["final"]["total"]}
+            for size in [int(v) for v in args.spread.split(",") if v.strip()]:
+                _, _, proc = run_child(trees["before"], [name, str(args.seed),
+                                                         str(keep / "spread.ckpt"), str(size)],
+                                       code=CHILD)
+                if proc.returncode != 0:
+                    emit({"spread": name, "chunk": size, "exit": proc.returncode,
+                          "stderr": proc.stderr[-300:]})
+                    continue
+                finals[f"chunk {size}"] = json.loads(
+                    proc.stdout.strip().splitlines()[-1])["final"]["total"]
+            emit({"spread": name, "tree": "before", "final_total": finals,
+                  "range": [min(finals.values()), max(finals.values())],
+                  "after_final_total": runs["after"][0]["final"]["total"]})
         emit(line)
     if args.certify:
         for label, tree in trees.items():

@@ -208,14 +208,17 @@ class Objective:
         self._pool: ThreadPoolExecutor | None = None
 
     def _map(self, fn: Callable[[Any], Any], items: list[Any]) -> list[Any]:
-        """fn over items, on `workers` threads (torch releases the GIL inside its ops)."""
+        """fn over items, on `workers` threads (torch releases the GIL inside its ops): the
+        calling thread takes the first item, a pool of workers - 1 threads the others."""
         if self.workers == 1 or len(items) == 1:
             return [fn(item) for item in items]
         if self._pool is None:
-            self._pool = ThreadPoolExecutor(max_workers=self.workers,
+            self._pool = ThreadPoolExecutor(max_workers=self.workers - 1,
                                             thread_name_prefix="certify-train",
                                             initializer=torch.set_num_threads, initargs=(1,))
-        return list(self._pool.map(fn, items))
+        rest = [self._pool.submit(fn, item) for item in items[1:]]
+        first = fn(items[0])
+        return [first, *(f.result() for f in rest)]
 
     def close(self) -> None:
         """Stop the worker threads (if any)."""
