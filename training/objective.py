@@ -123,10 +123,13 @@ def check_finite(terms: dict[str, float], params: list[torch.Tensor], where: str
                 f"training diverged at {where}: the loss term {name} is {v} (overflow:"
                 f" lower lam, the metric's scale or the learning rate); nothing was written")
     with torch.no_grad():
-        tensors = [t.reshape(-1) for prm in params
+        tensors = [t for prm in params
                    for t in ((prm, prm.grad) if grad and prm.grad is not None else (prm,))]
-        if not tensors or bool(torch.isfinite(torch.cat(tensors)).all()):
-            return  # one pass over everything (cheap); name the culprit only when needed
+        # the largest |entry| of each (NaN if any is NaN): one call over everything; the
+        # culprit is named only when one is not finite
+        if not tensors or bool(torch.stack(torch._foreach_norm(tensors, math.inf)).isfinite()
+                               .all()):
+            return
         for k, prm in enumerate(params):
             if not bool(torch.isfinite(prm).all()):
                 raise TrainingDiverged(
