@@ -54,8 +54,7 @@ def _point(v: list[float] | None) -> str:
 def _metric_text(P: np.ndarray) -> str:
     import numpy as np
 
-    return "P = I" if np.allclose(P, np.eye(len(P)), rtol=0, atol=0) else (
-        "P = " + json.dumps(np.asarray(P).tolist()))
+    return "P = I" if np.array_equal(P, np.eye(len(P))) else "P = " + json.dumps(P.tolist())
 
 
 def check(system: System, P: np.ndarray, lam: float, preset: str, *, force: bool,
@@ -122,9 +121,9 @@ def routes(system: System, lam: float, preset: str, r: NecessaryResult) -> list[
                  f"{metric.message})"]
     if r.rate_cap is not None and r.rate_cap > 0 and math.isfinite(r.rate_cap):
         lines.append(f"or a rate below this metric's rate cap: --lam below {r.rate_cap:.4g}")
-    lines.append("or a preset that designs the metric with the gain: --preset certified "
-                 "(joint LMI, then counterexample-guided training) or --preset bound (a "
-                 "linear observer designed for the error bound)")
+    lines.append("or let a preset design the metric with the gain: --preset certified without "
+                 "--metric (joint LMI, then counterexample-guided training) or --preset bound "
+                 "(a linear observer designed for the error bound)")
     return lines
 
 

@@ -224,7 +224,8 @@ def undetectable_at_every_rate(system: System, grid_points: int = 40_000) -> str
     (mu + 2 lam) v^T P v > 0 for every P > 0 and lam > 0, so the kernel condition (METHOD
     §3.5) fails whatever P, lam and gain (reverse Duffing on the line x2 = 0). The point is
     found by the PBH test on a grid and confirmed exactly (`invisible_mode_certified` at
-    lam = 0); when every grid point found shares one coordinate value, the text names it.
+    lam = 0); when the grid points found are those with one coordinate at one value, the
+    text names that set.
     """
     if not system.h_is_linear:
         return None
@@ -238,12 +239,15 @@ def undetectable_at_every_rate(system: System, grid_points: int = 40_000) -> str
     (xw, mu, _), hit = found
     if not invisible_mode_certified(system, C, 0.0, xw, mu):
         return None
-    hx = x[torch.as_tensor(hit)].numpy()
-    shared = [j for j in range(system.n) if len(hx) > 1 and np.all(hx[:, j] == hx[0, j])]
+    xs = x.numpy()
+    # a coordinate value that the grid points found are exactly the grid points of (a line)
+    lines = [j for j in range(system.n)
+             if hit.sum() > 1 and np.array_equal(hit, xs[:, j] == xw[j])]
     where = them = ""
-    if shared:
-        name, value = system.states[shared[0]], float(hx[0, shared[0]])
-        where = f", as at every point of the search grid with {name} = {value:g}"
+    if lines:
+        name, value = system.states[lines[0]], float(xw[lines[0]])
+        where = (f"; the PBH test finds the same at every point of the search grid with "
+                 f"{name} = {value:g} and nowhere else")
         them = f" the points with {name} = {value:g}"
     return (f"no observer with an exact boundary condition contracts in any constant metric "
             f"at any rate > 0 on this box: at xhat = {_fmt(xw)} the linearisation has the mode "
