@@ -77,7 +77,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true",
                         help="train even when the pre-flight proves that no gain meets the "
                              "MPDI and the boundary condition with this P and lam (presets "
-                             "paper, and certified with --metric; the network cannot pass)")
+                             "paper, and certified with --metric; the network written cannot "
+                             "meet both)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     parser.epilog = EXIT_CODES_TEXT
 
