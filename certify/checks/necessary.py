@@ -8,8 +8,9 @@ in ker dh(xhat), v^T D v = v^T (He{P Jf} + 2 lam P) v: no k in it. So
 must be <= 0 on {xhat in X : h(xhat) in Y} for ANY gain to pass MPDI and BC together. A
 single point with q > 0 proves that no gain can (VIOLATED, with the witness); PROVED needs a
 sound upper bound <= 0 (vertex enclosures of Jf on sub-boxes, then the interval prover).
-Also reported: the rate cap for gains with exact BC and, for linear h, the residual eps_bar
-that any gain satisfying the MPDI everywhere must pay (chords along ker C).
+Also reported: the rate cap for gains with exact BC and, for linear h where some q > 0 was
+found, the residual eps_bar that any gain satisfying the MPDI everywhere must pay (chords
+along ker C).
 
 This module is the check: it runs the pieces and says what the result means. The quantities,
 the search on the manifold and the sound bound are in `certify.design.manifold`.
@@ -119,7 +120,7 @@ def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
     rate_cap = 0.0 - neg_cap if math.isfinite(neg_cap) else None
     progress.update(task)
     price, chord = None, None
-    if linear:
+    if linear and q_max > 0:  # the price of a violation: none to pay where q <= 0 throughout
         dirs = [Z[:, j] for j in range(Z.shape[1])]
         with torch.no_grad():
             S_w = Z.T @ gain_free_D(system, Pt, lam, xw[None])[0] @ Z
