@@ -180,7 +180,7 @@ class Objective:
         self.widths = padded_widths([n + p, *[layer.weight.shape[0] for layer in net.layers]])
         self.trunk = self._trunk_spec()
         self.trunk_params = [t for layer in self.trunk.layers for t in layer]
-        self._view_cache: dict[int, list[torch.Tensor]] = {}
+        self._view_cache: dict[int, tuple[list[torch.Tensor], list[torch.Tensor]]] = {}
         x64, y64 = xhat.to(torch.float64), y.to(torch.float64)
         P64 = torch.as_tensor(P, dtype=torch.float64)
         K = net.K.to(torch.float64)
@@ -247,11 +247,12 @@ class Objective:
             torch._foreach_copy_(self._views(self.trunk_params), self.params)
 
     def _views(self, padded: list[torch.Tensor]) -> list[torch.Tensor]:
-        """`_real(padded)`, made once per list of buffers (a chunk's gradients, the trunk)."""
-        key = id(padded[0])
-        if key not in self._view_cache:
-            self._view_cache[key] = self._real(padded)
-        return self._view_cache[key]
+        """`_real(padded)`, made once per list of buffers (a chunk's gradients, the trunk);
+        the cache holds the list it was made for, so its id is not reused."""
+        cached = self._view_cache.get(id(padded))
+        if cached is None or cached[0] is not padded:
+            cached = self._view_cache[id(padded)] = (padded, self._real(padded))
+        return cached[1]
 
     def _real(self, padded: list[torch.Tensor]) -> list[torch.Tensor]:
         """The blocks of padded tensors (W0, b0, W1, ...) that are the parameters' (views)."""

@@ -103,7 +103,6 @@ class ChunkBuffers:
         self.out_val = self.out_t_val.T
         self.out_tan = self.out_t[:, R:].T.view(m, C, -1)
         self.X_last_T = self.X[last].T
-        self.G_last_tan = self.G[last][R:]
         self.grads = [new(b, a) if k == 0 else new(b)
                       for a, b in zip(widths[:-1], widths[1:]) for k in (0, 1)]
         # the first weight's gradient is formed transposed (Z^T G [d, h]: few rows, fast)
