@@ -5,9 +5,10 @@ Each tree (default: /work/before as "before", this tree as "after") trains the p
 PYTHONPATH set to it; runs of the two trees alternate, so load from other processes hits both
 alike. Lines:
 
-- `run`: one training run: wall seconds per phase (setup, adam, lbfgs, total), the child's CPU
-  seconds, evaluations, the final loss terms (float64, on the training points) and the
-  1-minute load average before it (a load above the core count inflates the wall seconds);
+- `side` (before or after): one training run: wall seconds per phase (setup, adam, lbfgs,
+  total), the child's CPU seconds, evaluations, the final loss terms (float64, on the
+  training points) and the 1-minute load average before it (a load above the core count
+  inflates the wall seconds);
 - `compare`: per system, the medians over `--repeat` runs side by side (after / before, wall
   and CPU), and the two loss histories compared entry by entry (relative difference of the
   total at the first evaluation, the largest over the first 10 and the first 100 Adam
@@ -130,7 +131,7 @@ def certify_line(tree: Path, ckpt: str, label: str) -> None:
         cert = json.loads(out.read_text())
     mpdi = cert["checks"].get("mpdi", {})
     emit({"certify": label, "exit": proc.returncode, "verdict": cert["verdict"],
-          "mpdi": {k: mpdi.get(k) for k in ("status", "sampled_max", "upper", "message")},
+          "mpdi": {k: mpdi.get(k) for k in ("status", "lower", "upper", "violating_fraction")},
           "wall_s": round(wall, 2)})
 
 
@@ -161,14 +162,14 @@ def main() -> int:
                 wall, cpu, proc = run_child(tree, [name, str(args.seed), str(ckpt), "0"],
                                             code=CHILD)
                 if proc.returncode != 0:
-                    emit({"run": label, "system": name, "exit": proc.returncode,
+                    emit({"side": label, "system": name, "exit": proc.returncode,
                           "stderr": proc.stderr[-500:]})
                     return 1
                 rec = json.loads(proc.stdout.strip().splitlines()[-1])
                 rec.update(wall=wall, cpu=cpu, load=load)
                 runs[label].append(rec)
                 t = rec["timings"]
-                emit({"run": label, "system": name, "repeat": k, "tree": str(tree),
+                emit({"side": label, "system": name, "repeat": k, "tree": str(tree),
                       "wall_s": {p: round(t[p], 3) for p in ("setup", "adam", "lbfgs", "total")
                                  if p in t},
                       "process_wall_s": round(wall, 2), "cpu_s": round(cpu, 2),
