@@ -213,5 +213,7 @@ def report_maps(problem: Problem, checks: dict[str, Any], out: FigureData) -> Fi
             yv = system.h(pts)
             inside = ((yv >= torch.as_tensor(system.Y[:, 0])) &
                       (yv <= torch.as_tensor(system.Y[:, 1]))).all(dim=1)
-            out.necessary_map = grid(torch.where(inside, q, torch.full_like(q, float("nan"))))
+            q = torch.where(inside, q, torch.full_like(q, float("nan")))
+            if bool(torch.isfinite(q).any()):  # none where all states are measured (no q)
+                out.necessary_map = grid(q)
     return out

@@ -338,16 +338,17 @@ def train_bound(system: System, config: TrainConfig, *, min_rate: float | None =
     `rate`: design at exactly this lam (alpha = 4 rate / LAM_FRACTION). The learned attempt
     runs when config.adam_iters > 0 (or `learn` is given with steps > 0). `prove=False` skips
     the proofs and certificates (tests of the loop only: a learned gain that beats the linear
-    one at samples is then returned unproved). Raises CertifyError when no linear design is
-    found."""
+    one at samples is then returned unproved). Raises `training.preflight.Infeasible` when
+    no linear design is found (with the reason when none exists)."""
     t0 = time.perf_counter()
     say = log or (lambda _m: None)
     alpha = None if rate is None else 4.0 * float(rate) / LAM_FRACTION
     design = design_bound_observer(system, min_alpha=min_alpha_for(min_rate), alpha=alpha,
                                    subdivisions=subdivisions)
     if design.status is not Status.PROVED or design.P is None:
-        raise CertifyError(f"bound preset: no linear observer for {system.name}: "
-                           f"{design.message}")
+        from training.preflight import no_design
+
+        raise no_design(system, "bound", f"no linear observer: {design.message}")
     say(design.message)
     assert design.alpha is not None
     lam = float(design.lam())

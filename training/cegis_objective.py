@@ -72,8 +72,7 @@ class CertObjective(Objective):
         self.mpdi_weight = float(mpdi_weight)
         n, p = system.n, system.p
         self.m = n + p  # forward tangents for every input column (xhat and y)
-        widths = [n + p, *[layer.weight.shape[0] for layer in net.layers]]
-        self.chunks = [ChunkBuffers(ch.Z, ch.C, widths, self.m, not self.structural)
+        self.chunks = [ChunkBuffers(ch.Z, ch.C, self.widths, self.m, not self.structural)
                        for ch in self.chunks]
         self.last_lip = 0.0
         self.last_lip_max = 0.0  # max ||dk/dy||_F over the collocation points

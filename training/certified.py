@@ -123,7 +123,8 @@ def proved_lmi_start(system: System, lam: float, config: TrainConfig, cs: CegisS
     zero: gain K (y - h)); the structural warm start for CEGIS has the same gain, but the
     prover pays for its (16, 16) MLP on every box (many times slower per box).
     Returns (structural warm start, P, start info, (proved network, its outcome) or None);
-    when no margin proves, the first margin's start and None (training goes on from it)."""
+    when no margin proves, the first margin's start and None (training goes on from it).
+    Raises `training.preflight.Infeasible` when no margin gives an LMI metric."""
     from certify.model.problem import Problem
     from certify.prove.mpdi import prove_mpdi
 
@@ -132,9 +133,11 @@ def proved_lmi_start(system: System, lam: float, config: TrainConfig, cs: CegisS
     for margin in WARM_MARGINS:
         try:
             base, P, info = lmi_start(system, lam, margin=margin)
-        except CertifyError:
+        except CertifyError as exc:
             if first is None and margin == WARM_MARGINS[-1]:
-                raise
+                from training.preflight import no_design
+
+                raise no_design(system, "certified", str(exc)) from None
             continue
         net = warm_start_network(system, config.hidden, K=base.K.detach().clone(),
                                  structure="structural", seed=config.seed,

@@ -16,6 +16,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from certify.errors import CertifyError, SettingsError
+from training.preflight import EXIT_INFEASIBLE, Infeasible
 from training.presets import PRESETS, make_config, preset_summary
 
 
@@ -73,7 +74,23 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-rate", type=float, default=None, dest="min_rate",
                         help="preset bound only: the smallest contraction rate lam the design "
                              "may choose (default: the rate is free; --lam fixes it)")
+    parser.add_argument("--force", action="store_true",
+                        help="train even when the pre-flight proves that no gain meets the "
+                             "MPDI and the boundary condition with this P and lam (presets "
+                             "paper, and certified with --metric; the network written cannot "
+                             "meet both)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
+    parser.epilog = EXIT_CODES_TEXT
+
+
+#: `certify train --help`'s last paragraph
+EXIT_CODES_TEXT = (
+    "exit codes of train: 0 checkpoint written (presets certified and bound: and proved), "
+    "1 checkpoint written but not proved (certified, bound), 2 bad input, 4 internal error, "
+    f"{EXIT_INFEASIBLE} nothing trained or written: the pre-flight proves that no gain meets "
+    "the MPDI and the boundary condition with this P and lam (--force trains anyway), or the "
+    "preset found no design (the message says whether none exists)."
+)
 
 
 class PlainProgress:
@@ -172,16 +189,25 @@ def resolve_system(args: argparse.Namespace) -> None:
 
 
 def run_train(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
-    """Train as `args` say and write the checkpoint; returns the exit code (0).
+    """Train as `args` say and write the checkpoint; returns the exit code (`EXIT_CODES_TEXT`):
+    `EXIT_INFEASIBLE`, with the reason on stderr, when the pre-flight or the preset's
+    design says nothing can be trained (`training.preflight`).
 
     Raises `CertifyError` (exit code 2) for a bad system, setting or output path.
     """
+    try:
+        return _run_train(args, stdout or sys.stdout)
+    except Infeasible as exc:
+        print(f"certify train: {exc}", file=sys.stderr, flush=True)
+        return EXIT_INFEASIBLE
+
+
+def _run_train(args: argparse.Namespace, out: TextIO) -> int:
     # here, not at the top: they import torch, which `certify train --help` does not need
     from certify.model import checkpoint
     from certify.spec.system import load_system
     from training.train import train
 
-    out = stdout or sys.stdout
     system = load_system(args.system)
     config = _config_from_args(args, system)
     output = Path(args.output)
@@ -193,15 +219,26 @@ def run_train(args: argparse.Namespace, stdout: TextIO | None = None) -> int:
                                  or min_rate <= 0):
         raise SettingsError(f"training: --min-rate must be a finite number > 0 and applies to "
                             f"preset bound only; got {min_rate!r} with preset {config.preset}")
+    from training import preflight
+
+    quiet = bool(getattr(args, "quiet", False))
+    if config.preset == "bound" or (config.preset == "certified"
+                                    and not getattr(args, "metric", None)):
+        preflight.check_designable(system, config.preset)  # they design P themselves
     if config.preset == "bound":  # designed for the error bound (training.bound)
         from training.bound import run_bound
 
         return run_bound(args, system, config, out)
+    if config.preset != "certified" or getattr(args, "metric", None):  # P is given: check it
+        preflight.check(system, np.asarray(config.P), config.lam, config.preset,
+                        force=bool(getattr(args, "force", False)),
+                        log=lambda m: None if quiet else print(m, file=out, flush=True),
+                        warn=lambda m: print(f"certify train: {m}", file=sys.stderr,
+                                             flush=True))
     if config.preset == "certified":  # counterexample-guided loop (training.certified)
         from training.certified import run_certified
 
         return run_certified(args, system, config, out)
-    quiet = bool(getattr(args, "quiet", False))
     if not quiet:
         print(f"training {system.name} with preset {config.preset}: lam {config.lam:g}, "
               f"{config.points} points, hidden {','.join(map(str, config.hidden))} "

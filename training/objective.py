@@ -25,7 +25,10 @@ evaluates the MLP trunk by hand:
   it, at the cost above; a generic `reverse` in the arithmetic protocol would be needed by
   this one arithmetic only. So the adjoint is written once, beside the forward whose
   buffers it reads (`certify.model.gain.buffered`), and checked against autograd here;
-- preallocated buffers, float32 (the checkpoint and the verifier stay float64).
+- preallocated buffers, float32 (the checkpoint and the verifier stay float64), hidden
+  widths padded with inert units to a multiple of `WIDTH_MULTIPLE` (the trunk runs a padded
+  copy of the weights, `_load_trunk`; the real blocks of the gradient are read back), and
+  tanh as 2 sigmoid(2x) - 1 in float32 (`certify.model.gain.buffered.tanh_and_d1_float32`).
 
 Everything that does not depend on the weights (Jf at the points, the constant part of D,
 h and dh/dx for the structural gain) is computed once, in float64, before training.
@@ -50,6 +53,7 @@ import torch
 from certify.errors import SettingsError
 from certify.model.gain import GainValues, NetOutput, compose, propagate
 from certify.model.gain.buffered import CHUNK_COMPOSE, ChunkArithmetic, ChunkBuffers
+from certify.model.gain.spec import GainSpec
 from certify.model.kernels import sym
 from certify.model.network import GainNetwork
 from certify.spec.system import System
@@ -62,6 +66,15 @@ CHUNK_POINTS = 2048
 # worker threads for the chunks (each runs single-threaded torch ops: no OpenMP barriers, so
 # a busy second core costs nothing, while a free one nearly halves the time)
 WORKERS = 2
+# the trunk's hidden widths are padded to a multiple of this with inert units (zero weights
+# in and out, zero bias: every value, derivative and real gradient is unchanged): a float32
+# matrix product of width 32 runs faster than one of width 30 (AVX2 holds 8 float32)
+WIDTH_MULTIPLE = 8
+
+
+def padded_widths(widths: list[int], multiple: int = WIDTH_MULTIPLE) -> list[int]:
+    """[input, hidden..., output] with each hidden width rounded up to `multiple`."""
+    return [widths[0], *[-(-w // multiple) * multiple for w in widths[1:-1]], widths[-1]]
 
 
 @dataclass
@@ -110,10 +123,13 @@ def check_finite(terms: dict[str, float], params: list[torch.Tensor], where: str
                 f"training diverged at {where}: the loss term {name} is {v} (overflow:"
                 f" lower lam, the metric's scale or the learning rate); nothing was written")
     with torch.no_grad():
-        tensors = [t.reshape(-1) for prm in params
+        tensors = [t for prm in params
                    for t in ((prm, prm.grad) if grad and prm.grad is not None else (prm,))]
-        if not tensors or bool(torch.isfinite(torch.cat(tensors)).all()):
-            return  # one pass over everything (cheap); name the culprit only when needed
+        # the largest |entry| of each (NaN if any is NaN): one call over everything; the
+        # culprit is named only when one is not finite
+        if not tensors or bool(torch.stack(torch._foreach_norm(tensors, math.inf)).isfinite()
+                               .all()):
+            return
         for k, prm in enumerate(params):
             if not bool(torch.isfinite(prm).all()):
                 raise TrainingDiverged(
@@ -161,7 +177,10 @@ class Objective:
         self.params: list[torch.Tensor] = []
         for layer in net.layers:
             self.params += [layer.weight, layer.bias]
-        widths = [n + p, *[layer.weight.shape[0] for layer in net.layers]]
+        self.widths = padded_widths([n + p, *[layer.weight.shape[0] for layer in net.layers]])
+        self.trunk = self._trunk_spec()
+        self.trunk_params = [t for layer in self.trunk.layers for t in layer]
+        self._view_cache: dict[int, tuple[list[torch.Tensor], list[torch.Tensor]]] = {}
         x64, y64 = xhat.to(torch.float64), y.to(torch.float64)
         P64 = torch.as_tensor(P, dtype=torch.float64)
         K = net.K.to(torch.float64)
@@ -183,8 +202,8 @@ class Objective:
             z = torch.cat([x64[lo:hi], y64[lo:hi]], dim=1)
             if not self.structural:  # BC rows: k(x, h(x)); zero by construction if structural
                 z = torch.cat([z, torch.cat([x64[lo:hi], hx[lo:hi]], dim=1)], dim=0)
-            self.chunks.append(ChunkBuffers(z.to(dt).contiguous(), hi - lo, widths, self.m,
-                                      not self.structural))
+            self.chunks.append(ChunkBuffers(z.to(dt).contiguous(), hi - lo, self.widths,
+                                            self.m, not self.structural))
         self.curvature = curvature if (curvature is not None
                                        and curvature.settings.weight > 0) else None
         self.evaluations = 0
@@ -192,14 +211,17 @@ class Objective:
         self._pool: ThreadPoolExecutor | None = None
 
     def _map(self, fn: Callable[[Any], Any], items: list[Any]) -> list[Any]:
-        """fn over items, on `workers` threads (torch releases the GIL inside its ops)."""
+        """fn over items, on `workers` threads (torch releases the GIL inside its ops): the
+        calling thread takes the first item, a pool of workers - 1 threads the others."""
         if self.workers == 1 or len(items) == 1:
             return [fn(item) for item in items]
         if self._pool is None:
-            self._pool = ThreadPoolExecutor(max_workers=self.workers,
+            self._pool = ThreadPoolExecutor(max_workers=self.workers - 1,
                                             thread_name_prefix="certify-train",
                                             initializer=torch.set_num_threads, initargs=(1,))
-        return list(self._pool.map(fn, items))
+        rest = [self._pool.submit(fn, item) for item in items[1:]]
+        first = fn(items[0])
+        return [first, *(f.result() for f in rest)]
 
     def close(self) -> None:
         """Stop the worker threads (if any)."""
@@ -208,19 +230,48 @@ class Objective:
             self._pool = None
 
     # ----- trunk: forward mode with stacked value/tangent rows ---------------------------
+    def _trunk_spec(self) -> GainSpec:
+        """The gain the chunks propagate: `self.spec` itself when no width is padded, else a
+        copy over zero-padded weight buffers that `_load_trunk` fills before each pass."""
+        if self.widths[1:] == [layer.weight.shape[0] for layer in self.net.layers]:
+            return self.spec
+        layers = tuple((torch.zeros(o, i, dtype=W.dtype), torch.zeros(o, dtype=b.dtype))
+                       for (W, b), i, o in zip(self.spec.layers, self.widths, self.widths[1:]))
+        s = self.spec
+        return GainSpec(s.n, s.p, layers, s.activation, s.structure, s.K)
+
+    @torch.no_grad()
+    def _load_trunk(self) -> None:
+        """Copy the network's current weights into the padded trunk (a no-op without one)."""
+        if self.trunk is not self.spec:
+            torch._foreach_copy_(self._views(self.trunk_params), self.params)
+
+    def _views(self, padded: list[torch.Tensor]) -> list[torch.Tensor]:
+        """`_real(padded)`, made once per list of buffers (a chunk's gradients, the trunk);
+        the cache holds the list it was made for, so its id is not reused."""
+        cached = self._view_cache.get(id(padded))
+        if cached is None or cached[0] is not padded:
+            cached = self._view_cache[id(padded)] = (padded, self._real(padded))
+        return cached[1]
+
+    def _real(self, padded: list[torch.Tensor]) -> list[torch.Tensor]:
+        """The blocks of padded tensors (W0, b0, W1, ...) that are the parameters' (views)."""
+        return [t[:p.shape[0], :p.shape[1]] if p.dim() == 2 else t[:p.shape[0]]
+                for t, p in zip(padded, self.params)]
+
     @torch.no_grad()
     def _forward(self, ch: ChunkBuffers) -> tuple[torch.Tensor, torch.Tensor]:
         """N and its first m input derivatives at the chunk's points, by the one propagation
         (`certify.model.gain.propagate`) over the chunk's buffers: value rows [R, out] and
         tangents [m, C, out]."""
-        out = propagate(self.spec, ChunkArithmetic(ch), ch.Z, self.m)
+        out = propagate(self.trunk, ChunkArithmetic(ch), ch.Z, self.m)
         return out.value, out.jac
 
     @torch.no_grad()
     def _backward(self, ch: ChunkBuffers, g_val: torch.Tensor, g_tan: torch.Tensor) -> None:
         """Reverse pass through `_forward`: this chunk's weight gradient into `ch.grads`
         (`ChunkArithmetic.reverse`, beside the forward whose buffers it reads)."""
-        ChunkArithmetic(ch).reverse(self.spec, g_val, g_tan)
+        ChunkArithmetic(ch).reverse(self.trunk, g_val, g_tan)
 
     # ----- loss head: D from the trunk's outputs, the loss, and its gradient ----------
     def _compose(self, val: torch.Tensor, tan: torch.Tensor, with_dy: bool) -> GainValues:
@@ -284,6 +335,7 @@ class Objective:
         fixed order (the result does not depend on the number of workers).
         """
         mu1, mu2 = self.weights.mu1, self.weights.mu2
+        self._load_trunk()
         outs = self._map(self._forward, self.chunks)
         with torch.no_grad():
             val = torch.cat([v[:ch.C] for (v, _), ch in zip(outs, self.chunks)])
@@ -300,13 +352,14 @@ class Objective:
                 jobs.append((ch, g_val, g[1][:, lo:hi]))
                 lo = hi
             self._map(lambda job: self._backward(*job), jobs)
-            with torch.no_grad():
-                for k, prm in enumerate(self.params):  # fixed order: deterministic sums
+            with torch.no_grad():  # the chunks' sums in a fixed order: deterministic
+                for prm in self.params:
                     if prm.grad is None:
                         prm.grad = torch.empty_like(prm)
-                    prm.grad.copy_(self.chunks[0].grads[k])
-                    for ch in self.chunks[1:]:
-                        prm.grad.add_(ch.grads[k])
+                grads = [prm.grad for prm in self.params]
+                torch._foreach_copy_(grads, self._views(self.chunks[0].grads))
+                for ch in self.chunks[1:]:
+                    torch._foreach_add_(grads, self._views(ch.grads))
         curv = self._curvature(grad)
         self.evaluations += 1
         mpdi_mean, bc_mean = mpdi / self.N, bc / self.N

@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import numpy as np
 import torch
 
 try:  # torch's line search (a plain function; importing it does not import dynamo)
@@ -91,6 +92,14 @@ def run_adam(objective: _Objective, params: Sequence[torch.Tensor], *, iters: in
 # ----- L-BFGS ----------------------------------------------------------------------------
 
 
+def _scalar(value: Any, like: torch.Tensor | None = None) -> np.generic:
+    """A 0-dim tensor (or a number, in the dtype of `like`) as a numpy scalar of its dtype:
+    arithmetic on it rounds as on the tensor (IEEE, correctly rounded, same precision)."""
+    if isinstance(value, torch.Tensor):
+        return value.numpy()[()]
+    return np.dtype(str(like.dtype).removeprefix("torch.")).type(value)
+
+
 class LBFGS:
     """torch.optim.LBFGS with the strong Wolfe line search, restated (one `run` = one torch
     `step`: up to `max_iter` iterations and `max_eval` evaluations)."""
@@ -163,17 +172,19 @@ class LBFGS:
                         ro.pop(0)
                     old_dirs.append(y)
                     old_stps.append(s)
-                    ro.append(1.0 / ys)
-                    H_diag = ys / y.dot(y)
+                    ro.append(_scalar(1.0, ys) / _scalar(ys))
+                    H_diag = _scalar(ys) / _scalar(y.dot(y))
                 num_old = len(old_dirs)
                 q = flat_grad.neg()
+                # the two-loop recursion: the scalars in the vectors' precision on the host
+                # (numpy), the same roundings as torch's 0-dim tensors at a third of the calls
                 for i in range(num_old - 1, -1, -1):
-                    al[i] = old_stps[i].dot(q) * ro[i]
-                    q.add_(old_dirs[i], alpha=-al[i])
-                d = r = torch.mul(q, H_diag)
+                    al[i] = _scalar(old_stps[i].dot(q)) * ro[i]
+                    q.add_(old_dirs[i], alpha=float(-al[i]))
+                d = r = torch.mul(q, float(H_diag))
                 for i in range(num_old):
-                    be_i = old_dirs[i].dot(r) * ro[i]
-                    r.add_(old_stps[i], alpha=al[i] - be_i)
+                    be_i = _scalar(old_dirs[i].dot(r)) * ro[i]
+                    r.add_(old_stps[i], alpha=float(al[i] - be_i))
             if prev_flat_grad is None:
                 prev_flat_grad = flat_grad.clone(memory_format=torch.contiguous_format)
             else:

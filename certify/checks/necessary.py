@@ -8,8 +8,9 @@ in ker dh(xhat), v^T D v = v^T (He{P Jf} + 2 lam P) v: no k in it. So
 must be <= 0 on {xhat in X : h(xhat) in Y} for ANY gain to pass MPDI and BC together. A
 single point with q > 0 proves that no gain can (VIOLATED, with the witness); PROVED needs a
 sound upper bound <= 0 (vertex enclosures of Jf on sub-boxes, then the interval prover).
-Also reported: the rate cap for gains with exact BC and, for linear h, the residual eps_bar
-that any gain satisfying the MPDI everywhere must pay (chords along ker C).
+Also reported: the rate cap for gains with exact BC and, for linear h where some q > 0 was
+found, the residual eps_bar that any gain satisfying the MPDI everywhere must pay (chords
+along ker C).
 
 This module is the check: it runs the pieces and says what the result means. The quantities,
 the search on the manifold and the sound bound are in `certify.design.manifold`.
@@ -47,6 +48,13 @@ from certify.spec.system import System, validate_metric
 _F64 = torch.float64
 _NULL_PROGRESS = NullProgress()
 
+#: the result's message and explanation when every state is measured (ker dh = {0})
+VACUOUS = ("vacuous: all states are measured (dh has full column rank), so ker dh = {0} and "
+           "the condition constrains no gain")
+VACUOUS_EXPLANATION = ("The output determines every direction of the state, so the boundary "
+                       "condition puts no constraint on the contraction condition: this "
+                       "pre-flight cannot fail (there is no q to bound).")
+
 
 def _fmt(v: list[float] | np.ndarray | torch.Tensor) -> str:
     return "(" + ", ".join(f"{float(a):.4g}" for a in v) + ")"
@@ -77,14 +85,14 @@ def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
     if linear and Zn.shape[1] == 0:
         progress.finish(task)
         return NecessaryResult(
-            Status.PROVED, "dh has full column rank: the output sees every direction, the "
-            "kernel condition is empty", -math.inf, -math.inf, None, None, None, None,
-            explanation="The output determines every direction of the state locally, so the "
-            "boundary condition puts no constraint on the contraction condition: this "
-            "pre-flight cannot fail.", seconds=time.perf_counter() - t0)
+            Status.PROVED, VACUOUS, -math.inf, -math.inf, None, None, None, None,
+            explanation=VACUOUS_EXPLANATION, seconds=time.perf_counter() - t0)
     Z = torch.as_tensor(Zn, dtype=_F64) if linear else None
     x = manifold_grid(system, min(grid_points, settings.grid_points))
     x = x[on_manifold(system, x)]
+    if not linear and system.p >= system.n and len(x):
+        progress.finish(task)
+        return _sampled_vacuous(system, Pt, lam, x, t0)
     if len(x) == 0:
         progress.finish(task)
         return NecessaryResult(Status.PROVED, "no point of X has h(x) in Y: the condition is "
@@ -112,7 +120,7 @@ def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
     rate_cap = 0.0 - neg_cap if math.isfinite(neg_cap) else None
     progress.update(task)
     price, chord = None, None
-    if linear:
+    if linear and q_max > 0:  # the price of a violation: none to pay where q <= 0 throughout
         dirs = [Z[:, j] for j in range(Z.shape[1])]
         with torch.no_grad():
             S_w = Z.T @ gain_free_D(system, Pt, lam, xw[None])[0] @ Z
@@ -168,6 +176,28 @@ def check_necessary(system: System, P: np.ndarray | list | None, lam: float,
     )
 
 
+def _sampled_vacuous(system: System, P: torch.Tensor, lam: float, x: torch.Tensor,
+                     t0: float) -> NecessaryResult:
+    """Nonlinear h with p >= n: ker dh = {0} wherever dh has full column rank, and there the
+    condition is vacuous; that rank is only sampled here (the grid x on the manifold), so the
+    answer is UNKNOWN, naming a point where the rank drops if the grid has one."""
+    with torch.no_grad():
+        q = q_values(system, P, lam, x, None)
+    bad = torch.isnan(q)
+    if bool(bad.any()):
+        xb = x[int(torch.nonzero(bad)[0])]
+        msg = (f"dh loses rank at xhat = {_fmt(xb)}: the kernel condition is not vacuous there "
+               "and is not evaluated for a nonlinear h with p >= n")
+    else:
+        msg = (f"dh has full column rank at all {len(x)} sampled points: the condition is "
+               "vacuous there (all states seen by the output), but the rank is not proved "
+               "everywhere")
+    return NecessaryResult(Status.UNKNOWN, msg, -math.inf, None, None, None, None, None,
+                           explanation="With every state direction measured the boundary "
+                           "condition constrains no gain; " + msg + ".",
+                           seconds=time.perf_counter() - t0)
+
+
 def _explain(status: Status, P: np.ndarray, lam: float, q_max: float, xw: torch.Tensor,
              yw: torch.Tensor, rate_cap: float | None, price: float | None,
              upper: float | None, system: System) -> str:
@@ -221,20 +251,25 @@ class NecessaryCheck(Check):
                                progress=context.progress)
 
     def present(self, r: NecessaryResult, certificate: Any) -> Presentation:
+        # q = -inf: no direction hidden from the output, so there is no q (not a number to show)
+        none = "none: every state is measured"
+        q_max = None if r.q_max == -math.inf else r.q_max
+        q_up = None if r.q_upper == -math.inf else r.q_upper
+        no_bound = none if r.q_upper == -math.inf else "not bounded"
         return Presentation(
-            sampled=Quantity("max q found", r.q_max, signed=True, bound="lower"),
-            proved=Quantity("q \u2264 (sound bound)", r.q_upper, "not bounded", signed=True,
+            sampled=Quantity("max q found", q_max, none, signed=True, bound="lower"),
+            proved=Quantity("q \u2264 (sound bound)", q_up, no_bound, signed=True,
                             bound="upper"),
             setting=(Quantity("\u03bb =", certificate.lam),
                      Quantity("P =", certificate.P, sig=3)),
-            numbers=(Quantity("q_max", r.q_max, sig=6, signed=True, bound="lower"),
-                     Quantity("q_upper", r.q_upper, sig=6, signed=True, bound="upper"),
+            numbers=(Quantity("q_max", q_max, none, sig=6, signed=True, bound="lower"),
+                     Quantity("q_upper", q_up, no_bound, sig=6, signed=True, bound="upper"),
                      Quantity("witness", r.witness),
                      Quantity("rate cap", r.rate_cap, sig=6, bound="upper"),
                      Quantity("residual price", r.residual_price, sig=6, bound="lower")),
             facts=(Quantity("Status", r.status.value),
-                   Quantity("max q found", r.q_max, sig=6, signed=True, bound="lower"),
-                   Quantity("Sound bound q \u2264", r.q_upper, "not bounded", sig=6,
+                   Quantity("max q found", q_max, none, sig=6, signed=True, bound="lower"),
+                   Quantity("Sound bound q \u2264", q_up, no_bound, sig=6,
                             signed=True, bound="upper"),
                    Quantity("Witness x\u0302", r.witness),
                    Quantity("Witness y = h(x\u0302)", r.witness_y),

@@ -65,11 +65,21 @@ def q_values(system: System, P: torch.Tensor, lam: float, x: torch.Tensor,
 
     Nonlinear h: with the projector Pi onto ker dh(x), q = lam_max(Pi S Pi - c (I - Pi)),
     c > ||S||, which equals the kernel-restricted lam_max; NaN where dh loses rank.
+    Where ker dh = {0} (every state direction measured: Z with no columns, or p >= n and
+    dh of full column rank) q is -inf, the largest value over no direction: the condition
+    is vacuous there (and NaN where a nonlinear dh with p >= n loses rank).
     """
     S = gain_free_D(system, P, lam, x)
     if Z is not None:
+        if Z.shape[1] == 0:  # every direction measured: the kernel is {0}, q = max of nothing
+            return torch.full((x.shape[0],), -math.inf, dtype=_F64)
         return lam_max(Z.T @ S @ Z)
     Jh = system.jac_h(x)  # [B, p, n]
+    if system.p >= system.n:  # ker dh = {0} where dh has full column rank, else unknown here
+        sv = torch.linalg.svdvals(Jh)
+        full = sv[:, system.n - 1] > 1e-9 * (1.0 + sv[:, 0])
+        return torch.where(full, torch.full_like(sv[:, 0], -math.inf),
+                           torch.full_like(sv[:, 0], math.nan))
     G = Jh @ Jh.transpose(-1, -2)
     n = system.n
     eye = torch.eye(n, dtype=_F64)

@@ -187,6 +187,13 @@ def unobservable_witness(system: System, lam: float, x: torch.Tensor, C: np.ndar
     smallest singular value of [Jf - mu I; C]. Returns (x, mu, sigma) at the smallest such
     sigma if it is ~0 relative to ||Jf|| + ||C|| (1e-9), else None.
     """
+    found = _pbh(system, lam, x, C)
+    return None if found is None else found[0]
+
+
+def _pbh(system: System, lam: float, x: torch.Tensor, C: np.ndarray
+         ) -> tuple[tuple[np.ndarray, complex, float], np.ndarray] | None:
+    """`unobservable_witness`'s answer and the mask [B] of every x that is one (numerically)."""
     J = system.jac_f(x).numpy()
     n = J.shape[-1]
     mu = np.linalg.eigvals(J)  # [B, n]
@@ -205,7 +212,47 @@ def unobservable_witness(system: System, lam: float, x: torch.Tensor, C: np.ndar
     dist = torch.linalg.vector_norm(x - centre, dim=1).numpy()
     i = int(np.argmin(np.where(hit, dist, np.inf)))
     k = int(np.argmin(smins[i]))
-    return x[i].numpy().copy(), complex(mu[i, k]), float(smins[i, k])
+    return (x[i].numpy().copy(), complex(mu[i, k]), float(smins[i, k])), hit
+
+
+def undetectable_at_every_rate(system: System, grid_points: int = 40_000) -> str | None:
+    """Why no observer with an exact boundary condition contracts in ANY constant metric at
+    ANY rate > 0 on this box, or None when no such reason is found (linear h only).
+
+    The reason is a point of {x in X : h(x) in Y} where Jf has a real mode mu >= 0 whose
+    eigenvector v the output does not see (C v = 0): there v^T (He{P Jf} + 2 lam P) v =
+    (mu + 2 lam) v^T P v > 0 for every P > 0 and lam > 0, so the kernel condition (METHOD
+    §3.5) fails whatever P, lam and gain (reverse Duffing on the line x2 = 0). The point is
+    found by the PBH test on a grid and confirmed exactly (`invisible_mode_certified` at
+    lam = 0); when the grid points found are those with one coordinate at one value, the
+    text names that set.
+    """
+    if not system.h_is_linear:
+        return None
+    C = output_matrix(system)
+    if kernel_basis(C).shape[1] == 0:
+        return None
+    x = _grid(system, grid_points)
+    found = _pbh(system, 0.0, x, C)
+    if found is None:
+        return None
+    (xw, mu, _), hit = found
+    if not invisible_mode_certified(system, C, 0.0, xw, mu):
+        return None
+    xs = x.numpy()
+    # a coordinate value that the grid points found are exactly the grid points of (a line)
+    lines = [j for j in range(system.n)
+             if hit.sum() > 1 and np.array_equal(hit, xs[:, j] == xw[j])]
+    where = them = ""
+    if lines:
+        name, value = system.states[lines[0]], float(xw[lines[0]])
+        where = (f"; the PBH test finds the same at every point of the search grid with "
+                 f"{name} = {value:g} and nowhere else")
+        them = f" the points with {name} = {value:g}"
+    return (f"no observer with an exact boundary condition contracts in any constant metric "
+            f"at any rate > 0 on this box: at xhat = {_fmt(xw)} the linearisation has the mode "
+            f"{mu.real:.4g}, which the output does not see (C v = 0 for its eigenvector v: "
+            f"not detectable there){where}; choose a box that excludes{them or ' such points'}")
 
 
 def _fmt(v: np.ndarray | list[float]) -> str:

@@ -145,6 +145,40 @@ def test_objective_value_and_gradient_match_autograd(system3, which, structure, 
         torch.testing.assert_close(got.grad, ref, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("hidden,activation,structure,kind", [
+    ((30, 30, 30), "tanh", "direct", "minors"),  # the paper preset's shape: padded to 32
+    ((16, 8), "tanh", "structural", "eigen"),  # multiples of 8: no padding
+    ((7, 5), "softplus", "direct", "minors"),  # padded units of a nonzero f(0)
+])
+def test_float32_objective_matches_the_float64_autograd_reference(hidden, activation,
+                                                                  structure, kind):
+    """The float32 training path (padded widths, tanh as 2 sigmoid(2x) - 1, the hand-written
+    reverse pass) against plain autograd through `gain_terms` in float64 on the same weights:
+    equal to float32 rounding."""
+    system = load_system("vdp")
+    torch.manual_seed(7)
+    net64 = GainNetwork(2, 1, hidden, structure=structure, activation=activation).double()
+    net64.K.copy_(torch.tensor([[0.5], [-0.25]], dtype=torch.float64))
+    net32 = GainNetwork.from_architecture(net64.architecture())
+    net32.load_state_dict(net64.state_dict())
+    net32 = net32.float().requires_grad_(True)
+    x, y = collocation_points(system, 300, 5)
+    P = torch.tensor([[2.0, 0.3], [0.3, 1.0]], dtype=torch.float64)
+    w = losses.LossWeights(0.7, 1.3, (1.0, 0.1))
+    obj = Objective(system, net32, x, y, lam=1.0, P=P, weights=w, loss=kind, margin=0.1,
+                    chunk_points=128, workers=2)
+    values = obj.evaluate(grad=True)
+    obj.close()
+    total, mpdi, bc = _reference_loss(system, net64, x, y, P, 1.0, w, kind, 0.1)
+    ref_grads = torch.autograd.grad(total, list(net64.parameters()))
+    assert values.total == pytest.approx(total.item(), rel=1e-5)
+    assert values.mpdi == pytest.approx(mpdi.item(), rel=1e-5)
+    assert values.bc == pytest.approx(bc.item(), rel=1e-5, abs=1e-9)
+    for got, ref in zip(obj.params, ref_grads):
+        scale = float(ref.abs().max())
+        torch.testing.assert_close(got.grad.double(), ref, rtol=1e-4, atol=1e-5 * scale)
+
+
 def test_objective_gradient_does_not_depend_on_worker_count():
     system = load_system("vdp")
     cfg = make_config(system, "tiny")

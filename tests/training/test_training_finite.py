@@ -98,8 +98,10 @@ def test_check_finite_names_where_and_what():
 def _stiff_system(scale: float = 1e25):
     """A spec whose Jacobian entry `scale` squares past the training dtype's range in the
     MPDI loss (1e25: float32, 1e200: float64); rates large enough to do that are refused as
-    input (`certify.spec.system.MAX_LAM`)."""
-    return linear_system(A=[[0.0, 1.0], [-scale, 0.0]], C=[[1.0, 0.0]], lam=0.5, name="stiff")
+    input (`certify.spec.system.MAX_LAM`). The damping -2 keeps the pre-flight out of the way
+    (q = -2 + 2 lam < 0 along ker C): what fails is the arithmetic, not the design."""
+    return linear_system(A=[[0.0, 1.0], [-scale, -2.0]], C=[[1.0, 0.0]], lam=0.5,
+                         name="stiff")
 
 
 def test_plain_training_stops_on_overflow_naming_the_iteration():
@@ -163,6 +165,11 @@ def test_cli_train_overflow_exits_2_with_one_line_and_no_checkpoint(tmp_path):
     assert not out.exists()
 
 
+#: a metric that passes vdp's pre-flight at lam 2.5: q = P21 + P22 (1 - x1^2 + 2 lam) <= -0.6
+#: (P = I fails it: q = 6 at the origin, and `certify train` stops before training)
+VDP_METRIC = "[[146,-12],[-12,1.9]]"
+
+
 def _small_certified(monkeypatch, **kw):
     small = dataclasses.replace(certified.DEFAULT_CEGIS, rounds=1, grid_points=500,
                                 adversarial_starts=2, adversarial_steps=2, proof_boxes=200,
@@ -178,7 +185,7 @@ def test_cli_certified_with_a_metric_trains_from_the_zero_gain(monkeypatch, caps
     _small_certified(monkeypatch)
     out = tmp_path / "m.ckpt"
     code, _, err = run_cli(capsys, "train", "vdp", "--preset", "certified", "--metric",
-                           "[[1,0],[0,1]]", "--points", "64", "--hidden", "6",
+                           VDP_METRIC, "--points", "64", "--hidden", "6",
                            "--adam-iters", "5", "--curvature-weight", "0", "-o", str(out),
                            "--quiet")
     assert code in (0, 1), err
@@ -208,7 +215,7 @@ def test_cli_nan_gradient_is_an_internal_error_exit_4(monkeypatch, capsys, tmp_p
     monkeypatch.setattr(cegis_objective, "power_mean_norm", _old_penalty)
     out = tmp_path / "m.ckpt"
     code, _, err = run_cli(capsys, "train", "vdp", "--preset", "certified", "--metric",
-                           "[[1,0],[0,1]]", "--points", "64", "--hidden", "6",
+                           VDP_METRIC, "--points", "64", "--hidden", "6",
                            "--adam-iters", "5", "--curvature-weight", "0", "-o", str(out),
                            "--quiet")
     assert code == 4
