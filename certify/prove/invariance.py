@@ -376,15 +376,27 @@ def prove_sublevel(system: Any, region: Region, X: np.ndarray, budget: int) -> S
                ) -> tuple[torch.Tensor, torch.Tensor]:
         speed = vdot(Interval(lo, hi))[3]
         # a corner with V <= c and one with V > c: the level set crosses the piece
-        corners = torch.stack([torch.where(torch.tensor([(k >> j) & 1 for j in range(n)],
+        k = 2 ** min(n, 4)
+        corners = torch.stack([torch.where(torch.tensor([(i >> j) & 1 for j in range(n)],
                                                         dtype=torch.bool), hi, lo)
-                               for k in range(2 ** min(n, 4))], 1)  # [B, K, n]
+                               for i in range(k)], 1)  # [B, K, n]
         flat = corners.reshape(-1, n)
         Vc = _expr_enclosure([region.V], region.symbols, Interval(flat, flat))[0]
-        inside = (Vc.hi <= c).reshape(lo.shape[0], -1).any(1)
-        outside = (Vc.lo > c).reshape(lo.shape[0], -1).any(1)
-        low = torch.where(inside & outside, speed.lo, torch.full_like(speed.lo, -math.inf))
-        return low, 0.5 * (lo + hi)
+        inside = (Vc.hi <= c).reshape(-1, k)
+        outside = (Vc.lo > c).reshape(-1, k)
+        crossed = inside.any(1) & outside.any(1)
+        low = torch.where(crossed, speed.lo, torch.full_like(speed.lo, -math.inf))
+        # the point shown: where V = c on the segment between the two corners (float
+        # bisection, for the message; the proof is the piece)
+        rows = torch.arange(lo.shape[0])
+        a = corners[rows, torch.argmax(inside.to(torch.int8), 1)]
+        b = corners[rows, torch.argmax(outside.to(torch.int8), 1)]
+        for _ in range(30):
+            m = 0.5 * (a + b)
+            below = _expr_enclosure([region.V], region.symbols, Interval(m, m))[0].mid() <= c
+            a = torch.where(below[:, None], m, a)
+            b = torch.where(below[:, None], b, m)
+        return low, 0.5 * (a + b)
 
     Xt = torch.as_tensor(X, dtype=torch.float64)
     return branch_and_bound(upper, refute, Xt[None, :, 0].clone(), Xt[None, :, 1].clone(),
