@@ -83,10 +83,8 @@ def check_invariance(system: Any, *, budget: int = DEFAULTS.invariance_boxes,
     elif attractor.note:
         where = attractor.note
 
-    if system.invariance is not None:
-        tries = [(system.invariance, "given by the spec")]
-    else:
-        tries = inv.candidates(system, attractor, X)
+    tries = ([(system.invariance, "given by the spec")] if system.invariance is not None
+             else inv.candidates(system, attractor, X))
     tried: list[dict] = []
     used, proof = 0, None
     chosen = None

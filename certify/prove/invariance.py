@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import math
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -817,20 +817,18 @@ def polygon_region(vertices: np.ndarray) -> Region | None:
 
 
 def candidates(system: Any, attractor: Attractor, X: np.ndarray
-               ) -> list[tuple[Region, str]]:
-    """Regions to try around the attractor, most useful first, each with a word on how it
-    was made."""
-    out: list[tuple[Region, str]] = []
+               ) -> Iterator[tuple[Region, str]]:
+    """Regions to try around the attractor, most useful first (made one at a time, as the
+    caller asks), each with a word on how it was made."""
     if attractor.kind == "equilibrium" and attractor.point is not None:
         for frac in ELLIPSE_LEVELS:
             r = ellipse_region(system, attractor.point, X, frac)
             if r is not None:
-                out.append((r, f"Lyapunov ellipse at {frac:g} of the largest level in X"))
+                yield r, f"Lyapunov ellipse at {frac:g} of the largest level in X"
     elif attractor.kind == "cycle" and attractor.orbit is not None:
         for crossing in CROSSING:
             for edges in POLYGON_EDGES:
                 v = cycle_polygon(system, attractor.orbit, edges, crossing)
                 r = None if v is None else polygon_region(v)
                 if r is not None:
-                    out.append((r, f"polygon of {edges} edges around the cycle"))
-    return out
+                    yield r, f"polygon of {edges} edges around the cycle"

@@ -209,7 +209,7 @@ def test_the_van_der_pol_cycle_gets_a_proved_polygon_around_it():
     att = inv.locate_attractor(system, system.X, _simulate(system))
     assert att.kind == "cycle"
     assert np.allclose(np.abs(att.box).max(1), [2.0086, 2.6784], atol=2e-3)
-    region, how = inv.candidates(system, att, system.X)[0]
+    region, how = next(inv.candidates(system, att, system.X))
     assert region.kind == "polygon" and len(region.vertices) == inv.POLYGON_EDGES[0]
     proof = inv.prove_region(system, region, system.X, BUDGET)
     assert proof.status == Status.PROVED, proof.message
@@ -224,7 +224,7 @@ def test_an_equilibrium_gets_a_proved_lyapunov_ellipse():
     system = linear_system(A, np.array([[1.0, 0.0]]), X=np.array([[-1.0, 1.0], [-2.0, 2.0]]))
     att = inv.locate_attractor(system, system.X, _simulate(system))
     assert att.kind == "equilibrium" and np.abs(att.point).max() < 1e-9
-    region, _ = inv.candidates(system, att, system.X)[0]
+    region, _ = next(inv.candidates(system, att, system.X))
     proof = inv.prove_region(system, region, system.X, BUDGET)
     assert proof.status == Status.PROVED
     assert np.all(proof.hull[:, 0] > system.X[:, 0]) and np.all(proof.hull[:, 1] < system.X[:, 1])
