@@ -255,6 +255,14 @@ def _message(cert: Certificate, name: str) -> str:
     return "" if r is None else r.message
 
 
+def _check_section(cert: Certificate, name: str, short: str, text: str) -> Section:
+    """The section of check `name`: its title, status, message, `text` and its facts."""
+    sec = Section(name, cert.title(name), short, _status(cert, name), _message(cert, name))
+    sec.paragraphs.append(text)
+    sec.facts = check_facts(cert, name)
+    return sec
+
+
 def _without_result(sec: Section, cert: Certificate, name: str, empty: str) -> None:
     """A section whose check has no result: why (ERROR, not applicable) or `empty`."""
     if name in cert.checks:
@@ -357,17 +365,10 @@ def sections(cert: Certificate) -> list[Section]:
     out.append(sec)
 
     if "dissipation" in cert.checks:
-        sec = Section("dissipation", cert.title("dissipation"), "Dissipation",
-                      _status(cert, "dissipation"), _message(cert, "dissipation"))
-        sec.paragraphs.append(DISSIPATION_TEXT)
-        sec.facts = check_facts(cert, "dissipation")
-        out.append(sec)
+        out.append(_check_section(cert, "dissipation", "Dissipation", DISSIPATION_TEXT))
 
     if "metric_bound" in cert.checks:
-        sec = Section("metric_bound", cert.title("metric_bound"), "Metric M(x)",
-                      _status(cert, "metric_bound"), _message(cert, "metric_bound"))
-        sec.paragraphs.append(METRIC_TEXT)
-        sec.facts = check_facts(cert, "metric_bound")
+        sec = _check_section(cert, "metric_bound", "Metric M(x)", METRIC_TEXT)
         mb = result(cert, "metric_bound")
         if mb is not None and mb.stages:
             sec.tables.append(Table(
@@ -381,10 +382,7 @@ def sections(cert: Certificate) -> list[Section]:
         out.append(sec)
 
     if "invariance" in cert.checks:
-        sec = Section("invariance", cert.title("invariance"), "Invariance",
-                      _status(cert, "invariance"), _message(cert, "invariance"))
-        sec.paragraphs.append(INVARIANCE_TEXT)
-        sec.facts = check_facts(cert, "invariance")
+        sec = _check_section(cert, "invariance", "Invariance", INVARIANCE_TEXT)
         inv = result(cert, "invariance")
         if inv is not None and inv.candidates:
             sec.tables.append(Table(["Region", "How it was made", "Status", "Finding"],
