@@ -248,6 +248,30 @@ def linear_terms(pts: DesignPoints, K: np.ndarray) -> tuple[np.ndarray, np.ndarr
                           np.asarray(K, dtype=np.float64)[None])
 
 
+def design_constant_metric(system: System, K: np.ndarray, *, alphas: np.ndarray | None = None,
+                           per_axis: int | None = None
+                           ) -> tuple[np.ndarray, float, float] | None:
+    """The constant metric P >= I of the dissipation inequality over X x Y for the linear gain
+    k = K (w - h(x)) (its matrix does not depend on w: the grid's states suffice), with the
+    rate alpha of a scan (geometric, then a local one around the best) that minimises
+    mu / alpha: (P, alpha, mu), None when no rate is feasible. A candidate: the dissipation
+    check proves it."""
+    pts = design_points(system, 0.0, per_axis=per_axis, offsets=1)
+    F, J, B = linear_terms(pts, K)
+    zero = np.zeros((1, system.n), dtype=np.int64)
+
+    def solve(a: float):
+        return metric_step(pts, zero, F, J, B, a)
+
+    grid = np.geomspace(0.2, 8.0, 9) if alphas is None else np.asarray(alphas, dtype=float)
+    best = _best_alpha(solve, grid)
+    if best is None:
+        return None
+    local = _best_alpha(solve, best[0] * np.array([0.8, 0.9, 1.0, 1.12, 1.25]))
+    alpha, (metric, mu), _ = local if local is not None else best
+    return metric.coefficients[0], alpha, mu
+
+
 @dataclass
 class MetricDesign:
     """A designed metric and gain schedule (`schedule` exponents [J, n], `K` coefficients
