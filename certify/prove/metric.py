@@ -85,12 +85,13 @@ _F64 = torch.float64
 #: the box budget of the stages (`metric_boxes`), and of each constant of the metric
 DEFAULT_BOXES = DEFAULTS.metric_boxes
 SIDE_BOXES = 20_000
-#: the growth of the sampled noise gain the prover is asked to prove, in turn
-GROWTH = (1.03, 1.1, 1.3)
+#: the growth of the sampled noise gain the prover is asked to prove, in turn (the samples
+#: cover the tube's edges and the faces of X, where (*) is tightest, so the first is small)
+GROWTH = (1.005, 1.02, 1.1)
 #: the rate proved is the slowest whose sampled bound is within ROOM of the best: near the
 #: optimum the bound is flat in alpha, and a slower rate leaves (*) a margin where the
 #: samples did not look
-ROOM = 1.02
+ROOM = 1.005
 #: the entry level of the second stage: the first stage's ultimate V times this squared
 ENTRY = 1.1
 #: rates scanned (geometric, up to the fastest sampled rate), golden-section steps after
@@ -571,6 +572,14 @@ MAX_STAGES = 3
 SHRINK = 0.97
 
 
+def _pick(cands: list[dict]) -> dict | None:
+    """The slowest candidate within ROOM of the best (None: none)."""
+    if not cands:
+        return None
+    return min((c for c in cands if c["bound"] <= ROOM * cands[0]["bound"]),
+               key=lambda c: c["alpha"])
+
+
 def _prove_on_tube(system: System, net: GainNetwork, metric: PolyMetric, vbar: float,
                    tau: float, boxes: int, samples: int, seed: int, tried: list[dict]
                    ) -> tuple[float, float, int] | tuple[None, None, int]:
@@ -580,14 +589,12 @@ def _prove_on_tube(system: System, net: GainNetwork, metric: PolyMetric, vbar: f
     used = 0
     for grow in GROWTH:
         for _ in range(3):
-            cands = plan(terms, vbar)
-            if cands:
-                terms = sharpen(system, net, metric, terms, domain, cands[0]["alpha"])
-                cands = plan(terms, vbar)
-            if not cands or used >= boxes:
+            cand = _pick(plan(terms, vbar))
+            if cand is not None:
+                terms = sharpen(system, net, metric, terms, domain, cand["alpha"])
+                cand = _pick(plan(terms, vbar))
+            if cand is None or used >= boxes:
                 return None, None, used
-            cand = min((c for c in cands if c["bound"] <= ROOM * cands[0]["bound"]),
-                       key=lambda c: c["alpha"])
             mu = cand["mu"] * grow
             out = prove_inequality(system, net, metric, cand["alpha"], mu, domain,
                                    max_boxes=boxes - used)
