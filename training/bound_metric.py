@@ -88,7 +88,7 @@ class MetricSettings:
 @dataclass
 class MetricCandidate:
     """A gain with a metric M(x), its first stage (P, lam) and what `certify.verify` proved
-    (`certified`: `training.bound.certified_bound`'s dict)."""
+    (`certified`: `training.proved.certified_bound`'s dict)."""
 
     kind: str  # "linear" or "learned"
     degree: int
@@ -155,7 +155,7 @@ def design_linear_metric(system: System, K0: np.ndarray, *, vbar: float, hidden:
     """The linear gain with M(x) whose certificate proves the smallest bound (module doc,
     item 1), starting from the linear gain K0 [n, p]; None when no design gave a proved
     bound. `tried` collects every candidate's record."""
-    from training.bound import certified_bound
+    from training.proved import certified_bound
 
     ms = settings or MetricSettings()
     say = _say(log)
@@ -263,9 +263,9 @@ def schedule_targets(schedule: np.ndarray, coeffs: np.ndarray, x: torch.Tensor
                      ) -> tuple[torch.Tensor, torch.Tensor]:
     """K(x) - K(0)'s constant part removed: (values [N, n, p], x-derivatives [N, n, p, n])
     of sum_j x^(b_j) K_j over the non-constant monomials, at states x [N, n]."""
-    from certify.design.metric_poly import _features
+    from certify.design.metric_poly import monomial_features
 
-    psi, dpsi = _features(np.asarray(schedule), x.detach().numpy())
+    psi, dpsi = monomial_features(np.asarray(schedule), x.detach().numpy())
     keep = np.asarray(schedule).sum(1) > 0
     val = np.einsum("Nj,jab->Nab", psi[:, keep], coeffs[keep])
     der = np.einsum("Nji,jab->Nabi", dpsi[:, keep], coeffs[keep])
@@ -301,12 +301,12 @@ def learn_metric_gain(system: System, base: MetricCandidate, *, vbar: float,
                       log: Any = None) -> LearnedMetricAttempt:
     """The learned gain against the metric certificate of `base` (a proved linear gain with
     M(x)), module doc item 2; its `candidate` is set only when its proved bound beats
-    base's by more than `training.bound.BEAT_TOLERANCE`."""
+    base's by more than `training.proved.BEAT_TOLERANCE`."""
     from certify.enclose.metric import metric_congruence, point_matrix
     from certify.prove import metric as pm
     from certify.results import Status
-    from training.bound import BEAT_TOLERANCE, certified_bound
     from training.collocation import collocation_points
+    from training.proved import BEAT_TOLERANCE, certified_bound
 
     t0 = time.perf_counter()
     ms = settings or MetricSettings()
@@ -404,6 +404,6 @@ def learn_metric_gain(system: System, base: MetricCandidate, *, vbar: float,
 
 
 def _frozen(net: GainNetwork) -> GainNetwork:
-    from training.bound import copy_network
+    from training.proved import copy_network
 
     return copy_network(net).eval().requires_grad_(False)
