@@ -461,9 +461,13 @@ def run_bound(args: argparse.Namespace, system: System, config: TrainConfig,
             print(msg, file=out, flush=True)
 
     how = (f"rate fixed at lam {rate:g}" if rate is not None else
-           f"rate >= {min_rate:g}" if min_rate is not None else "rate free")
+           f"rate >= {min_rate:g}" if min_rate is not None else
+           "rate free; then a metric M(x) designed for it, kept when its certificate is better")
     learn = (f"then a learned attempt ({LearnSettings.rounds} rounds x {config.adam_iters} "
-             f"Adam steps, hidden {','.join(map(str, config.hidden))})"
+             f"Adam steps, hidden {','.join(map(str, config.hidden))}"
+             + ("" if rate is not None or min_rate is not None else
+                f"; against M(x): {MetricSettings.rounds} rounds x {MetricSettings.steps} "
+                f"steps, hidden {','.join(map(str, MetricSettings.hidden))}") + ")"
              if config.adam_iters > 0 else "no learned attempt (--adam-iters 0)")
     log(f"training {system.name} with preset bound: linear observer designed for the error "
         f"bound ({how}), {learn}, seed {config.seed}")
