@@ -230,7 +230,9 @@ def evaluate(path: Path, settings: VerifySettings) -> dict[str, Any]:
         design = (tr.get("metric") or {}).get("returned") or {}
         per = design.get("design_per_unit_noise")
         row["designed_bound"] = None if per is None else VBAR * per
-        row["learned_outcome"] = ((tr.get("metric") or {}).get("learned") or {}).get("message")
+        outcome = ((tr.get("metric") or {}).get("learned") or {}).get("message")
+        if outcome is not None:  # else the design step's own (a checkpoint written alone)
+            row["learned_outcome"] = outcome
     elif tr.get("preset") == "bound":
         per = tr.get("bound_per_unit_noise")
         row["designed_bound"] = None if per is None else VBAR * per
