@@ -31,7 +31,7 @@ from training.objective import LossValues, Objective, check_finite
 from training.optim import PhaseStats, run_adam, run_lbfgs
 from training.presets import TrainConfig, check_for_system, make_config
 
-TERMS = ("total", "mpdi", "bc", "curv")  # the loss terms recorded per evaluation
+TERMS = ("total", "mpdi", "bc", "curv", "verifier")  # the loss terms recorded per evaluation
 
 
 # ----- the training run ----------------------------------------------------------------
@@ -127,8 +127,8 @@ def _train(system: System, config: TrainConfig | None, *, progress: Progress | N
         def record(values: LossValues, iteration: int) -> None:
             check_finite(values.as_dict(), objective.params, f"{phase} iteration {iteration}")
             cols["iteration"].append(iteration)
-            for key, v in values.as_dict().items():
-                cols[key].append(v)
+            for key in TERMS:
+                cols[key].append(getattr(values, key))
         return record
 
     stats: dict[str, PhaseStats] = {}
