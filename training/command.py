@@ -74,7 +74,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--verifier-weight", type=float, default=None,
                         dest="verifier_weight",
                         help="weight of the training term on the prover's box bound over "
-                             "sampled sub-boxes (preset certified; default 0: off)")
+                             "sampled sub-boxes (presets that train a network; default 0: off)")
     parser.add_argument("--min-rate", type=float, default=None, dest="min_rate",
                         help="preset bound only: the smallest contraction rate lam the design "
                              "may choose (default: the rate is free; --lam fixes it)")

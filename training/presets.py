@@ -72,7 +72,7 @@ class TrainConfig:
     # fewer sub-boxes. 0 (off) in `paper`, which reproduces the source method as published.
     curvature_weight: float = 0.0
     curvature_radius: float = 0.02
-    # training for the verifier (`training.verifier`, counterexample-guided presets): weight *
+    # training for the verifier (`training.verifier`; every preset that trains a network): weight *
     # the surrogate of the prover's box bound on sampled sub-boxes; 0 (off) in `paper`
     verifier_weight: float = 0.0
 

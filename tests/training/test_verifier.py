@@ -25,6 +25,7 @@ from training.collocation import collocation_points
 from training.command import _config_from_args, add_train_arguments
 from training.optim import Adam
 from training.presets import make_config
+from training.train import train
 from training.verifier import VerifierPenalty, VerifierSettings, sample_boxes
 
 K_VDP = torch.tensor([[14.0], [90.0]], dtype=torch.float64)
@@ -139,3 +140,15 @@ def test_weight_zero_is_off_and_the_flags_reach_the_settings():
         make_config(system, "certified", verifier_weight=-1.0)
     with pytest.raises(ValueError, match="radii"):
         VerifierSettings(radii=(0.7,))
+
+
+def test_plain_training_records_the_term_when_on():
+    system = load_system("vdp")
+    cfg = make_config(system, "tiny", adam_iters=4, lbfgs_iters=0, points=64, hidden=(6,),
+                      verifier_weight=1e-2)
+    res = train(system, cfg)
+    assert len(res.history["adam"]["verifier"]) == 4
+    assert res.history["adam"]["verifier"][0] > 0 and res.final["verifier"] > 0
+    off = train(system, make_config(system, "tiny", adam_iters=4, lbfgs_iters=0, points=64,
+                                    hidden=(6,)))
+    assert off.final["verifier"] == 0.0
