@@ -3,7 +3,8 @@
 `cegis` trains a gain network for D <= 0 over X x Y at rate lam in metric P. Each round:
 Adam on the collocation set with the objective of `training.cegis_objective`
 (`CertObjective`: eigenvalue loss with margin, ||dk/dy|| penalty, optional curvature term,
-fresh seeded curvature pairs each round); then the counterexample search of
+fresh seeded curvature pairs each round, optional box-bound term of `training.verifier` on
+fresh seeded boxes each round); then the counterexample search of
 `search_round` below (falsifier, then the sound prover with a box budget), whose
 counterexamples and unproved-leaf points join the collocation set (any number of states and
 outputs). It stops at the first PROVED round (or after `improve_rounds` more) or when the
@@ -41,6 +42,7 @@ from training.collocation import collocation_points
 from training.curvature import CurvaturePenalty, CurvatureSettings
 from training.objective import check_finite
 from training.optim import Adam
+from training.verifier import VerifierPenalty, VerifierSettings
 
 Log = Callable[[str], None]
 
@@ -77,10 +79,12 @@ class CegisSettings:
     curv_weight: float = 0.0  # weight of the Jacobian-variation term C (0: off)
     curv_radius: float = 0.02  # its pair distance, as a fraction of each box side
     curv_pairs: int = 256  # its pairs per round
+    verifier_weight: float = 0.0  # weight of the box-bound term V (`training.verifier`; 0: off)
+    verifier_margin: float = 0.05  # the level -margin its boxes are held to
 
     def __post_init__(self) -> None:
         for name in ("margin", "mpdi_weight", "rate_slack", "lip_weight", "lr", "jitter_scale",
-                     "curv_weight",
+                     "curv_weight", "verifier_weight", "verifier_margin",
                      "proof_seconds", "budget_seconds", "improve_proof_seconds"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
@@ -114,6 +118,7 @@ class RoundRecord:
     proof_seconds: float
     proof_upper: float | None = None
     curv: float = 0.0  # the Jacobian-variation term C at the end of the round's training
+    verifier: float = 0.0  # the box-bound term V at the end of the round's training
 
     def line(self) -> str:
         vol = "-" if self.proved_volume is None else f"{self.proved_volume:.4f}"
@@ -122,7 +127,8 @@ class RoundRecord:
                 f"{self.status}  proved volume {vol}  points {self.points} (+{self.added})  "
                 f"train {self.train_seconds:.1f} s  falsify {self.falsify_seconds:.1f} s  "
                 f"prove {self.proof_seconds:.1f} s"
-                + (f"  curv {self.curv:.4g}" if self.curv else ""))
+                + (f"  curv {self.curv:.4g}" if self.curv else "")
+                + (f"  verifier {self.verifier:.4g}" if self.verifier else ""))
 
 
 @dataclass
@@ -233,10 +239,14 @@ def _cegis(system: System, network: GainNetwork, P: np.ndarray, lam: float,
         curvature = None if cs.curv_weight <= 0 else CurvaturePenalty(
             system, CurvatureSettings(weight=cs.curv_weight, radius=cs.curv_radius,
                                       pairs=cs.curv_pairs), cs.seed + 7919 * rnd)
+        verifier = None if cs.verifier_weight <= 0 else VerifierPenalty(
+            system, VerifierSettings(weight=cs.verifier_weight, margin=cs.verifier_margin),
+            cs.seed + 6271 * rnd, lam=lam + cs.rate_slack, P=P_t, K=K64,
+            dtype=torch.float32)
         obj = CertObjective(system, net32, xhat, y, lam=lam + cs.rate_slack, P=P_t,
                             margin=cs.margin, lip_weight=cs.lip_weight,
                             lip_power=cs.lip_power, mpdi_weight=cs.mpdi_weight,
-                            curvature=curvature)
+                            curvature=curvature, verifier=verifier)
         try:
             for step in range(cs.iters_per_round):
                 values = obj.evaluate(grad=True)
@@ -264,7 +274,7 @@ def _cegis(system: System, network: GainNetwork, P: np.ndarray, lam: float,
                           points=int(obj.N), added=int(added.shape[0]), train_seconds=t_train,
                           falsify_seconds=found.falsify_seconds,
                           proof_seconds=found.proof_seconds, proof_upper=found.proof_upper,
-                          curv=values.curv)
+                          curv=values.curv, verifier=values.verifier)
         rounds.append(rec)
         say(rec.line())
         last_net, last_proof, last_status = net64, proof, status

@@ -3,13 +3,14 @@
 It is the eigenvalue loss in the metric P with a margin,
 
     L = mean_j relu(lam_max(D_j) + margin)  +  lip_weight * (mean_j ||dk/dy_j||_F^(2q))^(1/(2q))
-        + curv_weight * C
+        + curv_weight * C + verifier_weight * V
 
 with D = He{P (Jf + dk/dxhat)} + 2 (lam + rate_slack) P. The second term is a mild, sup-leaning
 (q > 1) penalty on the gain's sensitivity to y, the constant L that multiplies the noise in
 the error bound sqrt(kappa(P)) (eps_bar + L vbar) / (2 lam). C (`training.curvature`) is the
 verification-aware term: the variation of dk/dxhat over pairs of points at a small distance,
-which keeps the network cheap to prove. It reuses the fast float32 forward-mode trunk of
+which keeps the network cheap to prove, and V (`training.verifier`) the surrogate of the
+prover's own box bound on sampled sub-boxes. It reuses the fast float32 forward-mode trunk of
 `training.objective.Objective` (the one propagation `certify.model.gain.propagate` over chunk
 buffers) with the y-columns added to the forward tangents; the head forms dk/dxhat and dk/dy
 by `certify.model.gain.compose` (as the parent does) and autograd differentiates the small head
@@ -29,6 +30,7 @@ from certify.spec.system import System
 from training import losses
 from training.curvature import CurvaturePenalty
 from training.objective import LossValues, Objective
+from training.verifier import VerifierPenalty
 
 
 def power_mean_norm(s: torch.Tensor, q: float) -> torch.Tensor:
@@ -62,10 +64,12 @@ class CertObjective(Objective):
     def __init__(self, system: System, net: GainNetwork, xhat: torch.Tensor, y: torch.Tensor,
                  *, lam: float, P: torch.Tensor, margin: float, lip_weight: float = 0.0,
                  lip_power: float = 1.0, mpdi_weight: float = 1.0, mu_bc: float = 1.0,
-                 workers: int = 2, curvature: CurvaturePenalty | None = None) -> None:
+                 workers: int = 2, curvature: CurvaturePenalty | None = None,
+                 verifier: VerifierPenalty | None = None) -> None:
         weights = losses.LossWeights(mu1=1.0, mu2=float(mu_bc), rho=(1.0,) * system.n)
         super().__init__(system, net, xhat, y, lam=lam, P=P, weights=weights, loss="eigen",
-                         margin=margin, workers=workers, curvature=curvature)
+                         margin=margin, workers=workers, curvature=curvature,
+                         verifier=verifier)
         self.lip_weight, self.lip_power = float(lip_weight), float(lip_power)
         if not self.lip_power >= 1:
             raise ValueError(f"lip_power must be >= 1; got {lip_power!r}")
@@ -108,7 +112,6 @@ class CertObjective(Objective):
 
     def evaluate(self, grad: bool = True) -> LossValues:
         v = super().evaluate(grad)
-        w_curv = 0.0 if self.curvature is None else self.curvature.settings.weight
         total = self.mpdi_weight * v.mpdi + self.weights.mu2 * v.bc \
-            + self.lip_weight * self.last_lip + w_curv * v.curv
-        return LossValues(total=total, mpdi=v.mpdi, bc=v.bc, curv=v.curv)
+            + self.lip_weight * self.last_lip + self.extra_total(v.curv, v.verifier)
+        return LossValues(total=total, mpdi=v.mpdi, bc=v.bc, curv=v.curv, verifier=v.verifier)

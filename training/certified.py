@@ -169,7 +169,7 @@ def cegis_settings(config: TrainConfig, base: CegisSettings = DEFAULT_CEGIS,
     values = dataclasses.asdict(base)
     values.update(margin=config.margin, seed=config.seed, iters_per_round=config.adam_iters,
                   lr=config.adam_lr, curv_weight=config.curvature_weight,
-                  curv_radius=config.curvature_radius)
+                  curv_radius=config.curvature_radius, verifier_weight=config.verifier_weight)
     values.update({k: v for k, v in overrides.items() if v is not None})
     return CegisSettings(**values)
 

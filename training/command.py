@@ -71,6 +71,10 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         dest="curvature_radius",
                         help="that term's pair distance, a fraction of each box side "
                              "(default 0.02)")
+    parser.add_argument("--verifier-weight", type=float, default=None,
+                        dest="verifier_weight",
+                        help="weight of the training term on the prover's box bound over "
+                             "sampled sub-boxes (presets that train a network; default 0: off)")
     parser.add_argument("--min-rate", type=float, default=None, dest="min_rate",
                         help="preset bound only: the smallest contraction rate lam the design "
                              "may choose (default: the rate is free; --lam fixes it)")
@@ -172,7 +176,8 @@ def _config_from_args(args: argparse.Namespace, system: Any) -> Any:
                        lbfgs_iters=getattr(args, "lbfgs_iters", None),
                        activation=getattr(args, "activation", None),
                        curvature_weight=getattr(args, "curvature_weight", None),
-                       curvature_radius=getattr(args, "curvature_radius", None))
+                       curvature_radius=getattr(args, "curvature_radius", None),
+                       verifier_weight=getattr(args, "verifier_weight", None))
 
 
 def resolve_system(args: argparse.Namespace) -> None:

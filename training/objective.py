@@ -59,6 +59,7 @@ from certify.model.network import GainNetwork
 from certify.spec.system import System
 from training import losses
 from training.curvature import CurvaturePenalty
+from training.verifier import VerifierPenalty
 
 # points per chunk of the objective. Chunks are the unit of parallel work (one worker thread
 # each); the constant is fixed so that the weights do not depend on the number of workers.
@@ -86,9 +87,11 @@ class LossValues:
     mpdi: float
     bc: float
     curv: float = 0.0
+    verifier: float = 0.0  # the box-bound term of `training.verifier`, before its weight
 
     def as_dict(self) -> dict[str, float]:
-        return {"total": self.total, "mpdi": self.mpdi, "bc": self.bc, "curv": self.curv}
+        return {"total": self.total, "mpdi": self.mpdi, "bc": self.bc, "curv": self.curv,
+                "verifier": self.verifier}
 
 
 class TrainingDiverged(SettingsError):
@@ -164,7 +167,8 @@ class Objective:
                  *, lam: float, P: torch.Tensor, weights: losses.LossWeights,
                  loss: str = "minors", margin: float = 0.0,
                  chunk_points: int = CHUNK_POINTS, workers: int = WORKERS,
-                 curvature: CurvaturePenalty | None = None) -> None:
+                 curvature: CurvaturePenalty | None = None,
+                 verifier: VerifierPenalty | None = None) -> None:
         if len(net.layers) < 2:
             raise ValueError("training needs a network with at least one hidden layer")
         dt = net.layers[0].weight.dtype
@@ -206,6 +210,8 @@ class Objective:
                                             self.m, not self.structural))
         self.curvature = curvature if (curvature is not None
                                        and curvature.settings.weight > 0) else None
+        self.verifier = verifier if (verifier is not None
+                                     and verifier.settings.weight > 0) else None
         self.evaluations = 0
         self.workers = max(1, min(int(workers), len(self.chunks)))
         self._pool: ThreadPoolExecutor | None = None
@@ -360,22 +366,29 @@ class Objective:
                 torch._foreach_copy_(grads, self._views(self.chunks[0].grads))
                 for ch in self.chunks[1:]:
                     torch._foreach_add_(grads, self._views(ch.grads))
-        curv = self._curvature(grad)
+        curv = self._extra(self.curvature, grad)
+        ver = self._extra(self.verifier, grad)
         self.evaluations += 1
         mpdi_mean, bc_mean = mpdi / self.N, bc / self.N
-        w_curv = 0.0 if self.curvature is None else self.curvature.settings.weight
-        return LossValues(total=mu1 * mpdi_mean + mu2 * bc_mean + w_curv * curv,
-                          mpdi=mpdi_mean, bc=bc_mean, curv=curv)
+        return LossValues(total=mu1 * mpdi_mean + mu2 * bc_mean + self.extra_total(curv, ver),
+                          mpdi=mpdi_mean, bc=bc_mean, curv=curv, verifier=ver)
 
-    def _curvature(self, grad: bool) -> float:
-        """The Jacobian-variation penalty C (0 when off); with `grad`, adds weight * dC/dW
-        to each parameter's `.grad` (autograd through the point propagation: small)."""
-        if self.curvature is None:
+    def extra_total(self, curv: float, ver: float) -> float:
+        """The weighted sum of the curvature and verifier terms (each 0 when off)."""
+        return sum(t.settings.weight * v for t, v in ((self.curvature, curv),
+                                                       (self.verifier, ver)) if t is not None)
+
+    def _extra(self, term: CurvaturePenalty | VerifierPenalty | None, grad: bool) -> float:
+        """A term evaluated on the network's spec (the Jacobian-variation penalty C of
+        `training.curvature`, the box-bound term of `training.verifier`; 0 when off); with
+        `grad`, adds weight * d(term)/dW to each parameter's `.grad` (autograd through its
+        own small propagation)."""
+        if term is None:
             return 0.0
         with torch.enable_grad():
-            c = self.curvature.value(self.spec)
+            c = term.value(self.spec)
             if grad:
-                gs = torch.autograd.grad(c * self.curvature.settings.weight, self.params,
+                gs = torch.autograd.grad(c * term.settings.weight, self.params,
                                          allow_unused=True)
         if grad:
             with torch.no_grad():

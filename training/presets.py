@@ -39,7 +39,7 @@ FLAGS = {
     "hidden": "--hidden", "adam_iters": "--adam-iters", "lbfgs_iters": "--lbfgs-iters",
     "preset": "--preset", "activation": "--activation",
     "curvature_weight": "--curvature-weight", "curvature_radius": "--curvature-radius",
-    "min_rate": "--min-rate",
+    "min_rate": "--min-rate", "verifier_weight": "--verifier-weight",
 }
 
 
@@ -72,6 +72,9 @@ class TrainConfig:
     # fewer sub-boxes. 0 (off) in `paper`, which reproduces the source method as published.
     curvature_weight: float = 0.0
     curvature_radius: float = 0.02
+    # training for the verifier (`training.verifier`; every preset that trains a network): weight *
+    # the surrogate of the prover's box bound on sampled sub-boxes; 0 (off) in `paper`
+    verifier_weight: float = 0.0
 
     def __post_init__(self) -> None:
         validate(self)
@@ -118,7 +121,7 @@ def validate(c: TrainConfig) -> None:
     if not _is_real(c.curvature_radius) or not 0 < c.curvature_radius < 0.5:
         raise _fail("curvature_radius", "a number in (0, 0.5) (a fraction of each box side)",
                     c.curvature_radius)
-    for name in ("mu1", "mu2", "margin", "curvature_weight"):
+    for name in ("mu1", "mu2", "margin", "curvature_weight", "verifier_weight"):
         v = getattr(c, name)
         if not _is_real(v) or v < 0:
             raise _fail(name, "a finite number >= 0", v)

@@ -30,8 +30,9 @@ from training.curvature import CurvaturePenalty, CurvatureSettings
 from training.objective import LossValues, Objective, check_finite
 from training.optim import PhaseStats, run_adam, run_lbfgs
 from training.presets import TrainConfig, check_for_system, make_config
+from training.verifier import VerifierPenalty, VerifierSettings
 
-TERMS = ("total", "mpdi", "bc", "curv")  # the loss terms recorded per evaluation
+TERMS = ("total", "mpdi", "bc", "curv", "verifier")  # the loss terms recorded per evaluation
 
 
 # ----- the training run ----------------------------------------------------------------
@@ -116,8 +117,14 @@ def _train(system: System, config: TrainConfig | None, *, progress: Progress | N
         curvature = CurvaturePenalty(system, CurvatureSettings(
             weight=config.curvature_weight, radius=config.curvature_radius), config.seed,
             dtype)
+    verifier = None
+    if config.verifier_weight > 0:
+        verifier = VerifierPenalty(system, VerifierSettings(weight=config.verifier_weight),
+                                   config.seed, lam=lam, P=P,
+                                   K=net.K.detach().to(torch.float64), dtype=dtype)
     objective = Objective(system, net, xhat, y, lam=lam, P=P, weights=weights,
-                          loss=config.loss, margin=config.margin, curvature=curvature)
+                          loss=config.loss, margin=config.margin, curvature=curvature,
+                          verifier=verifier)
     history: dict[str, dict[str, list[float]]] = {}
     timings: dict[str, float] = {"setup": time.perf_counter() - t_start}
 
@@ -127,8 +134,8 @@ def _train(system: System, config: TrainConfig | None, *, progress: Progress | N
         def record(values: LossValues, iteration: int) -> None:
             check_finite(values.as_dict(), objective.params, f"{phase} iteration {iteration}")
             cols["iteration"].append(iteration)
-            for key, v in values.as_dict().items():
-                cols[key].append(v)
+            for key in TERMS:
+                cols[key].append(getattr(values, key))
         return record
 
     stats: dict[str, PhaseStats] = {}
@@ -143,9 +150,12 @@ def _train(system: System, config: TrainConfig | None, *, progress: Progress | N
     final_net = final_net.double().eval().requires_grad_(False)
     final_curv = None if curvature is None else CurvaturePenalty(
         system, curvature.settings, config.seed, torch.float64)
+    final_ver = None if verifier is None else VerifierPenalty(
+        system, verifier.settings, config.seed, lam=lam, P=P,
+        K=final_net.K.to(torch.float64), dtype=torch.float64)
     final_obj = Objective(system, final_net, xhat, y, lam=lam, P=P, weights=weights,
                           loss=config.loss, margin=config.margin, workers=1,
-                          curvature=final_curv)
+                          curvature=final_curv, verifier=final_ver)
     final = final_obj.evaluate(grad=False).as_dict()
     check_finite(final, [], "the final float64 evaluation", grad=False)
     timings["final_eval"] = time.perf_counter() - t0

@@ -22,7 +22,7 @@ from certify.figuredata import ProofBoxes
 from certify.model.kernels import mpdi_lam_max
 from certify.model.problem import Problem
 from certify.presentation import Presentation, Quantity
-from certify.progress import NullProgress, Progress
+from certify.progress import NullProgress, Progress, note
 from certify.results import Counterexample, MpdiResult, Status
 from certify.search.falsify import SearchOutcome, maximize_over_box
 from certify.search.grid import GridKernel, float32_screen
@@ -177,7 +177,8 @@ def check_mpdi(problem: Problem, settings: VerifySettings, *,
     # the proof's boxes live and are bounded on the problem's device, in rounds of its size
     outcome = prove_mpdi(problem, max_boxes=settings.max_boxes, deadline=deadline,
                          progress=progress, seeds=seeds, executor=executor,
-                         batch=proof_batch(problem.device))
+                         batch=proof_batch(problem.device),
+                         forecast=lambda text: note(progress, "MPDI " + text))
     if figures is not None and getattr(outcome, "boxes", None):
         figures["proof_boxes"] = outcome.boxes
         figures["proof_history"] = outcome.stats.volume_history

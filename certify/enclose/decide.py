@@ -11,7 +11,7 @@ proves the decision on its own (`decide_affine_family`):
    test (`certify.arith.eigen.lam_max_at_most`), after one test of the vertex most likely
    to fail (most boxes that fail, fail there);
 3. the same two tests after a congruence by the box's own metric M = (lvl I - c)^(-1/2)
-   (`_congruence`): M (A - lvl I) M <= 0 iff A <= lvl I, and in those coordinates the
+   (`room_congruence`): M (A - lvl I) M <= 0 iff A <= lvl I, and in those coordinates the
    remainder counts in proportion to the room the centre leaves in each direction, not at
    the room of the tightest one (rho(|M| rem |M|) against 1, not rho(rem) against
    lvl - lam_max(c)); on the boxes tests 1-2 leave it decides many more
@@ -63,7 +63,7 @@ def decide_affine_family(c: torch.Tensor, rG: torch.Tensor, rem: torch.Tensor,
                 torch.full((int(left.sum()),), lvl, dtype=c.dtype, device=c.device))
         if bool(left.any()):
             idx = need[left]
-            parts = _congruence(c[idx], rG[idx], rem[idx], lvl)
+            parts = room_congruence(c[idx], rG[idx], rem[idx], lvl)
             if parts is None:  # eigh failed: the boxes stay undecided (sound)
                 return decided, weyl
             cc, gc, rc = parts
@@ -130,13 +130,13 @@ def weyl_upper(c: torch.Tensor, rG: torch.Tensor) -> torch.Tensor:
     return up(lc + up(fro * (1.0 + 2.0 * gamma(d * rG.shape[-1] ** 2 + 2))))
 
 
-def _lower_sym(X: torch.Tensor) -> torch.Tensor:
+def lower_sym(X: torch.Tensor) -> torch.Tensor:
     """The symmetric matrix of X's lower triangle (what LAPACK and the vertex tests read;
     exact, no rounding)."""
     return X.tril() + X.tril(-1).transpose(-1, -2)
 
 
-def _congruence(c: torch.Tensor, rG: torch.Tensor, rem: torch.Tensor, lvl: float
+def room_congruence(c: torch.Tensor, rG: torch.Tensor, rem: torch.Tensor, lvl: float
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """(M (c - lvl I) M, M rG_m M, remainder) with M = (lvl I - c)^(-1/2) per box (c and rG_m
     read by their lower triangles, as the vertex tests read them; the eigenvalues of
@@ -146,8 +146,8 @@ def _congruence(c: torch.Tensor, rG: torch.Tensor, rem: torch.Tensor, lvl: float
     being <= 0. None where LAPACK's eigh fails."""
     n = c.shape[-1]
     eye = torch.eye(n, dtype=c.dtype, device=c.device)
-    c = _lower_sym(c)
-    rG = _lower_sym(rG)
+    c = lower_sym(c)
+    rG = lower_sym(rG)
     cs = c - lvl * eye
     shift_err = gamma(2) * (c.abs() + abs(lvl)) * eye  # one rounding on the diagonal
     try:

@@ -27,6 +27,7 @@ from certify.arith.taylor import TM, tm_absorb, tm_add, tm_from_intervals, tm_rh
 from certify.enclose.decide import decide_affine_family, vertex_matrices
 from certify.enclose.preconditioner import Preconditioner
 from certify.enclose.system_taylor import jacobian_tm
+from certify.enclose.whole_box import decide_whole_box
 from certify.model.gain.propagate import GainValues, NetOutput, compose, propagate
 from certify.model.gain.taylor import TaylorArithmetic
 from certify.model.network import GainNetwork
@@ -127,6 +128,11 @@ def tm_congruence(pc: Preconditioner, J: TM, constant: Interval, r: torch.Tensor
     return A
 
 
+def _decision_level(level: float) -> float:
+    """The level a decision proves, a hair below the caller's: level - 1e-12 (1 + |level|)."""
+    return float(level) - 1e-12 * (1.0 + abs(float(level)))
+
+
 def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | None = None):
     """max over the box of lam_max(A(z)) <= max_vertices lam_max(c + sum_m s_m r_m g_m)
     + rho(e + rounding) (convexity of lam_max in the affine part); for n <= 3 the smaller
@@ -143,7 +149,11 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
     budgeted run's order depends on it) get Weyl's lam_max(c) + sum_m ||r_m g_m||_F (one
     eigenproblem per box, `_weyl_upper`); with `parts` (the vertex part is wanted), the
     vertices that fail are tested again at t + k s, s = rho + 1e-3 (1 + |level|), k = 1/4, 1,
-    4 (their bound: the first level passed) and only the rest get eigenvalue bounds."""
+    4 (their bound: the first level passed) and only the rest get eigenvalue bounds.
+    Beyond MAX_VERTEX_DIM coordinates (level given, n >= 2), where the first-order part joins
+    the remainder for the bound, a box is first decided as a whole
+    (`certify.enclose.whole_box.decide_whole_box`: the room's congruence, the strongest
+    coordinates as vertices, the rest by Weyl); decided boxes report level'."""
     B, n, _, d = A.g.shape
     rG = (A.g * r[:, None, None, :]).permute(0, 3, 1, 2)  # [B, d, n, n]
     gk = gamma(d + 5)
@@ -151,7 +161,10 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
     rem = up((A.e + gk * absum) * (1.0 + 2.0 * gk) + (d + 2) * TINY)
     rem = torch.maximum(rem, rem.transpose(1, 2))
     vertex = d <= MAX_VERTEX_DIM
+    whole = None
     if not vertex:
+        if level is not None and n >= 2:  # too many vertices: the box decided as a whole
+            whole = decide_whole_box(A.c, rG, rem, _decision_level(level))
         rem = up(rem + rG.abs().sum(1) * (1.0 + gk))
     decide_lower = vertex and level is not None and n >= 4 and not parts
     # the vertex matrices; the Cholesky decision reads their lower triangles only (as LAPACK),
@@ -161,7 +174,7 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
     rr = rho_upper(rem)
     decided = None
     if vertex and level is not None and n >= 4:
-        lvl = float(level) - 1e-12 * (1.0 + abs(float(level)))
+        lvl = _decision_level(level)
         t = down(lvl - rr)  # proved vertex max <= t  =>  lv + rr <= lvl
         if parts:  # the vertex part itself is wanted (where the linear bounds are tried)
             lv, decided = vertex_max_upper(S, t, step=rr + 1e-3 * (1.0 + abs(lvl)))
@@ -176,6 +189,8 @@ def tm_lam_upper(A: TM, r: torch.Tensor, parts: bool = False, level: float | Non
     bound = up(lv + rr)
     if decided is not None:
         bound = torch.where(decided, torch.full_like(bound, lvl), bound)
+    if whole is not None:
+        bound = torch.where(whole, torch.full_like(bound, _decision_level(level)), bound)
     if S is not None and n <= HERTZ_MAX_N:
         hz = hertz_upper(S, rem.unsqueeze(1).expand_as(S)).amax(-1)
         bound = torch.where(torch.isnan(bound) | torch.isnan(hz), bound + hz,

@@ -40,7 +40,7 @@ from certify.progress import NullProgress, Progress
 from certify.results import Counterexample, ProofStats, Status
 from certify.search.bnb import SETUP_SECONDS_ANYWAY, branch_and_bound
 from certify.search.evaluation import BoxEval
-from certify.search.tree_estimate import completion_text, estimate_tree
+from certify.search.tree_estimate import completion_text, estimate_tree, forecast_text
 from certify.search.witness import is_witness, mpdi_lower
 from certify.settings import DEFAULTS
 
@@ -226,7 +226,8 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None,
                seeds: object | None = None, batch: int = 1024, taylor: bool | str = True,
                keep_leaves: int = 5000, crown: bool = True,
                executor: object | None = None, task: str = "mpdi proof",
-               estimate_points: int = 256, box_seconds: float | None = None) -> ProofOutcome:
+               estimate_points: int = 256, box_seconds: float | None = None,
+               forecast: Callable[[str], None] | None = None) -> ProofOutcome:
     """Decide D(xhat, y) <= 0 over X x Y for rate `lam` (default problem.lam) and P.
 
     PROVED: every sub-box has a sound bound lam_max(D) <= 0. VIOLATED: a point (a box
@@ -252,6 +253,10 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None,
     boxes the proof evaluated: bounded work), how many boxes a complete one needs
     (`certify.search.tree_estimate`; in `stats` and the message); under a cap, within what
     is left of it.
+    `forecast`: where given, before the first round FORECAST_POINTS random descents estimate
+    the complete tree and `certify.search.tree_estimate.forecast_text` (estimate against
+    `max_boxes`) is passed to it (bounded work outside the box budget; under a cap, within
+    a twentieth of what is left; nothing of the verdict rests on it).
     """
     from certify.search.distributed.executor import current_executor
 
@@ -268,6 +273,8 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None,
         return _spent_in_setup(max_boxes, time.perf_counter() - started)
     lo, hi = setup.lo, setup.hi
     n = problem.n
+    if forecast is not None:
+        _forecast(setup, max_boxes, deadline, forecast)
     executor = current_executor() if executor is None else executor
     out = branch_and_bound(
         lo, hi, setup.evaluate, threshold=0.0,
@@ -316,6 +323,23 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None,
     upper = out.upper if math.isfinite(out.upper) else float("inf")
     return ProofOutcome(status=status, upper=upper, lower=out.lower, counterexample=cex,
                         stats=st, boxes=out.leaves, message=msg)
+
+
+#: descents of the estimate before a proof (`prove_mpdi(forecast=...)`)
+FORECAST_POINTS = 64
+
+
+def _forecast(setup: DecisionSetup, max_boxes: int, deadline: float | None,
+              say: Callable[[str], None]) -> None:
+    """The up-front tree estimate of `prove_mpdi(forecast=...)`: one seeded batch of
+    FORECAST_POINTS descents (a twentieth of the cap's time left, if any), its line to `say`
+    ("" is not said)."""
+    seconds = None if deadline is None else max(0.0, (deadline - time.perf_counter()) / 20)
+    est = estimate_tree(setup.evaluate, setup.lo, setup.hi, setup.first_round,
+                        FORECAST_POINTS, seconds=seconds)
+    text = forecast_text(est.boxes, est.rel_stderr, max_boxes)
+    if text:
+        say(text)
 
 
 def _spent_in_setup(max_boxes: int, elapsed: float) -> ProofOutcome:

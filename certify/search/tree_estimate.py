@@ -166,4 +166,26 @@ def completion_text(boxes: float | None, rel_stderr: float | None, done: int) ->
             f"estimate{spread}; this run: {done})")
 
 
-__all__ = ["TreeEstimate", "leaf_depths", "summarize", "estimate_tree", "completion_text"]
+#: an estimate this many times the budget is "far above" it (`forecast_text`)
+FAR_ABOVE = 10.0
+
+
+def forecast_text(boxes: float | None, rel_stderr: float | None, budget: int) -> str:
+    """The user's line before a proof starts: the estimated boxes of a complete proof against
+    the box budget ("" without an estimate); where the estimate is FAR_ABOVE times the budget
+    or more, that the proof is not expected to finish. An estimate, not a bound: the words say
+    "likely", never what the verdict will be."""
+    if boxes is None or not math.isfinite(boxes) or boxes <= 0:
+        return ""
+    spread = (f", +-{100 * rel_stderr:.0f}%" if rel_stderr is not None
+              and math.isfinite(rel_stderr) else "")
+    text = (f"tree estimate: a complete proof evaluates about {boxes:.2g} boxes (random-descent "
+            f"estimate{spread}); the budget is {budget:,} boxes")
+    if boxes >= FAR_ABOVE * budget:
+        text += ("; far above the budget: the proof is not expected to finish, and unless a "
+                 "counterexample is found the result will likely be INCONCLUSIVE")
+    return text
+
+
+__all__ = ["TreeEstimate", "leaf_depths", "summarize", "estimate_tree", "completion_text",
+           "forecast_text"]

@@ -17,21 +17,41 @@ from certify.spec.system import builtin_names, load_system
 from ..cli_helpers import run_cli
 
 NEW = {"lorenz": (3, 1), "vdp2": (4, 2), "vdp3": (6, 3)}
+# the longer rings (8 and 10 states): listed, their fields and metric checked; not trained here
+RINGS = {"vdp4": (8, 4), "vdp5": (10, 5)}
 
 SMALL_RUN = ("--grid-points", "3000", "--max-boxes", "4000",
              "--adversarial-starts", "4", "--sim-time", "0.5", "--no-config")
 
 
-@pytest.mark.parametrize("name", sorted(NEW))
+@pytest.mark.parametrize("name", sorted(NEW | RINGS))
 def test_builtin_shape_and_listing(name, capsys):
     system = load_system(name)
-    assert (system.n, system.p) == NEW[name]
+    assert (system.n, system.p) == (NEW | RINGS)[name]
     assert name in builtin_names()
     code, out, _ = run_cli(capsys, "systems")
     assert code == 0 and f"{name:<10} n={system.n} p={system.p}" in out
 
 
-@pytest.mark.parametrize("name", sorted(NEW))
+@pytest.mark.parametrize("name", sorted(RINGS))
+def test_ring_field_is_van_der_pol_with_neighbour_coupling(name):
+    """f of vdpK at random states: each oscillator's Van der Pol field (mu = 1) plus 0.5 times
+    the differences to its two ring neighbours; the positions measured."""
+    system = load_system(name)
+    k = system.n // 2
+    x = torch.rand(16, system.n, generator=torch.Generator().manual_seed(k),
+                   dtype=torch.float64) * 4 - 2
+    pos, vel = x[:, 0::2], x[:, 1::2]
+    ring = pos.roll(1, 1) + pos.roll(-1, 1) - 2 * pos
+    want = torch.empty_like(x)
+    want[:, 0::2] = vel
+    want[:, 1::2] = -pos + vel * (1 - pos ** 2) + 0.5 * ring
+    torch.testing.assert_close(system.f(x), want, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(system.h(x), pos, rtol=0, atol=0)
+    assert np.all(np.linalg.eigvalsh(np.asarray(system.P)) > 0)
+
+
+@pytest.mark.parametrize("name", sorted(NEW | RINGS))
 @pytest.mark.slow
 def test_spec_metric_passes_the_preflight(name, capsys):
     """The design (lam, P) in the spec passes the necessary condition with a sound bound."""

@@ -119,3 +119,46 @@ def test_the_report_shows_the_estimate_only_for_an_unfinished_proof() -> None:
     rows = dict(_estimate_rows(cut))
     assert rows["Boxes a complete proof needs (estimate)"].startswith("4.5e+03")
     assert rows["Time it needs at this speed (estimate)"] == fmt_seconds(4.0)  # 4000 at 1000/s
+
+
+def test_the_forecast_names_the_budget_and_warns_only_far_above_it() -> None:
+    from certify.search.tree_estimate import FAR_ABOVE, forecast_text
+
+    far = forecast_text(3.2e7, 0.31, 200_000)
+    assert far.startswith("tree estimate: a complete proof evaluates about 3.2e+07 boxes")
+    assert "+-31%" in far and "the budget is 200,000 boxes" in far
+    assert "far above the budget" in far and "will likely be INCONCLUSIVE" in far
+    near = forecast_text(FAR_ABOVE * 200_000 * 0.99, 0.2, 200_000)
+    assert "budget is 200,000 boxes" in near and "INCONCLUSIVE" not in near
+    for none in (None, math.nan, math.inf, 0.0):
+        assert forecast_text(none, 0.1, 1000) == ""
+
+
+@pytest.mark.slow
+def test_the_mpdi_check_forecasts_the_tree_before_the_proof() -> None:
+    """The MPDI check notes the estimate against the budget before its proof: far above a
+    budget of 20 boxes (INCONCLUSIVE expected, and it is UNKNOWN), not far above 10^6 (and
+    the proof finishes)."""
+    from certify.checks.mpdi import check_mpdi
+    from certify.progress import NullProgress
+    from certify.settings import VerifySettings
+
+    class Notes(NullProgress):
+        def __init__(self) -> None:
+            self.lines: list[str] = []
+
+        def note(self, text: str) -> None:
+            self.lines.append(text)
+
+    problem, _ = make_instance(InstanceSpec(2, 10, 2.0, 2, 0.02, 0))
+    small = Notes()
+    res = check_mpdi(problem, VerifySettings(max_boxes=20, grid_points=2000), progress=small)
+    assert res.status is Status.UNKNOWN
+    (line,) = [t for t in small.lines if t.startswith("MPDI tree estimate")]
+    assert "the budget is 20 boxes" in line and "INCONCLUSIVE" in line
+    large = Notes()
+    res = check_mpdi(problem, VerifySettings(max_boxes=10**6, grid_points=2000),
+                     progress=large)
+    assert res.status is Status.PROVED
+    (line,) = [t for t in large.lines if t.startswith("MPDI tree estimate")]
+    assert "the budget is 1,000,000 boxes" in line and "INCONCLUSIVE" not in line
