@@ -460,19 +460,21 @@ def run_bound(args: argparse.Namespace, system: System, config: TrainConfig,
         if not quiet:
             print(msg, file=out, flush=True)
 
+    with_metric = not getattr(args, "no_state_metric", False)
     how = (f"rate fixed at lam {rate:g}" if rate is not None else
            f"rate >= {min_rate:g}" if min_rate is not None else
-           "rate free; then a metric M(x) designed for it, kept when its certificate is better")
+           "rate free; then a metric M(x) designed for it, kept when its certificate is better"
+           if with_metric else "rate free; no metric M(x) (--no-state-metric)")
     learn = (f"then a learned attempt ({LearnSettings.rounds} rounds x {config.adam_iters} "
              f"Adam steps, hidden {','.join(map(str, config.hidden))}"
-             + ("" if rate is not None or min_rate is not None else
+             + ("" if rate is not None or min_rate is not None or not with_metric else
                 f"; against M(x): {MetricSettings.rounds} rounds x {MetricSettings.steps} "
                 f"steps, hidden {','.join(map(str, MetricSettings.hidden))}") + ")"
              if config.adam_iters > 0 else "no learned attempt (--adam-iters 0)")
     log(f"training {system.name} with preset bound: linear observer designed for the error "
         f"bound ({how}), {learn}, seed {config.seed}")
     result = train_bound(system, dataclasses.replace(config), min_rate=min_rate, rate=rate,
-                         log=log)
+                         metric=with_metric, log=log)
     try:
         sha = save_bound(output, system, result)
     except OSError as exc:

@@ -78,6 +78,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-rate", type=float, default=None, dest="min_rate",
                         help="preset bound only: the smallest contraction rate lam the design "
                              "may choose (default: the rate is free; --lam fixes it)")
+    parser.add_argument("--no-state-metric", action="store_true", dest="no_state_metric",
+                        help="preset bound only: skip the design of a metric M(x) that follows "
+                             "the state (the slow part of a free-rate design)")
     parser.add_argument("--force", action="store_true",
                         help="train even when the pre-flight proves that no gain meets the "
                              "MPDI and the boundary condition with this P and lam (presets "
@@ -224,6 +227,9 @@ def _run_train(args: argparse.Namespace, out: TextIO) -> int:
                                  or min_rate <= 0):
         raise SettingsError(f"training: --min-rate must be a finite number > 0 and applies to "
                             f"preset bound only; got {min_rate!r} with preset {config.preset}")
+    if getattr(args, "no_state_metric", False) and config.preset != "bound":
+        raise SettingsError(f"training: --no-state-metric applies to preset bound only; got "
+                            f"preset {config.preset}")
     from training import preflight
 
     quiet = bool(getattr(args, "quiet", False))

@@ -33,3 +33,38 @@ def test_schedule_targets_are_the_schedule_without_its_constant_term():
     d1 = coeffs[1] + (x2 ** 2)[:, None, None] * coeffs[2]  # d/dx1
     d2 = (2 * x1 * x2)[:, None, None] * coeffs[2]  # d/dx2
     assert np.allclose(der.numpy()[..., 0], d1) and np.allclose(der.numpy()[..., 1], d2)
+
+
+def test_no_state_metric_applies_to_the_bound_preset_only(tmp_path, capsys):
+    from ..cli_helpers import run_cli
+
+    code, _, err = run_cli(capsys, "train", "vdp", "--preset", "tiny", "--no-state-metric",
+                           "-o", str(tmp_path / "t.ckpt"))
+    assert code == 2 and "--no-state-metric applies to preset bound only" in err
+    assert not (tmp_path / "t.ckpt").exists()
+
+
+def test_no_state_metric_reaches_the_design(monkeypatch, tmp_path):
+    """`--no-state-metric` asks train_bound for no metric design (metric=False)."""
+    import argparse
+
+    from certify.spec.system import load_system
+    from training import bound
+    from training.presets import make_config
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake(*args, **kw):
+        seen.update(kw)
+        raise Stop
+
+    monkeypatch.setattr(bound, "train_bound", fake)
+    system = load_system("vdp")
+    args = argparse.Namespace(output=str(tmp_path / "b.ckpt"), quiet=True, no_state_metric=True,
+                              min_rate=None, lam=None, metric=None)
+    with pytest.raises(Stop):
+        bound.run_bound(args, system, make_config(system, "bound"))
+    assert seen["metric"] is False
