@@ -5,7 +5,9 @@ grid the work is many tiny 30 x 30 products and elementwise activations; storing
 (feature-major, `certify.model.gain.ColumnArithmetic`) lets every layer be one large matrix product
 with contiguous elementwise passes, several times faster (`bench/verify.py`, "grid"). Only the n
 tangent directions of xhat are propagated (D needs dk/dxhat, not dk/dy). It covers the `direct`
-structure with or without the linear term K; other structures use the general kernel.
+structure with or without the linear term K, and the structural one (k = G (y - h(xhat))) for
+the float32 screen; a structural kernel in float64 (the values a check reports) is the general
+kernel's, bit for bit.
 
 A float32 kernel is only ever a screen (`certify.search.falsify.maximize_over_box`: it selects the
 points that are evaluated again in float64, it decides nothing). It is built only where every
@@ -50,6 +52,9 @@ def float32_misfit(problem: Problem, lam: float | None = None) -> str | None:
     checks = [(folded_constants(list(system.jf_expr), system.symbols), "a constant of df/dx"),
               (folded_constants(list(system.jh_expr), system.symbols), "a constant of dh/dx"),
               ([2.0 * lam], "2 lam")]
+    if net.structure != "direct":  # the structural kernel evaluates h itself
+        checks.append((folded_constants(list(system.h_expr), system.symbols),
+                       "a constant of h"))
     checks.append((problem.P_t.detach().reshape(-1).tolist(), "an entry of P"))
     if problem.shift is not None:
         checks.append((problem.shift_t.reshape(-1).tolist(), "an entry of the constant term Q"))
@@ -80,7 +85,8 @@ class GridKernel:
                 dtype = torch.float64
         self.dtype = dtype
         net = problem.network
-        self.fast = net.structure == "direct"
+        self.structural = net.structure != "direct"
+        self.fast = not self.structural or dtype == torch.float32
         self.spec = net.spec(dtype, detach=True)
         self.P = problem.P_t.to(dtype)
         self.shift = None if problem.shift is None else problem.shift_t.to(dtype)
@@ -95,8 +101,10 @@ class GridKernel:
         z = z.to(self.dtype)
         xhat = z[:, :n]
         net = propagate(self.spec, COLUMNS, z, n)
-        Hx = problem.system.jac_h(xhat) if self.spec.has_K else None
-        dk_dx = compose(self.spec, COLUMNS, net, None, Hx, with_dy=False, with_k=False).dk_dx
+        system = problem.system
+        Hx = system.jac_h(xhat) if self.spec.has_K or self.structural else None
+        r = z[:, n:] - system.h(xhat) if self.structural else None
+        dk_dx = compose(self.spec, COLUMNS, net, r, Hx, with_dy=False, with_k=False).dk_dx
         return lam_max(contraction_matrix(problem.system.jac_f(xhat), dk_dx, self.P, self.lam,
                                           self.shift))
 

@@ -43,11 +43,11 @@ lam = 0.25
 
 
 def huge_problem(f: str = '"-1e39*x1", "-x2"', h: str = '"x1"',
-                 weight: float | None = None) -> Problem:
+                 weight: float | None = None, structure: str = "direct") -> Problem:
     """D = diag(-1e39 + 0.5, -0.5) for the default spec: lam_max(D) = -0.5 everywhere. A
     zero network, except one first-layer weight `weight` (with zero layers after it: k = 0)."""
     system = System.from_text(SPEC.format(f=f, h=h), origin="test spec huge")
-    net = GainNetwork(2, 1, (4, 4)).double()
+    net = GainNetwork(2, 1, (4, 4), structure=structure).double()
     with torch.no_grad():
         for layer in net.layers:
             layer.weight.zero_()
@@ -125,6 +125,15 @@ def test_the_screen_falls_back_where_a_number_does_not_fit(f, h, weight, why):
     assert float32_screen(problem) is None
     z = torch.tensor([[0.3, -0.2, 0.1], [-1.0, 1.0, 1.0]], dtype=torch.float64)
     assert torch.equal(kernel(z), GridKernel(problem)(z))
+
+
+def test_a_structural_gain_falls_back_on_a_constant_of_h_alone():
+    """The structural kernel evaluates h itself: a constant dh/dx never sees still counts."""
+    h = '"x1 + 1e39"'
+    assert float32_misfit(huge_problem('"-x1", "-x2"', h)) is None  # direct: only dh/dx
+    problem = huge_problem('"-x1", "-x2"', h, structure="structural")
+    assert "constant of h" in float32_misfit(problem)
+    assert float32_screen(problem) is None
 
 
 def test_a_problem_that_fits_keeps_its_float32_screen():
