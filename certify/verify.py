@@ -112,7 +112,11 @@ def _verify(checkpoint: Checkpoint, context: Context, figures: bool,
         finish_step(progress, "figures", "done", timings["figures"])
     timings["total"] = time.perf_counter() - t_all
     verdict, summary = decide_verdict(checks, context.required, settings.allow_unknown)
-    hint = smaller_rate_hint(checks, context.required, problem.lam, checkpoint.path, applied)
+    sampled = None
+    if isinstance(checks.get("rate"), CheckFailure) and checks["rate"].status == Status.NOT_RUN:
+        sampled = sampled_rate_cap(problem, settings.seed)
+    hint = smaller_rate_hint(checks, context.required, problem.lam, checkpoint.path, applied,
+                             sampled_cap=sampled)
     network = problem.network.architecture()
     network["has_linear_gain"] = bool(torch.any(problem.network.K != 0))
     training = checkpoint.training or {}
@@ -131,21 +135,61 @@ def _verify(checkpoint: Checkpoint, context: Context, figures: bool,
     )
 
 
+#: points of the quick sampled rate when the rate check was not run (a decided verdict)
+RATE_SAMPLES = 20_000
+#: the rate a hint proposes to try is this share of the sampled cap (below it: some margin)
+TRY_SHARE = 0.9
+
+
+def sampled_rate_cap(problem: Problem, seed: int, count: int = RATE_SAMPLES) -> float:
+    """The smallest pointwise rate -lam_max(He{P J_cl}, P)/2 at `count` uniform points of
+    X x Y: the MPDI fails at every rate above it (a sampled cap, not a proof)."""
+    from certify.model.kernels import pointwise_rate
+
+    s = problem.system
+    box = torch.as_tensor(np.concatenate([s.X, s.Y], 0), dtype=torch.float64)
+    gen = torch.Generator().manual_seed(seed)
+    z = box[:, 0] + torch.rand(count, len(box), generator=gen, dtype=torch.float64) * (
+        box[:, 1] - box[:, 0])
+    host = problem.on("cpu")
+    with torch.no_grad():
+        r = pointwise_rate(s, host.network, host.P_t, z[:, :s.n], z[:, s.n:])
+    r = r[torch.isfinite(r)]
+    return float(r.min()) if len(r) else float("nan")
+
+
 def smaller_rate_hint(checks: dict[str, Any], required: list[str], lam: float,
-                      path: str | None, overrides: dict[str, Any]) -> str:
+                      path: str | None, overrides: dict[str, Any],
+                      sampled_cap: float | None = None) -> str:
     """Where the MPDI is the one required check VIOLATED at the design rate `lam` and the
     rate check proved a smaller lam_cert > 0: that rate, rounded down (so that it is at most
-    the proved bound: the MPDI holds there), and the command that certifies at it; where the
-    rate check was not run because the verdict was decided, how to run it; "" else."""
+    the proved bound: the MPDI holds there), and the command that certifies at it. Where the
+    rate check was not run because the verdict was decided: with `sampled_cap` (the smallest
+    pointwise rate at samples, `sampled_rate_cap`) a rate to try below it and the command that
+    decides it, or that no positive rate holds at the samples; how to have the rate check run
+    it in any case; "" else."""
     mpdi, rate = checks.get("mpdi"), checks.get("rate")
     failed = [n for n in required if n in checks and checks[n].status == Status.VIOLATED]
     if not (isinstance(mpdi, MpdiResult) and mpdi.status == Status.VIOLATED
             and failed == ["mpdi"]):
         return ""
     if isinstance(rate, CheckFailure) and rate.status == Status.NOT_RUN:
+        run_it = ("a run with a report output (e.g. --json PATH) runs the rate check, which "
+                  "proves the largest rate that does")
+        if sampled_cap is not None and sampled_cap == sampled_cap and sampled_cap <= 0:
+            return (f"the MPDI is violated at the design rate lam = {lam:g}, and no rate > 0 "
+                    f"holds at sampled points (the smallest pointwise rate there is "
+                    f"{sampled_cap:.4g}): this gain does not contract everywhere in X x Y")
+        if sampled_cap is not None and 0 < sampled_cap < lam:
+            text = lower_text(TRY_SHARE * sampled_cap, 3)
+            command = ["certify", "run", path or "CHECKPOINT", "--lam", text]
+            if "metric" in overrides:
+                command += ["--metric", json.dumps(overrides["metric"]["value"])]
+            return (f"the MPDI is violated at the design rate lam = {lam:g}; at sampled points "
+                    f"it fails above lam = {sampled_cap:.4g}, so a smaller rate may certify: "
+                    f"`{shlex.join(command)}` decides it ({run_it})")
         return (f"the MPDI is violated at the design rate lam = {lam:g}; a smaller rate may "
-                "certify: a run with a report output (e.g. --json PATH) runs the rate check, "
-                "which proves the rate lam_cert that does")
+                f"certify: {run_it}")
     if not isinstance(rate, RateResult):
         return ""
     lower = rate.proved_lower

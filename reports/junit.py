@@ -50,7 +50,7 @@ PASSING = ("PROVED", "PASSED")
 def case_outcome(row: C.CheckRow, unknown: str, allow_unknown: bool) -> tuple[str, str]:
     """(element, message) for a check: element is "" (passed), "failure", "error", "skipped".
 
-    Mirrors `certify.certificate.decide_verdict`, so CI shows red exactly when the gate fails.
+    Mirrors `certify.results.decide_verdict`, so CI shows red exactly when the gate fails.
     """
     finding = f"{row.badge}: {row.message}"
     if row.status in PASSING:

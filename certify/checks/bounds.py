@@ -170,8 +170,13 @@ def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | N
         r.status = Status.NOT_APPLICABLE
         r.message = "no error bound exists: " + "; ".join(common)
     else:
-        r.status = Status.UNKNOWN if invalid else Status.SKIPPED
-        r.message = "no error bound: " + "; ".join(common)
+        # the inputs' reasons, and those of the bounds that need none of them (dissipation,
+        # metric): e.g. a bound that exceeds the float range at a huge noise level
+        own = [f"{b.name}: {b.reason}" for b in (r.dissipation, r.metric)
+               if b is not None and not b.applicable]
+        why = common + own
+        r.status = Status.UNKNOWN if invalid or not common else Status.SKIPPED
+        r.message = "no error bound: " + "; ".join(why)
     return r
 
 

@@ -65,7 +65,7 @@ class GainNetwork(nn.Module):
                    activation=arch.get("activation", activations.DEFAULT))
 
     def weights(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """[(W, b)] per layer, W of shape [out, in], for `certify.enclosures` (the prover),
+        """[(W, b)] per layer, W of shape [out, in], for `certify.enclose` (the prover),
         which reads the activation's enclosures and relaxations from `act`."""
         return self.layer_weights()
 

@@ -315,8 +315,16 @@ def _mu_needed(D: np.ndarray, PB: np.ndarray) -> np.ndarray:
 
 
 def _bound(mu: float, mu_r: float, alpha: float, vbar: float, eps_P: float) -> float:
-    """sqrt((mu vbar^2 + mu_r eps_P^2) / alpha) without overflowing the squares."""
+    """sqrt((mu vbar^2 + mu_r eps_P^2) / alpha) without overflowing the squares (inf only
+    where the bound itself exceeds the float range)."""
     return math.hypot(math.sqrt(mu / alpha) * vbar, math.sqrt(mu_r / alpha) * eps_P)
+
+
+def _rank(mu: float, mu_r: float, alpha: float, vbar: float, eps_P: float) -> float:
+    """The bound divided by the larger of vbar and eps_P (1 where both are 0): the same order
+    as `_bound`, finite whenever mu, mu_r and alpha are, however large the noise."""
+    s = max(vbar, eps_P) or 1.0
+    return math.hypot(math.sqrt(mu / alpha) * (vbar / s), math.sqrt(mu_r / alpha) * (eps_P / s))
 
 
 def _plan(problem: Problem, samples: _Samples, PB: np.ndarray, delta: float, eps_P: float,
@@ -362,17 +370,18 @@ def _plan(problem: Problem, samples: _Samples, PB: np.ndarray, delta: float, eps
                 mu_b = float(_mu_needed(Deff, PB).max())
                 if not math.isfinite(mu_b):
                     continue
-                bound = _bound(mu_b + eta, mu_r, alpha, vbar, eps_P)
-                if not math.isfinite(bound):
+                rank = _rank(mu_b + eta, mu_r, alpha, vbar, eps_P)
+                if not math.isfinite(rank):
                     continue
-                if best is None or bound < best["bound"]:
-                    best = dict(alpha=float(alpha), mu_b=mu_b, eta=eta, mu_r=mu_r, bound=bound)
+                if best is None or rank < best["rank"]:
+                    best = dict(alpha=float(alpha), mu_b=mu_b, eta=eta, mu_r=mu_r, rank=rank,
+                                bound=_bound(mu_b + eta, mu_r, alpha, vbar, eps_P))
         return best
 
     grid = 4.0 * lam_s * np.geomspace(0.02, 0.98, ALPHA_GRID)
     out = [c for c in (at(float(a)) for a in grid) if c is not None]
     if out:  # golden-section refinement in log alpha between the best point's neighbours
-        k = int(np.argmin([c["bound"] for c in out]))
+        k = int(np.argmin([c["rank"] for c in out]))
         i = int(np.searchsorted(grid, out[k]["alpha"]))
         lo, hi = math.log(grid[max(i - 1, 0)]), math.log(grid[min(i + 1, len(grid) - 1)])
 
@@ -380,9 +389,9 @@ def _plan(problem: Problem, samples: _Samples, PB: np.ndarray, delta: float, eps
             c = at(math.exp(u))
             if c is not None:
                 out.append(c)
-            return c["bound"] if c is not None else math.inf
+            return c["rank"] if c is not None else math.inf
         golden_section(value, lo, hi, ALPHA_REFINE)
-    return sorted(out, key=lambda c: (c["bound"], c["alpha"]))
+    return sorted(out, key=lambda c: (c["rank"], c["alpha"]))
 
 
 def _residual_shift(P: np.ndarray, mu_r: float) -> np.ndarray | None:
@@ -478,7 +487,7 @@ def _proved(route: str, cand: dict, mu: float, pieces: int, delta: float
 
 def _pick(plan: list[dict], room: float) -> dict:
     """The slowest candidate whose sampled bound is within `room` of the best."""
-    return min((c for c in plan if c["bound"] <= room * plan[0]["bound"]),
+    return min((c for c in plan if c["rank"] <= room * plan[0]["rank"]),
                key=lambda c: c["alpha"])
 
 
@@ -528,8 +537,8 @@ def _attempts(route: _Route, host: Problem, samples: _Samples, eps_P: float, vba
               budget: _Budget, tried: list[dict], below: float = math.inf
               ) -> tuple[DissipationOutcome | None, bool]:
     """Run `SCHEDULE` on `route` (module docstring), only with candidates whose sampled bound
-    is below `below`. Returns the best proved outcome (None: none) and whether it was proved
-    by the first attempt, as planned."""
+    ranks below `below` (`_rank`). Returns the best proved outcome (None: none) and whether
+    it was proved by the first attempt, as planned."""
     best: DissipationOutcome | None = None
     first = True
     for step, (room, grow, share) in enumerate(SCHEDULE):
@@ -541,20 +550,21 @@ def _attempts(route: _Route, host: Problem, samples: _Samples, eps_P: float, vba
             if plan:
                 samples = _sharpen(host, samples, plan[0])
                 plan = route.plan(samples)
-            plan = [c for c in plan if c["bound"] < below]
+            plan = [c for c in plan if c["rank"] < below]
             if not plan:
                 return best, False
             cand = _pick(plan, room)
             mu_b = cand["mu_b"] * grow
             mu = mu_b + cand["eta"]
             aim = _bound(mu, cand["mu_r"], cand["alpha"], vbar, eps_P)
-            if best is not None and aim >= best.candidates[-1]["bound"]:
+            rank = _rank(mu, cand["mu_r"], cand["alpha"], vbar, eps_P)
+            if best is not None and rank >= best.candidates[-1]["rank"]:
                 break
             status, used, refuted = route.prove(cand, mu_b, min(boxes, budget.left))
             budget.spend(used)
             boxes -= used
             tried.append(dict(route=route.name, alpha=cand["alpha"], mu=mu, bound=aim,
-                              status=status.value))
+                              rank=rank, status=status.value))
             if status == Status.PROVED:
                 best = _proved(route.name, cand, mu, route.pieces, route.delta)
                 best.candidates = [tried[-1]]
@@ -616,7 +626,7 @@ def _cover_route(problem: Problem, host: Problem, samples: _Samples, eps_P: floa
             if one is None:
                 continue
             plan_1 = plan_of(one, samples)
-            if plan_1 and (not plan or plan_1[0]["bound"] <= BALL_ALLOWANCE * plan[0]["bound"]):
+            if plan_1 and (not plan or plan_1[0]["rank"] <= BALL_ALLOWANCE * plan[0]["rank"]):
                 cover = one
                 break
 
@@ -683,7 +693,7 @@ def prove_dissipation(problem: Problem, *, vbar: float, eps_P: float = 0.0,
     if route == "cover" or (route == "auto" and not as_planned):
         cover = _cover_route(problem, host, pts, eps_P, vbar, budget, constant)
         if cover is not None:
-            below = math.inf if best is None else best.candidates[-1]["bound"]
+            below = math.inf if best is None else best.candidates[-1]["rank"]
             best = _attempts(cover, host, pts, eps_P, vbar, budget, tried, below)[0] or best
     if best is not None:
         best.candidates, best.boxes = tried, budget.spent

@@ -1,7 +1,7 @@
 """The sound prover: the MPDI decision and the proved rate (side proofs: `certify.prove.side`).
 
 Every function here runs `certify.search.bnb.branch_and_bound` with bounds from
-`certify.enclosures` (interval + second-order Taylor forms, outward rounding as in
+`certify.enclose` (interval + second-order Taylor forms, outward rounding as in
 `certify.arith.intervals.ROUNDING`). Only a bound that covers every box of the domain is called
 proved; NaN/Inf anywhere leaves the box UNKNOWN; a violation is a concrete float64 point.
 """

@@ -3,7 +3,7 @@ of sup ||dk/dy||_2, and of the manifold quantity lam_max(Z^T (He{P Jf} + 2 lam P
 {h(xhat) in Y}, with the float kernel basis Z and its error bound.
 
 Each is a maximisation `certify.search.bnb.branch_and_bound` over boxes with bounds from
-`certify.enclosures` / `certify.enclose.side` (outward rounding as in
+`certify.enclose` / `certify.enclose.side` (outward rounding as in
 `certify.arith.intervals.ROUNDING`); the cheap interval bound runs first and the linear bounds only
 on boxes above the closing level (`certify.prove.mpdi.Level`). NaN/Inf leave the bound None.
 Each is budgeted in boxes (`max_boxes`), with an optional wall-clock cap (`seconds` from the

@@ -9,7 +9,7 @@ keeps searching or says UNKNOWN.
 How the bounds are made sound:
 
 - the matrix (D, He{P J}, dk/dy, ...) is evaluated on the degenerate box [z, z] with the
-  interval machinery of `certify.enclosures` / `certify.arith.intervals` (outward rounding, see
+  interval machinery of `certify.enclose` / `certify.arith.intervals` (outward rounding, see
   `certify.arith.intervals.ROUNDING`), so the exact matrix at z lies inside the interval matrix;
 - lam_max(A) >= v^T A v / v^T v for every v != 0 and every symmetric A in the interval
   matrix: v is a float eigenvector of the midpoint (any v is valid, a good one is tight), the

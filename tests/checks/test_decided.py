@@ -173,3 +173,15 @@ def test_the_suggested_rate_is_never_above_the_proved_bound(lower):
                              "a.ckpt", {})
     suggested = float(hint.split("--lam ")[1].split("`")[0])
     assert 0 < suggested <= lower
+
+
+def test_a_rate_check_not_run_proposes_a_rate_below_the_sampled_cap():
+    """Fail fast skips the rate check; a quick sampled cap (the smallest pointwise rate at
+    samples) still gives a rate to try, below the cap, and the command that decides it; a cap
+    <= 0 says no positive rate holds there."""
+    checks = {"mpdi": _violated(), "rate": CheckFailure(Status.NOT_RUN, "not run: decided")}
+    hint = smaller_rate_hint(checks, ["mpdi"], 0.5, "a.ckpt", {}, sampled_cap=0.4586)
+    tried = float(hint.split("--lam ")[1].split("`")[0])
+    assert 0 < tried < 0.4586 and "decides it" in hint and "--json" in hint
+    none = smaller_rate_hint(checks, ["mpdi"], 0.5, "a.ckpt", {}, sampled_cap=-0.2)
+    assert "no rate > 0 holds at sampled points" in none and "--lam" not in none

@@ -77,3 +77,27 @@ def test_huge_noise_gives_a_finite_bound_or_none(vbar):
         assert r.status != Status.PROVED
     if vbar == 1.7e308:  # 2 vbar / (2 lam) overflows: no ISS bound at all
         assert not r.iss.applicable and "floating-point range" in r.iss.reason
+
+
+def test_a_dissipation_inequality_is_planned_and_proved_at_any_noise():
+    """The inequality V' <= -alpha V + mu |v|^2 does not depend on the noise level; only its
+    bound does. At vbar = 1e308 the plan still ranks candidates (by the bound per unit noise)
+    and proves one; the bound then overflows and is not given (never infinite)."""
+    from certify.prove.dissipation import prove_dissipation
+
+    K = np.array([[1.0], [0.5]])
+    net = GainNetwork(2, 1, (4,), structure="structural").double()
+    with torch.no_grad():
+        net.layers[-1].weight.zero_()
+        net.layers[-1].bias.zero_()
+        net.K.copy_(torch.as_tensor(K))
+    pb = Problem(system=linear_system(A2, C2, P=P2), network=net.requires_grad_(False),
+                 lam=0.1, P=P2)
+    small = prove_dissipation(pb, vbar=0.15)
+    huge = prove_dissipation(pb, vbar=1e308)
+    assert small.status == huge.status == Status.PROVED
+    assert huge.mu / huge.alpha == pytest.approx(small.mu / small.alpha, rel=1e-6)
+    d = DissipationResult(Status.PROVED, "test", alpha=huge.alpha, mu=huge.mu)
+    r = check_bounds(pb, lam_cert=None, eps_bar=None, L=None, vbar=1e308, dissipation=d)
+    assert r.headline is None and r.status != Status.PROVED
+    assert "floating-point range" in r.message
