@@ -20,11 +20,12 @@ inside a float32 evaluation is a candidate for the float64 re-check, never a res
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 
 from certify.model.gain import COLUMNS, compose, propagate
-from certify.model.kernels import contraction_matrix, lam_max, mpdi_lam_max
+from certify.model.kernels import contraction_matrix, lam_max, mpdi_lam_max, pointwise_rate
 from certify.model.problem import Problem
 
 #: float32's normal range: a nonzero number outside it overflows or loses its precision
@@ -114,3 +115,24 @@ def float32_screen(problem: Problem, lam: float | None = None) -> GridKernel | N
     float32 (`float32_misfit`: the sweep then runs in float64 alone)."""
     screen = GridKernel(problem, lam, dtype=torch.float32)
     return screen if screen.fallback is None else None
+
+
+def float32_rate_screen(problem: Problem) -> Callable[[torch.Tensor], torch.Tensor] | None:
+    """The float32 screen of the rate grid: z = (xhat, y) [B, n+p] -> -pointwise_rate [B]
+    (`certify.model.kernels.pointwise_rate`, the score the rate check maximises) in float32;
+    or None where the problem's numbers do not fit float32 (`float32_misfit`) or P has no
+    float32 Cholesky factor (the pencil's). Like the MPDI screen, it only selects the points
+    evaluated again in float64 (`certify.search.falsify.maximize_over_box`)."""
+    if float32_misfit(problem) is not None:
+        return None
+    P32 = problem.P_t.detach().to(torch.float32)
+    if bool(torch.linalg.cholesky_ex(P32).info.any()):
+        return None
+    system, net, n = problem.system, problem.network, problem.n
+
+    def screen(z: torch.Tensor) -> torch.Tensor:
+        z = z.to(torch.float32)
+        return -pointwise_rate(system, net, P32.to(z.device), z[:, :n], z[:, n:])
+
+    return screen
+
