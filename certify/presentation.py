@@ -17,7 +17,7 @@ from certify.results import BoundsResult, CheckFailure, Status
 
 __all__ = ["Quantity", "Presentation", "NOTHING", "present_failure", "ErrorHeadline",
            "error_headline", "headline_basis", "BASES", "upper_text", "lower_text",
-           "bound_text", "special_text", "BOUND_TITLES"]
+           "bound_text", "special_text", "BOUND_TITLES", "validity_sentence"]
 
 
 @dataclass(frozen=True)
@@ -128,6 +128,9 @@ class ErrorHeadline:
     mpdi_status: str = ""
     rate_status: str = ""
     dissipation_status: str = ""
+    #: the validity region (`BoundsResult.region`, "" without one; `validity_sentence`)
+    validity: str = ""
+    validity_ascii: str = ""
 
     def _le(self, unicode: bool) -> str:
         return "\u2264" if unicode else "<="
@@ -226,6 +229,12 @@ class ErrorHeadline:
         parts.append(self.size_text())
         return "; ".join(parts) + f" [{self.source_text(unicode)}]"
 
+    def validity_text(self, unicode: bool = True) -> str:
+        """Where the conditions of the bound are proved, not assumed: 'for every x(0) in R
+        and ‖e(0)‖ ≤ 0.37: x̂ stays in X and ‖e(t)‖ ≤ 1.75 for all t ≥ 2.1 s; ...' ('' when
+        no region was proved)."""
+        return self.validity if unicode else self.validity_ascii
+
     def to_dict(self) -> dict[str, Any]:
         """The JSON summary (`Certificate.to_dict`'s top-level "error_bound")."""
         return {"status": self.status,
@@ -237,7 +246,7 @@ class ErrorHeadline:
                 else None, "box_half_diagonal": self.half_diagonal,
                 "source": self.source or None, "ultimate": self.ultimate,
                 "basis": self.basis or None, "title": self.title(),
-                "reason": self.reason or None}
+                "validity": self.validity or None, "reason": self.reason or None}
 
 
 def _no_bound(status: str, why: str) -> ErrorHeadline:
@@ -320,6 +329,7 @@ def error_headline(bounds: Any, states: list[str] | None = None, *,
                           else float(v)))
     basis = "" if checks is None or verdict is None else headline_basis(source, checks,
                                                                            verdict)
+    region = bool(getattr(bounds, "region", ""))
     return ErrorHeadline(status=status, proved=True, bound=bound, noise=float(bounds.vbar),
                          after=None if after is None else float(after),
                          components=tuple(comps), vacuous=bool(bounds.vacuous),
@@ -330,4 +340,30 @@ def error_headline(bounds: Any, states: list[str] | None = None, *,
                          verdict=verdict or "",
                          mpdi_status=_status_word((checks or {}).get("mpdi")),
                          rate_status=_status_word((checks or {}).get("rate")),
-                         dissipation_status=_status_word((checks or {}).get("dissipation")))
+                         dissipation_status=_status_word((checks or {}).get("dissipation")),
+                         validity=validity_sentence(bounds) if region else "",
+                         validity_ascii=validity_sentence(bounds, unicode=False) if region
+                         else "")
+
+
+def validity_sentence(bounds: BoundsResult, unicode: bool = True) -> str:
+    """The headline with its conditions proved for a set of starts (`BoundsResult.region`):
+    'for every x(0) in R and ‖e(0)‖ ≤ r0: x̂ stays in X and ‖e(t)‖ ≤ B for all t ≥ T (R: ...;
+    conditions (a), (b) proved; (c) ‖v‖ ≤ v̄ assumed)', r0 rounded down, B and T up; '' when
+    there is no region."""
+    if not getattr(bounds, "region", "") or bounds.r0 is None or bounds.headline is None:
+        return ""
+    le, ge = ("\u2264", "\u2265") if unicode else ("<=", ">=")
+    norm = "\u2016e" if unicode else "||e"
+    bar = "\u2016" if unicode else "||"
+    xhat = "x\u0302" if unicode else "xhat"
+    t = bounds.region_settle_time
+    when = (("as t \u2192 \u221e" if unicode else "as t -> infinity") if t is None
+            else f"for all t {ge} {upper_text(t, 2)} s")
+    proved = ", ".join(f"({c})" for c in bounds.proved_conditions)
+    assumed = [f"(c) {bar}v{bar} {le} {bounds.vbar:g}"]
+    if bounds.L_is_local and "d" not in bounds.proved_conditions:
+        assumed.append("(d) y + v in Y")
+    return (f"for every x(0) in R and {norm}(0){bar} {le} {lower_text(bounds.r0)}: {xhat} "
+            f"stays in X and {norm}(t){bar} {le} {upper_text(bounds.headline)} {when} (R: "
+            f"{bounds.region}; conditions {proved} proved, {' and '.join(assumed)} assumed)")

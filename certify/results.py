@@ -265,6 +265,17 @@ class BoundsResult:
     headline: float | None = None  # ultimate * HEADLINE_MARGIN: reached at settle_time
     settle_time: float | None = None
     per_component: list[float] | None = None  # ultimate bounds on |e_i|, i = 1..n
+    #: the validity region (`certify.prove.error_bound.validity_region`): for every x(0) in
+    #: the region R proved forward invariant (`region`, in words) and ||e(0)||_2 <= `r0`
+    #: (||P^(1/2) e(0)|| <= `r0_W`), xhat stays in X and the conditions `proved_conditions`
+    #: ("a", "b" and "d" where proved) hold for all t, so ||e(t)|| <= `headline` for every
+    #: t >= `region_settle_time`; `region` "" and `region_reason` why when there is none
+    region: str = ""
+    r0: float | None = None
+    r0_W: float | None = None
+    region_settle_time: float | None = None
+    proved_conditions: list[str] = field(default_factory=list)
+    region_reason: str = ""
 
     def bounds(self) -> list[BoundResult]:
         """Every bound computed, applicable or not, in a fixed order."""
@@ -322,6 +333,37 @@ class MetricBoundResult:
     boxes: int = 0
     candidates: list[dict] = field(default_factory=list)
     seconds: float = 0.0
+
+
+@dataclass
+class InvarianceResult:
+    """Forward invariance of a plant region R inside X (`certify.prove.invariance`).
+
+    `region`: R as plain data (`certify.spec.region.Region.to_dict`: kind, origin "spec" or
+    "found", vertices / box / V and level); `hull` [n][2]: proved outer bounds of R's
+    component ranges; `output_range` [p][2]: an outer enclosure of h over R; `margin`: the
+    largest proved upper bound of the outward speed on R's boundary (< 0); `witness`: a
+    boundary point where the flow provably leaves R (VIOLATED). From the plant simulated
+    alone: `attractor` (its kind: "equilibrium", "cycle", "other", "none"), `attractor_box`
+    (the box of its samples: evidence, not proof), `attractor_leaves_box` (that box is not
+    inside X) and `suggested_box` (a box holding it with a margin); `candidates`: the regions
+    tried (dicts with keys kind, how, status, message)."""
+
+    status: Status
+    message: str
+    region: dict[str, Any] | None = None
+    hull: list[list[float]] | None = None
+    output_range: list[list[float]] | None = None
+    margin: float | None = None
+    witness: list[float] | None = None
+    attractor: str = ""
+    attractor_box: list[list[float]] | None = None
+    attractor_leaves_box: bool = False
+    suggested_box: list[list[float]] | None = None
+    candidates: list[dict] = field(default_factory=list)
+    seconds: float = 0.0
+    #: the effort of its proofs together (None: no proof ran)
+    proof: ProofStats | None = None
 
 
 @dataclass
@@ -425,6 +467,7 @@ RESULT_TYPES: dict[str, type] = {
     "metric": MetricResult,
     "dissipation": DissipationResult,
     "metric_bound": MetricBoundResult,
+    "invariance": InvarianceResult,
     "bounds": BoundsResult,
     "simulation": SimulationResult,
 }

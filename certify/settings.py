@@ -10,7 +10,7 @@ renamed or documented here alone.
 
 Budgets count work, never seconds: each proof has a budget of boxes (`max_boxes` for the
 MPDI, `rate_boxes`, `residual_boxes`, `lipschitz_boxes`, `dissipation_boxes`,
-`metric_boxes`), so a
+`metric_boxes`, `invariance_boxes`), so a
 checkpoint gets the same certificate on a busy machine as on a quiet one. `max_seconds`, off
 by default, caps the wall clock of a whole run; a proof it stops is UNKNOWN and says so.
 The per-proof seconds of older versions (`RETIRED`) are refused with their replacement.
@@ -35,7 +35,7 @@ from certify.errors import SettingsError
 #: certificate, comes first: once it is VIOLATED the verdict is decided
 #: (`certify.checks.registry.run_checks`)
 CHECK_NAMES = ("mpdi", "necessary", "rate", "residual", "lipschitz", "dissipation",
-               "metric_bound", "bounds", "simulation")
+               "metric_bound", "invariance", "bounds", "simulation")
 #: the check that is the certificate: always run, always required, whatever the policy says
 #: (a policy may add checks beside it, never drop it; see `validate`)
 CERTIFICATE_CHECK = "mpdi"
@@ -264,6 +264,10 @@ class VerifySettings:
         300_000, _BOXES, flag="--metric-boxes", label="metric proof budget", unit=" boxes",
         metavar="N",
         help="box budget of the stages with a metric that follows the state (all of them)")
+    invariance_boxes: int = setting(
+        200_000, _BOXES, flag="--invariance-boxes", label="invariance proof budget",
+        unit=" boxes", metavar="N",
+        help="box budget of the forward invariance of a plant region (all regions tried)")
     max_seconds: float | None = setting(
         None, Number(0.0, optional=True), flag="--max-seconds", label="wall-clock cap",
         unit=" s", metavar="S", none="none",

@@ -20,7 +20,7 @@ DASH = "\u2014"
 
 #: the order checks appear in every report
 CHECK_ORDER = ("necessary", "metric", "mpdi", "rate", "residual", "lipschitz", "dissipation",
-               "metric_bound", "bounds", "simulation")
+               "metric_bound", "invariance", "bounds", "simulation")
 
 STATUS_COLOURS = {  # text colour, background
     "PROVED": ("#14532d", "#dcfce7"),
@@ -349,9 +349,26 @@ def timing_pairs(cert: Certificate) -> list[tuple[str, str]]:
     return [(k, fmt_seconds(v)) for k, v in (cert.timings or {}).items()]
 
 
+def box_words(box: Any, names: Any = None) -> str:
+    """'x1 in [-2.5, 2.5], x2 in [-3.3, 3.3]' (4 digits: words, not bounds)."""
+    names = list(names or [])
+    return ", ".join(f"{names[i] if i < len(names) else f'x{i + 1}'} in [{fmt(lo)}, {fmt(hi)}]"
+                     for i, (lo, hi) in enumerate(box or []))
+
+
 def verdict_notes(cert: Certificate) -> list[str]:
-    """What the verdict alone does not say: a true certificate whose bound says little."""
+    """What the verdict alone does not say: a true certificate whose bound says little, and
+    a plant whose attractor leaves X (the bound cannot hold for a plant on it)."""
     notes = []
+    inv = result(cert, "invariance")
+    if inv is not None and getattr(inv, "attractor_leaves_box", False):
+        names = (cert.system or {}).get("states")
+        where = box_words(inv.attractor_box, names)
+        notes.append(f"the plant's simulated attractor leaves X ({where}): the error bound "
+                     "holds only while the plant is in X, not for a plant that has settled "
+                     f"on its attractor; a box that holds it: "
+                     f"{box_words(inv.suggested_box, names)} (leave room for the estimation "
+                     "error too)")
     b = result(cert, "bounds")
     if b is not None and getattr(b, "vacuous", False):
         # the number judged vacuous: the headline (an older certificate: the best limit)
@@ -379,7 +396,8 @@ class HeadlineText:
     0.15 after t ≥ 3.1 s', or the reason there is none), `components` ('|e1| ≤ 0.396 (x1),
     ...'), `size_word` ('useful' / 'vacuous', '' without a bound), `size` (the word with
     the box's half-diagonal), `source` (which bound it comes from: small print), `basis`
-    (`certify.presentation.BASES`, '' without a bound)."""
+    (`certify.presentation.BASES`, '' without a bound), `validity` (the bound with its
+    conditions proved for a set of starts: `ErrorHeadline.validity_text`, '' without)."""
 
     proved: bool
     sentence: str
@@ -390,6 +408,8 @@ class HeadlineText:
     title: str = "Error bound"
     note: str = ""
     basis: str = ""
+    #: the bound with its conditions proved for a set of starts ('' without a region)
+    validity: str = ""
 
     @property
     def label(self) -> str:
@@ -420,7 +440,7 @@ def error_headline_text(cert: Certificate, *, unicode: bool = True) -> HeadlineT
         return HeadlineText(False, h.reason)
     return HeadlineText(True, h.sentence(unicode), h.components_text(unicode), h.size_word(),
                         h.size_text(), h.source_text(unicode), h.title(unicode),
-                        h.note(unicode), h.basis)
+                        h.note(unicode), h.basis, h.validity_text(unicode))
 
 
 def verdict_summary(cert: Certificate) -> str:

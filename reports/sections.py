@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from certify.certificate import Certificate
+from certify.presentation import validity_sentence
 from reports.content import (
     DASH,
     badge,
@@ -49,6 +50,16 @@ DISSIPATION_TEXT = (
     "vertex of an enclosure of \u2202k/\u2202y, so the error tends to at most "
     "\u221a((\u03bc v\u0304\u00b2 + \u03bc_r \u03b5\u0304\u00b2) / (\u03b1 "
     "\u03bb_min(P))) without the Cauchy\u2013Schwarz step of the ISS bound.")
+
+INVARIANCE_TEXT = (
+    "A region R of the plant's states inside X is forward invariant when the flow crosses its "
+    "boundary inwards everywhere: a\u1d40 f(x) < 0 on every edge of a polygon (a its outward "
+    "normal), f_i < 0 on the upper and f_i > 0 on the lower faces of a box, \u2207V \u00b7 f "
+    "< 0 on the level set {V = c} of a sublevel set. Each is proved by branch and bound in "
+    "outward-rounded interval arithmetic; then no trajectory that starts in R leaves it, and "
+    "the error bounds' conditions (a)-(b) are proved, not assumed, for starts in R with an "
+    "initial error small enough that x\u0302 stays in X. The attractor's box comes from "
+    "simulating the plant alone: evidence, not proof.")
 
 NECESSARY_TEXT = (
     "For any C\u00b9 gain with exact boundary condition k(x, h(x)) = 0, on the output manifold "
@@ -340,6 +351,20 @@ def sections(cert: Certificate) -> list[Section]:
         sec.facts = check_facts(cert, "dissipation")
         out.append(sec)
 
+    if "invariance" in cert.checks:
+        sec = Section("invariance", cert.title("invariance"), "Invariance",
+                      _status(cert, "invariance"), _message(cert, "invariance"))
+        sec.paragraphs.append(INVARIANCE_TEXT)
+        sec.facts = check_facts(cert, "invariance")
+        inv = result(cert, "invariance")
+        if inv is not None and inv.candidates:
+            sec.tables.append(Table(["Region", "How it was made", "Status", "Finding"],
+                                    [[c.get("kind", DASH), c.get("how", DASH),
+                                      c.get("status", DASH), c.get("message", DASH)]
+                                     for c in inv.candidates], "Regions tried",
+                                    [0.8, 1.8, 0.8, 4.0]))
+        out.append(sec)
+
     sec = Section("bounds", "Error bounds: the headline bound, Theorem 3 as stated and the "
                   "ISS bounds", "Bounds", _status(cert, "bounds"), _message(cert, "bounds"))
     sec.statements = [THEOREM3_TEXT, ISS_TEXT]
@@ -359,6 +384,9 @@ def sections(cert: Certificate) -> list[Section]:
         if formulas:
             sec.tables.append(Table(["Bound", "Formula"], [list(f) for f in formulas],
                                     "Formulas", [1, 4]))
+        validity = validity_sentence(b)
+        if validity:
+            sec.statements.append(f"Validity, proved: {validity}.")
         sec.bullets = list(b.validity)
         sec.bullets_title = ("Validity conditions (each holds up to its first failure time; "
                              "no bound is claimed after it)")

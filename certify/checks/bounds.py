@@ -20,7 +20,7 @@ from certify.arith.text import upper_text
 from certify.checks.base import Check, Context
 from certify.errors import SettingsError
 from certify.model.problem import Problem
-from certify.presentation import Presentation, Quantity, error_headline
+from certify.presentation import Presentation, Quantity, error_headline, validity_sentence
 from certify.prove.error_bound import (
     HEADLINE_MARGIN,
     box_half_diagonal,
@@ -34,12 +34,14 @@ from certify.prove.error_bound import (
     theorem3_bound,
     up_rel,
     validity_conditions,
+    validity_region,
     worst_start,
 )
 from certify.results import (
     BoundResult,
     BoundsResult,
     DissipationResult,
+    InvarianceResult,
     MetricBoundResult,
     Status,
 )
@@ -49,14 +51,18 @@ def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | N
                  L: float | None, vbar: float, eps_bar_P: float | None = None,
                  L_P: float | None = None, L_is_local: bool = False,
                  dissipation: DissipationResult | None = None,
-                 metric: MetricBoundResult | None = None) -> BoundsResult:
+                 metric: MetricBoundResult | None = None,
+                 invariance: InvarianceResult | None = None) -> BoundsResult:
     """Theorem 3 (as stated), the ISS bound and its metric variant at noise level `vbar`.
 
     All inputs must be sound: `lam_cert` a proved lower bound on the rate (metric
     `problem.P`), `eps_bar`, `L` (and `eps_bar_P`, `L_P`) proved upper bounds. PROVED when the
     ISS bound is applicable; NOT APPLICABLE when lam_cert <= 0 (no bound exists); SKIPPED
     when an input was not established (None); UNKNOWN when one is not finite or negative.
-    A proved ultimate bound above half the diagonal of X is flagged `vacuous`.
+    A proved ultimate bound above half the diagonal of X is flagged `vacuous`. With a plant
+    region proved forward invariant (`invariance`), the result also holds the validity
+    region: the initial errors for which conditions (a)-(b) are proved for all t
+    (`certify.prove.error_bound.validity_region`).
     """
     if vbar is None or isinstance(vbar, bool) or not math.isfinite(float(vbar)) or vbar < 0:
         raise SettingsError(f"settings noise must be a number >= 0; got {vbar!r}")
@@ -162,10 +168,22 @@ def check_bounds(problem: Problem, *, lam_cert: float | None, eps_bar: float | N
         when = ("as t -> infinity" if r.settle_time is None
                 else f"after t >= {upper_text(r.settle_time, 2)} s")
         limits = ", ".join(upper_text(v) for v in r.per_component or [])
+        validity_region(r, P, np.asarray(problem.system.X, dtype=np.float64),
+                        np.asarray(problem.system.Y, dtype=np.float64), invariance,
+                        plant_box=None if metric is None else metric.plant_box)
+        if r.region:
+            proved = ", ".join(f"({c})" for c in r.proved_conditions)
+            r.validity.insert(0, f"Proved for a set of starts: {validity_sentence(r, False)}. "
+                              f"There conditions {proved} hold for all t by proof; elsewhere "
+                              "the conditions below are assumptions.")
+            valid = f"Validity: {validity_sentence(r, False)}."
+        else:
+            valid = (f"Valid only under conditions (a)-(d) (not proved for any set of starts: "
+                     f"{r.region_reason}).")
         r.message = (f"||e|| <= {upper_text(r.headline)} for noise <= {vbar:g} {when} "
                      f"({size}); ultimate bounds (t -> infinity): {parts}"
                      + (f", per component |e_i| <= {limits}" if limits else "")
-                     + f"; Theorem 3 as stated: {t3}. Valid only under conditions (a)-(d).")
+                     + f"; Theorem 3 as stated: {t3}. {valid}")
     elif no_rate and not [x for x in invalid if not x.startswith("lam_cert")]:
         r.status = Status.NOT_APPLICABLE
         r.message = "no error bound exists: " + "; ".join(common)
@@ -201,7 +219,7 @@ class BoundsCheck(Check):
     title = "Error bounds (Theorem 3, ISS)"
     result_type = BoundsResult
     reads = ("noise",)
-    uses = ("rate", "residual", "lipschitz", "dissipation", "metric_bound")
+    uses = ("rate", "residual", "lipschitz", "dissipation", "metric_bound", "invariance")
 
     def run(self, context: Context) -> BoundsResult:
         rate, res, lip, joint = (context.result(n) for n in
@@ -222,7 +240,8 @@ class BoundsCheck(Check):
             context.problem, lam_cert=lam_cert, eps_bar=res.upper if res is not None else None,
             L=lip.value if lip is not None else None, vbar=context.settings.noise,
             eps_bar_P=eps_bar_P, L_P=L_P, L_is_local=bool(local),
-            dissipation=joint, metric=context.result("metric_bound"))
+            dissipation=joint, metric=context.result("metric_bound"),
+            invariance=context.result("invariance"))
 
     def present(self, r: BoundsResult, certificate: Any) -> Presentation:
         """The proved side is the headline bound (||e|| after t >= settle_time, from the best
@@ -245,6 +264,16 @@ class BoundsCheck(Check):
                         Quantity("ultimate bound", r.ultimate, sig=6, bound="upper")]
         else:
             numbers.append(Quantity("error bound", head.reason))
+        if head.proved:
+            no_region = getattr(r, "region_reason", "") or "not computed"
+            numbers += [Quantity("validity region", getattr(r, "region", "") or None,
+                                 no_region),
+                        Quantity("initial error r0 (||e(0)|| <=)", getattr(r, "r0", None),
+                                 no_region, sig=6, bound="lower"),
+                        Quantity("initial error in the P-norm (||P^(1/2) e(0)|| <=)",
+                                 getattr(r, "r0_W", None), no_region, sig=6, bound="lower"),
+                        Quantity("settle time from r0", getattr(r, "region_settle_time", None),
+                                 no_region, sig=6, bound="upper")]
         for b in r.bounds():
             if b.applicable:
                 numbers += [Quantity(f"{b.name} bias", b.bias, sig=6, bound="upper"),
@@ -268,7 +297,9 @@ class BoundsCheck(Check):
                       Quantity("Per component", head.components_text() or None,
                                "not computed"),
                       Quantity("Size", head.size_text()),
-                      Quantity("From", head.source_text())]
+                      Quantity("From", head.source_text()),
+                      Quantity("Conditions proved", head.validity_text() or None,
+                               getattr(r, "region_reason", "") or "not computed")]
         facts += [Quantity("Noise level v\u0304", r.vbar),
                   Quantity("\u03bb_cert used", r.lam_cert, "none: no bound", bound="lower"),
                   Quantity("\u03b5\u0304 used", r.eps_bar, bound="upper"),

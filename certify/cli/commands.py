@@ -434,6 +434,10 @@ def cmd_report(args: argparse.Namespace) -> int:
     from certify.cli.display import ProgressDisplay
 
     cert = Certificate.load(args.certificate)
+    if getattr(args, "trajectories", False) and not args.quiet and not _has_states(cert):
+        from reports.figures_sim import NO_STATES
+
+        print(f"certify: note: {NO_STATES}", file=sys.stderr)
     display = ProgressDisplay(quiet=args.quiet)
     args.display = display
     try:
@@ -442,6 +446,12 @@ def cmd_report(args: argparse.Namespace) -> int:
         display.close()
     _summary(cert, args)
     return 0
+
+
+def _has_states(cert: Any) -> bool:
+    """Whether the certificate holds simulated states (written only with --trajectories)."""
+    sim = cert.checks.get("simulation")
+    return any(run.x for run in getattr(sim, "runs", None) or [])
 
 
 def write_outputs(cert: Any, args: argparse.Namespace, display: Any) -> None:

@@ -5,7 +5,8 @@ simulation runs, the verdict line (with its notes, e.g. a vacuous bound) and on 
 after it the error bound (`headline_line`: "‖e‖ ≤ B for noise ≤ v̄ after t ≥ T", per
 component, "useful" or "vacuous"; or why there is none). A bound that does not rest on the
 certificate says what it rests on after "error bound" (never "certified" under a verdict
-that is not CERTIFIED).
+that is not CERTIFIED). Where a plant region was proved forward invariant, a last line
+"validity: ..." states the bound with conditions (a)-(b) proved for a set of starts.
 
 On a terminal: `rich.progress` bars, one row per running step and one per task inside it
 (a grid sweep counts points; a proof shows its closed volume and its boxes against the
@@ -262,10 +263,13 @@ def headline_line(cert: Any, out: TextIO) -> str:
 def print_verdict(cert: Any, out: TextIO) -> None:
     """The verdict line and, on the next line, the error bound (plain text: what `--quiet`
     prints)."""
-    from reports.content import verdict_line
+    from reports.content import error_headline_text, verdict_line
 
     print(verdict_line(cert), file=out)
     print(headline_line(cert, out), file=out)
+    validity = error_headline_text(cert, unicode=_unicode_ok(out)).validity
+    if validity:
+        print(f"validity: {validity}", file=out)
 
 
 def print_summary(cert: Any, out: TextIO) -> None:
@@ -316,6 +320,8 @@ def print_summary(cert: Any, out: TextIO) -> None:
                               markup=False)
             console.print(f"  {h.size}", highlight=False, markup=False)
             console.print(f"  {h.source}", style="dim", highlight=False, markup=False)
+            if h.validity:
+                console.print(f"validity: {h.validity}", highlight=False, markup=False)
         else:
             console.print(h.sentence, highlight=False, markup=False)
         return

@@ -23,6 +23,10 @@ Bounds, with e = x - xhat, W = ||P^(1/2) e||, c = ||P^(1/2)||_2 (eps_bar + L vba
 The headline is the best ultimate value times HEADLINE_MARGIN and the time after which every
 start in X is below it; an ultimate value of 0 (no noise, no residual) is reached only as
 t -> infinity, and the headline says so instead of naming a time.
+
+The validity region (`validity_region`) turns conditions (a)-(b) from assumptions into
+proved facts for a set of starts: the plant in a region R proved forward invariant
+(`certify.prove.invariance`) and an initial error small enough that xhat never leaves X.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from certify.results import (
     BoundResult,
     BoundsResult,
     DissipationResult,
+    InvarianceResult,
     MetricBoundResult,
     Status,
 )
@@ -412,3 +417,98 @@ def _metric_curve(bounds: BoundsResult, b: BoundResult, start: np.ndarray, t: np
         use = (t >= piece["start"]) & (t < end)
         out = np.where(use, np.minimum(first, value), out)
     return out
+
+
+# ----------------------------------------------------------------------------- validity region
+
+#: the bounds whose curves keep W = ||P^(1/2) e|| below max(W(0), W_inf) for all t
+W_BOUNDS = ("dissipation", "iss_metric", "iss")
+
+
+def _down(x: float) -> float:
+    return math.nextafter(x, -math.inf)
+
+
+def _inside(box: np.ndarray, outer: np.ndarray) -> bool:
+    return bool(np.all(box[:, 0] >= outer[:, 0]) and np.all(box[:, 1] <= outer[:, 1]))
+
+
+def validity_region(r: BoundsResult, P: np.ndarray, X: np.ndarray, Y: np.ndarray,
+                    invariance: InvarianceResult | None,
+                    plant_box: list[list[float]] | None = None) -> None:
+    """Fill the validity region of `r` (PROVED, headline filled) in place: `region`, `r0`,
+    `r0_W`, `region_settle_time`, `proved_conditions`, or `region_reason` why there is none.
+
+    Let R, inside X, be forward invariant for x' = f(x) with component ranges inside
+    [R_lo, R_hi] (`invariance.hull`), h(R) inside Y (`invariance.output_range`), and
+    d_i = min(R_lo_i - X_lo_i, X_hi_i - R_hi_i) (rounded down). Each of the W-bounds
+    (`W_BOUNDS`) gives W(t) <= max(W(0), W_inf) while (a)-(d) hold, and |e_i| <= gamma_i W
+    with gamma_i = sqrt((P^-1)_ii) (rounded up). If W_inf < w = min_i d_i / gamma_i (the
+    smallest W_inf of the applicable W-bounds) and W(0) <= r0_W < w, then for x(0) in R
+    xhat stays in X for all t: otherwise at the first exit time t* the conditions hold on
+    [0, t*] (x in R by invariance, h(x) in Y, xhat in X), so |e_i(t*)| <= gamma_i max(W(0),
+    W_inf) < d_i and xhat(t*) = x(t*) - e(t*) lies in the interior of X, which a first exit
+    cannot. So (a) and (b) hold for all t, and (d) too where h(R) lies vbar inside Y
+    (|v_j| <= ||v||_2 <= vbar). ||e(0)||_2 <= r0 = r0_W / ||P^(1/2)||_2 gives W(0) <= r0_W.
+    The headline B then holds for t >= `region_settle_time` (the best bound's settle time
+    from W(0) = r0_W, no later than from the worst start in X); the bound with a metric
+    that follows the state also needs R inside its `plant_box`."""
+    def no(reason: str) -> None:
+        r.region_reason = reason
+
+    if r.status != Status.PROVED or r.headline is None:
+        return no("no error bound")
+    if invariance is None:
+        return no("no plant region was proved forward invariant (the invariance check did "
+                  "not run)")
+    if invariance.status != Status.PROVED or invariance.hull is None or \
+            invariance.region is None:
+        return no(f"no plant region inside X was proved forward invariant (invariance "
+                  f"{invariance.status.value})")
+    hull = np.asarray(invariance.hull, dtype=np.float64)
+    X = np.asarray(X, dtype=np.float64)
+    if not _inside(hull, X):
+        return no("the region proved forward invariant is not inside X")
+    out = invariance.output_range
+    if out is None or not _inside(np.asarray(out, dtype=np.float64), np.asarray(Y)):
+        return no("h over the invariant region may leave Y (condition (b) is not proved)")
+    d = [min(_down(hull[i, 0] - X[i, 0]), _down(X[i, 1] - hull[i, 1]))
+         for i in range(X.shape[0])]
+    gamma = [up_rel(math.sqrt(v)) for v in inverse_diagonal_upper(P)]
+    room = min(_down(_down(di) / gi) if di > 0 else 0.0 for di, gi in zip(d, gamma))
+    w_bounds = [b for b in (getattr(r, n) for n in W_BOUNDS)
+                if b is not None and b.applicable and b.bias is not None and b.gain]
+    if not w_bounds:
+        return no("no bound of W = ||P^(1/2) e|| applies (dissipation, iss_metric, iss)")
+    w_inf = min(up_rel(up_rel(float(b.bias) / float(b.gain))) for b in w_bounds)
+    if not (math.isfinite(room) and w_inf < room):
+        limits = ", ".join(f"{up_rel(g * w_inf):.3g}" for g in gamma)
+        rooms = ", ".join(f"{di:.3g}" for di in d)
+        return no(f"the error's limit per component ({limits}) does not fit in the room "
+                  f"the invariant region leaves in X ({rooms}): no initial error keeps "
+                  "xhat in X by this argument")
+    if r.best == "metric" and (plant_box is None
+                               or not _inside(hull, np.asarray(plant_box, dtype=np.float64))):
+        return no("the bound with the metric M(x) needs the plant in its own box, which the "
+                  "invariant region does not fit in")
+    r0_W = room * (1.0 - 1e-9)
+    r0 = r0_W / metric_constants(P)[1] * (1.0 - NUDGE)
+    if not r0 > 0:
+        return no("the invariant region leaves no room in X for an initial error")
+    start = r0 if r.best == "theorem3" else r0_W
+    t = settle_time(r, r.best, start, r.headline)
+    text = invariance.region.get("text") or invariance.region.get("kind", "a region")
+    r.region = (f"{text}, proved forward invariant, in "
+                + " x ".join(f"[{lo:.4g}, {hi:.4g}]" for lo, hi in hull))
+    r.r0, r.r0_W = r0, r0_W
+    r.region_settle_time = t if math.isfinite(t) else None
+    conds = ["a", "b"]
+    if r.L_is_local:
+        Yv = np.asarray(Y, dtype=np.float64)
+        o = np.asarray(out, dtype=np.float64)
+        lo_ok = all(o[j, 0] >= math.nextafter(Yv[j, 0] + r.vbar, math.inf)
+                    for j in range(len(o)))
+        hi_ok = all(o[j, 1] <= _down(Yv[j, 1] - r.vbar) for j in range(len(o)))
+        if lo_ok and hi_ok:
+            conds.append("d")
+    r.proved_conditions = conds

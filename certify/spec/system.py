@@ -27,6 +27,8 @@ from certify.errors import SettingsError, SpecError
 from certify.spec import builtin
 from certify.spec.domain import check_domain
 from certify.spec.expr import CompiledRows, compile_numpy_rows, compile_torch_rows, parse_expression
+from certify.spec.region import KEYS as region_keys
+from certify.spec.region import Region, parse_region
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -108,12 +110,13 @@ def validate_lam(lam: Any, where: str) -> float:
 #: test keeps the two the same).
 SPEC_KEYS: dict[str, frozenset[str]] = {
     "": frozenset({"name", "description", "states", "outputs", "f", "h", "box", "design",
-                   "training", "simulation"}),
+                   "training", "simulation", "invariance"}),
     "box": frozenset({"X", "Y"}),
     "design": frozenset({"lam", "P"}),
     "training": frozenset({"paper"}),
     "training.paper": frozenset({"mu1", "mu2", "rho"}),
     "simulation": frozenset({"x0", "xhat0", "t_final"}),
+    "invariance": region_keys,
 }
 
 
@@ -153,6 +156,9 @@ class System:
     training: dict[str, dict[str, Any]] = field(default_factory=dict)
     simulation: dict[str, Any] = field(default_factory=dict)
     source: str = ""
+    #: the plant region of the spec's [invariance] table (`certify.spec.region`), to be
+    #: proved forward invariant; None: certify looks for one
+    invariance: Region | None = None
 
     # ----- construction -------------------------------------------------------------
     @classmethod
@@ -207,6 +213,8 @@ class System:
             source=text,
         )
         system._parse(where)
+        system.invariance = parse_region(data.get("invariance"), X=X, states=list(states),
+                                         symbols=system.symbols, where=where)
         return system
 
     def _parse(self, where: str) -> None:

@@ -16,6 +16,7 @@ from certify.certificate import Certificate
 from certify.checks.bounds import check_bounds
 from certify.checks.dissipation import check_dissipation
 from certify.checks.lipschitz import check_lipschitz
+from certify.checks.metric_bound import check_metric_bound
 from certify.checks.mpdi import check_mpdi
 from certify.checks.necessary import check_necessary
 from certify.checks.rate import check_rate
@@ -65,9 +66,11 @@ def _run_all(problem):
     out["rate"] = check_rate(problem, s, mpdi=out["mpdi"])
     lam_cert = out["rate"].proved_lower
     out["dissipation"] = check_dissipation(problem, s, residual=out["residual"])
+    out["metric_bound"] = check_metric_bound(problem, s, dissipation=out["dissipation"],
+                                             residual=out["residual"])
     out["bounds"] = check_bounds(problem, lam_cert=lam_cert, eps_bar=out["residual"].upper,
                                  L=out["lipschitz"].value, vbar=s.noise,
-                                 dissipation=out["dissipation"])
+                                 dissipation=out["dissipation"], metric=out["metric_bound"])
     out["simulation"] = check_simulation(problem, out["bounds"], s, certified=False)
     return out
 

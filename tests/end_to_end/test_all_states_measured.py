@@ -42,7 +42,7 @@ lam = 0.5
 FULL_NONLINEAR = FULL.replace('h = ["x1", "x2"]', 'h = ["x1", "x2**3 + x2"]').replace(
     "[-3.0, 3.0]]\n\n[design]", "[-30.0, 30.0]]\n\n[design]")
 
-SMALL_RUN = ("--grid-points", "3000", "--proof-seconds", "10", "--max-boxes", "20000",
+SMALL_RUN = ("--grid-points", "3000", "--max-boxes", "20000",
              "--adversarial-starts", "4", "--sim-time", "0.5", "--no-config")
 
 

@@ -160,16 +160,21 @@ def as_sequential(net: GainNetwork, activation: str) -> nn.Sequential:
 
 def _numbers(path) -> dict:
     """A certificate's content without run times (durations, rates, closed volume over
-    time), dates and where it was read from."""
+    time), dates and where it was read from (the input's name, also inside the commands a
+    message suggests, reads `<input>`)."""
+    cert = json.loads((path).read_text())
+    source = cert["checkpoint"]["path"]
+
     def strip(obj):
         if isinstance(obj, dict):
             return {k: strip(v) for k, v in obj.items()
                     if not k.endswith(("seconds", "per_second", "_history"))}
         if isinstance(obj, list):
             return [strip(v) for v in obj]
+        if isinstance(obj, str):
+            return obj.replace(f"certify run {source} ", "certify run <input> ")
         return obj
 
-    cert = json.loads((path).read_text())
     for key in ("timings", "created", "checkpoint"):
         cert.pop(key)
     return strip(cert)

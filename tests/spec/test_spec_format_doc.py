@@ -68,7 +68,19 @@ rho = [1.0, 0.1]
 x0 = [0.5, 0.0]
 xhat0 = [0.0, 0.0]
 t_final = 5.0
+
+[invariance]
+V = "a**2 + b**2"
+level = 0.5
 """
+
+#: the other forms of [invariance] (its keys exclude each other: one region per spec)
+REGIONS = ('polygon = [[0.5, 0.0], [0.0, 0.5], [-0.5, 0.0], [0.0, -0.5]]',
+           'box = [[-0.5, 0.5], [-0.5, 0.5]]')
+
+
+def _with_region(text: str, region: str) -> str:
+    return text.replace('V = "a**2 + b**2"\nlevel = 0.5', region)
 
 
 def _keys_of(data: dict, prefix: str = "") -> dict[str, set[str]]:
@@ -80,15 +92,22 @@ def _keys_of(data: dict, prefix: str = "") -> dict[str, set[str]]:
 
 
 def test_a_spec_with_every_documented_key_reads():
-    text = _full_spec()
-    assert _keys_of(tomllib.loads(text)) == documented_keys()
-    system = System.from_text(text, origin="spec full.toml")
+    texts = [_full_spec()] + [_with_region(_full_spec(), r) for r in REGIONS]
+    keys: dict[str, set[str]] = {}
+    for text in texts:
+        for table, found in _keys_of(tomllib.loads(text)).items():
+            keys.setdefault(table, set()).update(found)
+    assert keys == documented_keys()
+    systems = [System.from_text(t, origin="spec full.toml") for t in texts]
+    system = systems[0]
     assert system.lam == 0.5 and system.training["paper"]["mu1"] == 1e-3
     assert system.simulation["x0"] == [0.5, 0.0]
+    assert [s.invariance.kind for s in systems] == ["sublevel", "polygon", "box"]
 
 
 @pytest.mark.parametrize("table, key", [("", "lamb"), ("box", "Z"), ("design", "lamda"),
-                                        ("training.paper", "mu3"), ("simulation", "x1")])
+                                        ("training.paper", "mu3"), ("simulation", "x1"),
+                                        ("invariance", "levels")])
 def test_a_key_that_is_not_documented_is_refused_by_name(table, key):
     text = _full_spec()
     header = f"[{table}]\n" if table else None
