@@ -6,7 +6,11 @@ Designs (each written once into --out and reused; delete a checkpoint to retrain
 - certified: the certified preset at lam (`training.certified`, CEGIS),
 - bound: the linear observer designed for the error bound (`training.bound`, rate free),
 - learned: the bound preset's learned attempt (the network it trained, whether or not the
-  preset returned it).
+  preset returned it),
+- metric: the linear gain with a metric that follows the state M(x) (`training.bound_metric`,
+  the designs the bound preset compares),
+- metric_learned: the learned gain against the same certificate (the network it trained,
+  whether or not the preset returned it).
 Each checkpoint is verified with `certify.verify.verify` (simulation skipped); the table reads
 the error-bound check's result generically: the best applicable bound (`best`), its ultimate
 value, the headline ||e|| <= B after t >= T, the per-component bounds and whether the bound
@@ -16,7 +20,8 @@ designs it also shows the bound the design aimed at (vertex SDP) and its sampled
 source's simulation protocol (Gaussian noise std 0.15, outside the bounds' conditions).
 
 Run: python bench/compare.py [--out out/compare] [--systems vdp,lorenz,vdp2]
-       [--designs paper,lmi,certified,bound,learned] [--lams 2.5] [--quick]
+       [--designs paper,lmi,certified,bound,learned,metric,metric_learned] [--lams 2.5]
+       [--quick]
 Prints a Markdown table, then one JSON line per row.
 """
 
@@ -44,7 +49,7 @@ from certify.verify import verify  # noqa: E402
 
 VBAR = 0.15
 SIM_DT, SIM_T, SIM_SEED = 1e-3, 10.0, 0
-DESIGNS = ("paper", "lmi", "certified", "bound", "learned")
+DESIGNS = ("paper", "lmi", "certified", "bound", "learned", "metric", "metric_learned")
 SYSTEMS = ("vdp", "lorenz", "vdp2")
 RATE_DESIGNS = ("paper", "lmi", "certified")  # designed at a given rate lam
 
@@ -129,6 +134,49 @@ def make_bound(paths: dict[str, Path], system: Any, quick: bool) -> dict[str, An
     return info
 
 
+def make_metric(paths: dict[str, Path], system: Any, quick: bool) -> dict[str, Any]:
+    """The designs with M(x) once: the linear gain to paths["metric"], the learned gain's
+    network (returned by the preset or not) to paths["metric_learned"]."""
+    from training.bound import REPORT_VBAR
+    from training.bound_metric import (
+        MetricSettings,
+        design_linear_metric,
+        learn_metric_gain,
+        save_candidate,
+    )
+    from training.presets import make_config
+
+    say = lambda m: print(f"  [metric {system.name}] {m}", file=sys.stderr,  # noqa: E731
+                          flush=True)
+    config = make_config(system, "bound")
+    t0 = time.perf_counter()
+    base = checkpoint.load(paths["bound"]) if paths["bound"].exists() else None
+    K0 = (np.asarray(base.problem.network.K) if base is not None
+          else np.asarray(_bound_K(system)))
+    ms = MetricSettings(rounds=2, degrees=(2,)) if quick else MetricSettings()
+    cand = design_linear_metric(system, K0, vbar=REPORT_VBAR, hidden=config.hidden,
+                                settings=ms, seed=config.seed, log=say)
+    if cand is None:
+        raise CertifyError("no design with M(x) was proved")
+    save_candidate(paths["metric"], system, cand)
+    info: dict[str, Any] = {"train_seconds": time.perf_counter() - t0}
+    att = learn_metric_gain(system, cand, vbar=REPORT_VBAR, settings=ms, log=say)
+    info["learned_outcome"] = att.message
+    if att.final is not None:
+        save_candidate(paths["metric_learned"], system, att.final, returned=att.beat)
+    info["train_seconds"] = time.perf_counter() - t0
+    return info
+
+
+def _bound_K(system: Any) -> np.ndarray:
+    from certify.design.bound import design_bound_observer
+
+    d = design_bound_observer(system)
+    if d.K is None:
+        raise CertifyError(f"no linear observer for {system.name}: {d.message}")
+    return d.K
+
+
 def source_mse(problem: Any) -> float:
     """Mean over [0, T] of ||x - xhat||^2 under the source protocol (inf if it blows up)."""
     system = problem.system
@@ -172,7 +220,20 @@ def evaluate(path: Path, settings: VerifySettings) -> dict[str, Any]:
            **bound_fields(c.get("bounds")),
            "mse_source": source_mse(ck.problem), "verify_seconds": cert.timings["total"]}
     tr = ck.training or {}
-    if tr.get("preset") == "bound":
+    if ck.problem.metric is not None:
+        row["metric_degree"] = ck.problem.metric.degree
+        mb = c.get("metric_bound")
+        row["metric_ultimate"] = getattr(mb, "ultimate", None)
+        stages = getattr(mb, "stages", None) or []
+        row["metric_tube"] = stages[-1]["tau"] if stages else None
+        row["metric_seconds"] = getattr(mb, "seconds", None)
+        design = (tr.get("metric") or {}).get("returned") or {}
+        per = design.get("design_per_unit_noise")
+        row["designed_bound"] = None if per is None else VBAR * per
+        outcome = ((tr.get("metric") or {}).get("learned") or {}).get("message")
+        if outcome is not None:  # else the design step's own (a checkpoint written alone)
+            row["learned_outcome"] = outcome
+    elif tr.get("preset") == "bound":
         per = tr.get("bound_per_unit_noise")
         row["designed_bound"] = None if per is None else VBAR * per
         row["alpha"], row["mu"], row["lam_min_P"] = (tr.get("alpha"), tr.get("mu"),
@@ -254,6 +315,9 @@ def main(argv: list[str] | None = None) -> int:
                 jobs.append((design, None, out / f"{name}_{design}.ckpt"))
         bound_paths = {"bound": out / f"{name}_bound.ckpt",
                        "learned": out / f"{name}_learned.ckpt"}
+        metric_paths = {"bound": bound_paths["bound"],
+                        "metric": out / f"{name}_metric.ckpt",
+                        "metric_learned": out / f"{name}_metric_learned.ckpt"}
         for design, lam, path in jobs:
             row: dict[str, Any] = {"system": name, "design": design, "checkpoint": str(path)}
             try:
@@ -265,6 +329,8 @@ def main(argv: list[str] | None = None) -> int:
                         row.update(make_lmi(path, system, lam))
                     elif design == "certified":
                         row.update(make_certified(path, system, lam, args.quick))
+                    elif design in ("metric", "metric_learned"):
+                        row.update(make_metric(metric_paths, system, args.quick))
                     else:
                         row.update(make_bound(bound_paths, system, args.quick))
                 else:
@@ -290,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{_f(r.get('sampled_bound'))} | {_f(r.get('mse_source'))} |")
     print()
     for r in rows:
-        if r.get("learned_outcome") and r["design"] == "bound":
+        if r.get("learned_outcome") and r["design"] in ("bound", "metric"):
             print(f"{r['system']}: {r['learned_outcome']}")
     print()
     for r in rows:

@@ -73,6 +73,16 @@ def caption_residual_map(d: dict[str, Any]) -> str:
     return _join(parts)
 
 
+def caption_metric_map(d: dict[str, Any]) -> str:
+    parts = ["Smallest eigenvalue of the metric M(x) over X (evaluated on a grid: the proved "
+             "m_min is in the section's facts)"]
+    if "plant box" in d:
+        parts.append("outlined: the plant box on which the stages were proved")
+    if "slice" in d:
+        parts.append("the other states at their box centre")
+    return _join(parts)
+
+
 def caption_lipschitz(d: dict[str, Any]) -> str:
     parts = ["Upper bounds (LipSDP, local interval, naive) against the sampled lower bound"]
     if "used" in d:

@@ -24,6 +24,7 @@ from certify.certificate import Certificate
 from reports import figures_sim as sim
 from reports.captions import (
     caption_lipschitz,
+    caption_metric_map,
     caption_mpdi_map,
     caption_necessary_map,
     caption_prover,
@@ -31,7 +32,12 @@ from reports.captions import (
 )
 from reports.figure_kit import STYLE, drawn
 from reports.figures_bounds import fig_lipschitz, fig_prover
-from reports.figures_maps import fig_mpdi_map, fig_necessary_map, fig_residual_map
+from reports.figures_maps import (
+    fig_metric_map,
+    fig_mpdi_map,
+    fig_necessary_map,
+    fig_residual_map,
+)
 
 __all__ = ["FIGURES", "STYLE", "FigureSpec", "RenderedFigure", "drawn", "fig_lipschitz",
            "fig_mpdi_map", "fig_necessary_map", "fig_prover", "fig_residual_map",
@@ -57,6 +63,7 @@ def _specs() -> tuple[FigureSpec, ...]:
         FigureSpec("necessary_map", "necessary", caption_necessary_map, fig_necessary_map),
         FigureSpec("residual_map", "residual", caption_residual_map, fig_residual_map),
         FigureSpec("lipschitz", "lipschitz", caption_lipschitz, fig_lipschitz),
+        FigureSpec("metric_map", "metric_bound", caption_metric_map, fig_metric_map),
         FigureSpec("bounds", "simulation", sim.caption_bounds, sim.fig_bounds),
         FigureSpec("simulation", "simulation", sim.caption_simulation, sim.fig_simulation,
                    on_request=True),

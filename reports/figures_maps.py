@@ -118,3 +118,62 @@ def fig_residual_map(cert: Certificate) -> Figure | None:
         title += " (zero by construction)"
     _finish(ax, axes, title)
     return fig
+
+
+#: points per axis of the metric map (the polynomial is evaluated here, at figure size)
+METRIC_MAP_POINTS = 61
+
+
+def metric_eigenvalues(metric: dict[str, Any], x: np.ndarray, y: np.ndarray,
+                       centre: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Smallest and largest eigenvalue [len(y), len(x)] of M at the grid's points (states 1
+    and 2 on the axes, the others at `centre`), from the metric's plain data
+    (`exponents` [K, n], `coefficients` [K, n, n]); None when the data is unusable."""
+    try:
+        e = np.asarray(metric["exponents"], dtype=np.int64)
+        c = np.asarray(metric["coefficients"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        return None
+    n = len(centre)
+    if e.ndim != 2 or c.ndim != 3 or e.shape[1] != n or c.shape != (len(e), n, n) or n < 2:
+        return None
+    X1, X2 = np.meshgrid(x, y)
+    pts = np.broadcast_to(centre, X1.shape + (n,)).copy()
+    pts[..., 0], pts[..., 1] = X1, X2
+    mono = np.prod(pts[..., None, :] ** e, axis=-1)  # [ny, nx, K]
+    M = np.einsum("abk,kij->abij", mono, c)
+    w = np.linalg.eigvalsh(0.5 * (M + np.swapaxes(M, -1, -2)))
+    return w[..., 0], w[..., -1]
+
+
+def fig_metric_map(cert: Certificate) -> Figure | None:
+    """The smallest eigenvalue of the metric M(x) over X, with the plant box the stages were
+    proved on; the largest eigenvalue's range in the title."""
+    r = check_result(cert, "metric_bound")
+    box = (cert.system or {}).get("X")
+    if r is None or not r.metric or not box or len(box) < 2:
+        return None
+    B = np.asarray(box, dtype=np.float64)
+    x = np.linspace(B[0, 0], B[0, 1], METRIC_MAP_POINTS)
+    y = np.linspace(B[1, 0], B[1, 1], METRIC_MAP_POINTS)
+    eig = metric_eigenvalues(r.metric, x, y, B.mean(1))
+    if eig is None:
+        return None
+    lo, hi = eig
+    axes = state_names(cert)[:2]
+    fig, ax = _open_map(3.9, x, y, lo, "\u03bb_min(M(x))", diverging=False, cmap="viridis")
+    if r.plant_box and len(r.plant_box) >= 2:
+        (a, b), (c, d) = r.plant_box[0], r.plant_box[1]
+        ax.plot([a, b, b, a, a], [c, c, d, d, c], color="#f472b6", linewidth=1.6,
+                label="plant box of the stages")
+        mark(fig, "plant box")
+    n = len(state_names(cert))
+    if n > 2:
+        mark(fig, "slice")
+    finite = hi[np.isfinite(hi)]
+    top = f"; \u03bb_max from {fmt(float(finite.min()))} to {fmt(float(finite.max()))}" \
+        if finite.size else ""
+    mark(fig, "largest", top)
+    _finish(ax, axes, "Metric M(x): smallest eigenvalue over X" + top
+            + (" (other states at their box centre)" if n > 2 else ""))
+    return fig

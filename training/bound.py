@@ -38,6 +38,7 @@ from typing import Any, TextIO
 import numpy as np
 import torch
 
+from certify.arith.text import upper_text
 from certify.design.bound import (
     LAM_FRACTION,
     BoundDesign,
@@ -48,19 +49,20 @@ from certify.design.bound import (
 )
 from certify.errors import CertifyError, SettingsError
 from certify.model import checkpoint
+from certify.model.metric import PolyMetric
 from certify.model.network import GainNetwork
 from certify.results import Status
 from certify.search.threads import torch_threads
 from certify.spec.system import System
+from training.bound_metric import (
+    MetricCandidate,
+    MetricSettings,
+    design_linear_metric,
+    learn_metric_gain,
+)
 from training.cegis import warm_start_network
 from training.presets import TrainConfig
-
-#: the noise level the training run reports bounds at (the verifier's default `--noise`)
-REPORT_VBAR = 0.15
-
-#: the learned gain beats the linear design when its sampled bound is below the linear one's
-#: by more than this fraction (a smaller difference is the evaluation's rounding)
-BEAT_TOLERANCE = 1e-3
+from training.proved import BEAT_TOLERANCE, REPORT_VBAR, certified_bound, copy_network
 
 #: gains dk/dy each point's D is paired with in the search (the largest ||P dk/dy||)
 SEARCH_GAINS = 32
@@ -136,6 +138,8 @@ class BoundTrainResult:
     proof: dict[str, Any]
     seconds: float = 0.0
     config: TrainConfig | None = None
+    metric: PolyMetric | None = None  # the metric that follows the state, when returned
+    metric_record: dict[str, Any] | None = None  # the metric designs tried and compared
 
     def record(self) -> dict[str, Any]:
         d = self.design
@@ -151,7 +155,7 @@ class BoundTrainResult:
                "sampled_bound_linear": _finite(REPORT_VBAR * self.sampled_linear),
                "K": None if d.K is None else d.K.tolist(), "design": d.record(),
                "learned": None if self.attempt is None else self.attempt.record(),
-               "proof": self.proof, "seconds": self.seconds}
+               "metric": self.metric_record, "proof": self.proof, "seconds": self.seconds}
         if self.config is not None:
             out["config"] = self.config.to_dict()
             out["config"]["P"] = self.P.tolist()
@@ -173,11 +177,6 @@ def linear_network(system: System, design: BoundDesign, config: TrainConfig) -> 
     return warm_start_network(system, config.hidden, K=design.K, structure="structural",
                               seed=config.seed, activation=config.activation)
 
-
-def _copy(net: GainNetwork) -> GainNetwork:
-    out = GainNetwork.from_architecture(net.architecture())
-    out.load_state_dict({k: v.detach().clone() for k, v in net.state_dict().items()})
-    return out.double()
 
 
 def joint_eigs(system: System, net: GainNetwork, P: np.ndarray, alpha: float, mu: float,
@@ -230,7 +229,7 @@ def learn_bound_gain(system: System, design: BoundDesign, start: GainNetwork,
     # made there), which can be far below its vertex mu
     mu_t = ls.mu_ratio * min(float(design.mu), float(linear["mu"]))
     margin = ls.margin * alpha
-    net = _copy(start)
+    net = copy_network(start)
     params = [p for layer in net.layers for p in (layer.weight, layer.bias)]
     for prm in params:
         prm.requires_grad_(True)
@@ -263,7 +262,7 @@ def learn_bound_gain(system: System, design: BoundDesign, start: GainNetwork,
             v = torch.nan_to_num(v, nan=math.inf)
             worst = torch.argsort(v, descending=True)[: ls.add_per_round]
             xhat, y = torch.cat([xhat, sx[worst]]), torch.cat([y, sy[worst]])
-            frozen = _copy(net).eval().requires_grad_(False)
+            frozen = copy_network(net).eval().requires_grad_(False)
             sb = sampled_bound(system, frozen, P, alpha, points=ls.eval_points,
                                seed=ls.seed + 1)
             rec = {"round": rnd, "loss": loss_v, "max_joint_eig": float(v.max()),
@@ -307,24 +306,6 @@ def prove_contraction(system: System, net: GainNetwork, lam: float, P: np.ndarra
             "seconds": time.perf_counter() - t0}
 
 
-def certified_bound(system: System, net: GainNetwork, lam: float, P: np.ndarray
-                    ) -> dict[str, Any]:
-    """`certify.verify` on (net, lam, P) without simulation or figures, at REPORT_VBAR: the
-    verdict and the error-bound check's best ultimate bound (None when none is proved).
-    Whatever bounds the verifier proves (the joint dissipation certificate among them where
-    this version has it) decide; the comparison reads only the result's fields."""
-    from certify.model.checkpoint import Checkpoint
-    from certify.model.problem import Problem
-    from certify.settings import VerifySettings
-    from certify.verify import verify
-
-    ck = Checkpoint(problem=Problem(system, net, lam, P), path="", sha256="")
-    cert = verify(ck, VerifySettings(noise=REPORT_VBAR, skip=("simulation",)), figures=False)
-    b = cert.checks.get("bounds")
-    return {"verdict": cert.verdict, "ultimate": getattr(b, "ultimate", None),
-            "best": getattr(b, "best", None)}
-
-
 def min_alpha_for(min_rate: float | None) -> float | None:
     """The alpha floor whose checkpoint rate LAM_FRACTION * alpha / 4 is >= min_rate."""
     return None if min_rate is None else 4.0 * float(min_rate) / LAM_FRACTION
@@ -333,13 +314,15 @@ def min_alpha_for(min_rate: float | None) -> float | None:
 def train_bound(system: System, config: TrainConfig, *, min_rate: float | None = None,
                 rate: float | None = None, subdivisions: int | None = None,
                 learn: LearnSettings | None = None, prove: bool = True,
-                log: Any = None) -> BoundTrainResult:
+                metric: MetricSettings | bool = True, log: Any = None) -> BoundTrainResult:
     """Run the bound recipe (module doc). `min_rate`: the checkpoint's lam is at least this;
     `rate`: design at exactly this lam (alpha = 4 rate / LAM_FRACTION). The learned attempt
     runs when config.adam_iters > 0 (or `learn` is given with steps > 0). `prove=False` skips
     the proofs and certificates (tests of the loop only: a learned gain that beats the linear
-    one at samples is then returned unproved). Raises `training.preflight.Infeasible` when
-    no linear design is found (with the reason when none exists)."""
+    one at samples is then returned unproved). `metric`: the designs with a metric that
+    follows the state (`training.bound_metric`): True for the default settings, False for
+    none; they run only with a free rate and proofs. Raises `training.preflight.Infeasible`
+    when no linear design is found (with the reason when none exists)."""
     t0 = time.perf_counter()
     say = log or (lambda _m: None)
     alpha = None if rate is None else 4.0 * float(rate) / LAM_FRACTION
@@ -365,6 +348,23 @@ def train_bound(system: System, config: TrainConfig, *, min_rate: float | None =
     chosen, returned = lin, "linear"
     proof: dict[str, Any] = {}
     steps = learn.steps if learn is not None else config.adam_iters
+    ms = metric if isinstance(metric, MetricSettings) else MetricSettings()
+    with_metric = prove and rate is None and min_rate is None and metric is not False
+    found = (_with_metric(system, design, lin, lam, P, config, ms, steps > 0, say)
+             if with_metric else None)
+    if found is not None and found[0] is not None:
+        cand, record = found
+        res = BoundTrainResult(network=cand.network, P=cand.P, lam=cand.lam, design=design,
+                               returned=f"{cand.kind} with M(x)",
+                               sampled_linear=sampled_lin["per_unit_noise"], attempt=None,
+                               proof={"status": cand.certified.get("mpdi"),
+                                      "verdict": cand.certified.get("verdict")},
+                               seconds=time.perf_counter() - t0, config=config,
+                               metric=cand.metric, metric_record=record)
+        say(f"returning the {res.returned}: proved ultimate bound {upper_text(cand.ultimate)} "
+            f"at noise {REPORT_VBAR:g}")
+        return res
+    metric_record = None if found is None else found[1]
     if steps > 0 and system.p >= 1:
         attempt = learn_bound_gain(system, design, lin, config, learn, log)
         if attempt.beat and attempt.network is not None:
@@ -399,13 +399,44 @@ def train_bound(system: System, config: TrainConfig, *, min_rate: float | None =
             f"{proof['seconds']:.1f} s ({proof['boxes']} boxes)")
     return BoundTrainResult(network=chosen, P=P, lam=lam, design=design, returned=returned,
                             sampled_linear=sampled_lin["per_unit_noise"], attempt=attempt,
-                            proof=proof, seconds=time.perf_counter() - t0, config=config)
+                            proof=proof, seconds=time.perf_counter() - t0, config=config,
+                            metric_record=metric_record)
+
+
+def _with_metric(system: System, design: BoundDesign, lin: GainNetwork, lam: float,
+                 P: np.ndarray, config: TrainConfig, ms: MetricSettings, learn: bool, say: Any
+                 ) -> tuple[MetricCandidate | None, dict[str, Any]]:
+    """The designs with M(x) (`training.bound_metric`): the best proved candidate when it
+    beats the constant-metric linear design's certificate (else None), and the record."""
+    constant = certified_bound(system, lin, lam, P)
+    say(f"the constant-metric linear design's certificate: ultimate bound "
+        f"{_fmt(constant['ultimate'])} ({constant['best']})")
+    tried: list[dict[str, Any]] = []
+    cand = design_linear_metric(system, np.asarray(design.K), vbar=REPORT_VBAR,
+                                hidden=config.hidden, settings=ms, seed=config.seed,
+                                activation=config.activation, log=say, tried=tried)
+    record: dict[str, Any] = {"constant_certified": constant, "tried": tried, "learned": None}
+    b = constant["ultimate"]
+    if cand is None or not (b is None or cand.ultimate < b * (1.0 - BEAT_TOLERANCE)):
+        say("the designs with M(x) did not beat the constant metric's certificate"
+            if cand is not None else "no design with M(x) was proved")
+        return None, record
+    if learn and ms.learn:
+        att = learn_metric_gain(system, cand, vbar=REPORT_VBAR, settings=ms,
+                                activation=config.activation, log=say)
+        record["learned"] = att.record()
+        say(att.message)
+        if att.candidate is not None:
+            cand = att.candidate
+    record["returned"] = cand.record()
+    return cand, record
 
 
 def save_bound(path: str | Path, system: System, result: BoundTrainResult) -> str:
-    """Write the checkpoint (network, lam, P and the record); returns its sha256."""
+    """Write the checkpoint (network, lam, P, the metric M(x) when one was returned, and the
+    record); returns its sha256."""
     return checkpoint.save(path, system=system, network=result.network, lam=result.lam,
-                           P=result.P, training=result.record())
+                           P=result.P, training=result.record(), metric=result.metric)
 
 
 def run_bound(args: argparse.Namespace, system: System, config: TrainConfig,
@@ -430,9 +461,13 @@ def run_bound(args: argparse.Namespace, system: System, config: TrainConfig,
             print(msg, file=out, flush=True)
 
     how = (f"rate fixed at lam {rate:g}" if rate is not None else
-           f"rate >= {min_rate:g}" if min_rate is not None else "rate free")
+           f"rate >= {min_rate:g}" if min_rate is not None else
+           "rate free; then a metric M(x) designed for it, kept when its certificate is better")
     learn = (f"then a learned attempt ({LearnSettings.rounds} rounds x {config.adam_iters} "
-             f"Adam steps, hidden {','.join(map(str, config.hidden))})"
+             f"Adam steps, hidden {','.join(map(str, config.hidden))}"
+             + ("" if rate is not None or min_rate is not None else
+                f"; against M(x): {MetricSettings.rounds} rounds x {MetricSettings.steps} "
+                f"steps, hidden {','.join(map(str, MetricSettings.hidden))}") + ")"
              if config.adam_iters > 0 else "no learned attempt (--adam-iters 0)")
     log(f"training {system.name} with preset bound: linear observer designed for the error "
         f"bound ({how}), {learn}, seed {config.seed}")
@@ -443,7 +478,14 @@ def run_bound(args: argparse.Namespace, system: System, config: TrainConfig,
     except OSError as exc:
         raise CertifyError(f"cannot write checkpoint {output}: {exc.strerror or exc}") from None
     d = result.design
+    if result.metric is not None:
+        cert = (result.metric_record or {}).get("returned", {}).get("certified", {})
+        what = (f"metric of degree {result.metric.degree}, proved ultimate bound ||e|| -> <= "
+                f"{upper_text(cert['ultimate'])}" if cert.get("ultimate") is not None
+                else f"metric of degree {result.metric.degree}")
+    else:
+        what = f"designed bound ||e|| -> <= {d.bound(REPORT_VBAR):.4g}"
     log(f"wrote {output} (sha256 {sha[:12]}) in {result.seconds:.1f} s: the {result.returned} "
-        f"design, lam {result.lam:.4g}, designed bound ||e|| -> <= {d.bound(REPORT_VBAR):.4g} "
-        f"at noise {REPORT_VBAR:g}; run `certify run {output}` for the full certificate")
+        f"design, lam {result.lam:.4g}, {what} at noise {REPORT_VBAR:g}; run "
+        f"`certify run {output}` for the full certificate")
     return 0 if result.proof.get("status") == Status.PROVED.value else 1

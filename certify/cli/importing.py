@@ -18,6 +18,7 @@ from certify.errors import CertifyError
 from certify.model.checkpoint import Checkpoint, save, versions
 from certify.model.importers import ImportedModel, read_model
 from certify.model.importers.torch_model import is_torchscript
+from certify.model.metric import MetricError, PolyMetric
 from certify.model.problem import Problem
 from certify.spec.system import System, load_system, parse_metric, validate_lam, validate_metric
 
@@ -26,14 +27,21 @@ MODEL_FLAGS = ("lam", "metric", "activation", "structure")
 
 def imported_problem(args: argparse.Namespace, model_path: str
                      ) -> tuple[Problem, ImportedModel]:
-    """The spec, the model read against it, and lam, P (flags, else the spec's)."""
+    """The spec, the model read against it, lam and P (flags, else the spec's) and the spec's
+    metric that follows the state, if it has one."""
     system: System = load_system(args.system)
     model = read_model(model_path, system.n, system.p, activation=args.activation,
                        structure=args.structure, box=np.vstack([system.X, system.Y]))
     lam = system.lam if args.lam is None else validate_lam(args.lam, "--lam")
     P = system.P if args.metric is None else validate_metric(
         parse_metric(args.metric, system.n), system.n, "--metric")
-    return Problem(system=system, network=model.network(), lam=lam, P=P), model
+    metric = None
+    if system.state_metric is not None:
+        try:
+            metric = PolyMetric.from_dict(system.state_metric, system.n)
+        except MetricError as exc:
+            raise CertifyError(f"{args.system}: [design.state_metric]: {exc}") from None
+    return Problem(system=system, network=model.network(), lam=lam, P=P, metric=metric), model
 
 
 def describe(model: ImportedModel) -> str:
@@ -45,7 +53,7 @@ def run_import(args: argparse.Namespace) -> int:
     """`certify import MODEL --system SPEC -o OUT.ckpt`: write a normal checkpoint."""
     problem, model = imported_problem(args, args.model)
     sha = save(args.output, system=problem.system, network=problem.network, lam=problem.lam,
-               P=problem.P, training=model.provenance())
+               P=problem.P, training=model.provenance(), metric=problem.metric)
     print(f"imported {args.model} ({describe(model)}) for {problem.system.name}, lam="
           f"{problem.lam:g} -> {args.output} (sha256 {sha[:12]})")
     for note in model.notes:

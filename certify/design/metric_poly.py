@@ -131,7 +131,7 @@ def design_points(system: System, tau: float | None, *, per_axis: int | None = N
                         H=system.jac_h(xt).numpy(), r=w - system.h(xt).numpy(), states=states)
 
 
-def _features(exponents: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def monomial_features(exponents: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """x^(a_k) [N, K] and its gradient [N, K, n]."""
     N, n = x.shape
     phi = np.ones((N, len(exponents)))
@@ -160,7 +160,7 @@ def metric_step(pts: DesignPoints, exponents: np.ndarray, F: np.ndarray, J: np.n
     nb = len(basis)
     K = len(exponents)
     nv = K * nb + 1
-    phi, grad = _features(exponents, pts.x)
+    phi, grad = monomial_features(exponents, pts.x)
     rate = np.einsum("Nkn,Nn->Nk", grad, F)  # dphi_k/dt along F
     C = np.zeros((N, nv, d, d))
     for k in range(K):
@@ -173,7 +173,7 @@ def metric_step(pts: DesignPoints, exponents: np.ndarray, F: np.ndarray, J: np.n
             C[:, v, :n, n:] = SB
             C[:, v, n:, :n] = SB.transpose(0, 2, 1)
     C[:, -1, n:, n:] = -np.eye(p)
-    phiQ, _ = _features(exponents, pts.states)
+    phiQ, _ = monomial_features(exponents, pts.states)
     A = np.zeros((len(phiQ), nv, n, n))
     for k in range(K):
         for b, S in enumerate(basis):
@@ -197,7 +197,7 @@ def gain_step(pts: DesignPoints, metric: PolyMetric, alpha: float,
     p = pts.H.shape[1]
     d = n + p
     sched = np.zeros((1, n), dtype=np.int64) if schedule is None else np.asarray(schedule)
-    psi, dpsi = _features(sched, pts.x)  # [N, J], [N, J, n]
+    psi, dpsi = monomial_features(sched, pts.x)  # [N, J], [N, J, n]
     xt = torch.as_tensor(pts.x)
     M = metric.value(xt).numpy()
     dM = metric.partials(xt).numpy()  # [N, n(i), n, n]
@@ -234,7 +234,7 @@ def gain_step(pts: DesignPoints, metric: PolyMetric, alpha: float,
 def schedule_terms(pts: DesignPoints, schedule: np.ndarray, coeffs: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """F, J_F, B at the points for the gain schedule k = K(x) (w - h(x)) (`gain_step`)."""
-    psi, dpsi = _features(np.asarray(schedule), pts.x)
+    psi, dpsi = monomial_features(np.asarray(schedule), pts.x)
     Kx = np.einsum("Nj,jab->Nab", psi, coeffs)
     dK = np.einsum("Nji,jab->Nabi", dpsi, coeffs)
     F = pts.f + np.einsum("Nab,Nb->Na", Kx, pts.r)
@@ -246,6 +246,30 @@ def linear_terms(pts: DesignPoints, K: np.ndarray) -> tuple[np.ndarray, np.ndarr
     """F, J_F, B at the points for the linear gain k = K (w - h(x))."""
     return schedule_terms(pts, np.zeros((1, pts.x.shape[1]), dtype=np.int64),
                           np.asarray(K, dtype=np.float64)[None])
+
+
+def design_constant_metric(system: System, K: np.ndarray, *, alphas: np.ndarray | None = None,
+                           per_axis: int | None = None
+                           ) -> tuple[np.ndarray, float, float] | None:
+    """The constant metric P >= I of the dissipation inequality over X x Y for the linear gain
+    k = K (w - h(x)) (its matrix does not depend on w: the grid's states suffice), with the
+    rate alpha of a scan (geometric, then a local one around the best) that minimises
+    mu / alpha: (P, alpha, mu), None when no rate is feasible. A candidate: the dissipation
+    check proves it."""
+    pts = design_points(system, 0.0, per_axis=per_axis, offsets=1)
+    F, J, B = linear_terms(pts, K)
+    zero = np.zeros((1, system.n), dtype=np.int64)
+
+    def solve(a: float):
+        return metric_step(pts, zero, F, J, B, a)
+
+    grid = np.geomspace(0.2, 8.0, 9) if alphas is None else np.asarray(alphas, dtype=float)
+    best = _best_alpha(solve, grid)
+    if best is None:
+        return None
+    local = _best_alpha(solve, best[0] * np.array([0.8, 0.9, 1.0, 1.12, 1.25]))
+    alpha, (metric, mu), _ = local if local is not None else best
+    return metric.coefficients[0], alpha, mu
 
 
 @dataclass

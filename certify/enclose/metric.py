@@ -20,6 +20,15 @@ T N T^T (T invertible: Sylvester's law keeps the sign) only conditions the bound
 `tube_outside` tells the boxes that hold no point of the domain's tube ||w - h(x)|| <= tau
 (a sound lower bound of the distance above tau): the certificate is claimed on the tube only,
 so those boxes are closed without a bound.
+
+**Tube coordinates.** A tube is a thin band around the output manifold; in z = (x, w) its edge
+cuts every box it crosses, and the boxes there must shrink until they fall inside or outside.
+In u = (x, t) with w = h(x) + t the tube ||t|| <= tau is a box for one output (and inscribed in
+the box [-tau, tau]^p otherwise): `tube_flow_terms` builds the same models over u-boxes. The
+network's input z(u) = (x, h(x) + t) enters as a Taylor model over u (h by its mean-value
+form, exact for a linear h up to rounding), r = w - h(x) = t is exact, and every derivative is
+still the partial derivative in z (the models' coefficients run over u). So every N(z(u)), u in
+the box, is a member of the model's family, as in z.
 """
 
 from __future__ import annotations
@@ -30,12 +39,28 @@ import numpy as np
 import torch
 
 from certify.arith.intervals import Interval, down, gamma, up
-from certify.arith.taylor import TM, tm_absorb, tm_add, tm_from_intervals, tm_mul, tm_sum
+from certify.arith.taylor import (
+    TM,
+    tm_absorb,
+    tm_add,
+    tm_from_intervals,
+    tm_linear,
+    tm_mul,
+    tm_sum,
+)
 from certify.enclose.system_taylor import jacobian_tm
 from certify.enclose.taylor import gain_taylor, network_taylor, tm_lam_upper
+from certify.model.gain.propagate import NetOutput, compose, propagate
+from certify.model.gain.taylor import TaylorArithmetic
 from certify.model.metric import PolyMetric
 from certify.model.network import GainNetwork
-from certify.spec.enclosures import f_enclosure, h_enclosure, pad_y
+from certify.spec.enclosures import (
+    f_enclosure,
+    h_enclosure,
+    jacobian_f_enclosure,
+    jacobian_h_enclosure,
+    pad_y,
+)
 from certify.spec.system import System
 
 _F64 = torch.float64
@@ -154,8 +179,6 @@ def flow_terms(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Ten
     gv = gain_taylor(system, net, lo, hi, net_tms, with_k=True, with_dy=True)
     zc = 0.5 * (lo + hi)
     xc, xl, xh = zc[:, :n], lo[:, :n], hi[:, :n]
-    from certify.spec.enclosures import jacobian_f_enclosure
-
     f_centre = Interval(*f_enclosure(system, xc, xc))
     jf_box = pad_y(Interval(*jacobian_f_enclosure(system, xl, xh)), p)
     f_tm = tm_from_intervals(f_centre, jf_box, r)
@@ -164,14 +187,63 @@ def flow_terms(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Ten
     return FlowTerms(F=F, J=J, B=gv.dk_dy, r=r)
 
 
-def path_metric_tm(system: System, net: GainNetwork, metric: PolyMetric, alpha: float,
-                   mu: float, lo: torch.Tensor, hi: torch.Tensor,
-                   congruence: torch.Tensor | None = None) -> TM:
-    """N (module docstring) over boxes [B, d] -> [B, n + p, n + p] (T N T^T with a point
-    `congruence` T [n + p, n + p] when given)."""
+class _InputModel(TaylorArithmetic):
+    """The gain's Taylor arithmetic with the network's input a given model z(u) [B, d] over
+    the u-boxes (instead of the box's own coordinates)."""
+
+    def __init__(self, uc: torch.Tensor, r: torch.Tensor, z: TM) -> None:
+        super().__init__(uc, r)
+        self.z = z
+
+    def input_layer(self, z: None, W: torch.Tensor, b: torch.Tensor, m: int
+                    ) -> tuple[TM, TM | None]:
+        _, T = super().input_layer(None, W, b, m)  # the constant rows of dN/dz
+        return tm_linear(self.z, W.T, b, self.r), T
+
+
+def tube_point(system: System, u: torch.Tensor) -> torch.Tensor:
+    """z = (x, h(x) + t) at points u = (x, t) [B, n + p] (differentiable)."""
+    n = system.n
+    return torch.cat([u[:, :n], system.h(u[:, :n]) + u[:, n:]], 1)
+
+
+def tube_flow_terms(system: System, net: GainNetwork, lo: torch.Tensor, hi: torch.Tensor
+                    ) -> FlowTerms:
+    """`flow_terms` over boxes of u = (x, t), the point z = (x, h(x) + t) (module docstring,
+    tube coordinates)."""
     lo, hi = lo.to(_F64), hi.to(_F64)
     n, p = system.n, system.p
-    ft = flow_terms(system, net, lo, hi)
+    uc, r = _radii(lo, hi)
+    xc, xl, xh = uc[:, :n], lo[:, :n], hi[:, :n]
+    x = coordinate_tms(lo, hi, n)
+    h_tm = tm_from_intervals(Interval(*h_enclosure(system, xc, xc)),
+                             pad_y(Interval(*jacobian_h_enclosure(system, xl, xh)), p), r)
+    B_, d = lo.shape
+    tg = torch.zeros(B_, p, d, dtype=_F64, device=lo.device)
+    tg[:, torch.arange(p), n + torch.arange(p)] = 1.0
+    t = TM(uc[:, n:].clone(), tg, torch.zeros(B_, p, dtype=_F64, device=lo.device))
+    w = tm_add(h_tm, t, r)
+    z = TM(torch.cat([x.c, w.c], 1), torch.cat([x.g, w.g], 1), torch.cat([x.e, w.e], 1))
+    spec = net.spec(_F64, detach=True)
+    arith = _InputModel(uc, r, z)
+    out = propagate(spec, arith, None, d)
+    Jh = jacobian_tm(system, "h", lo, hi, r)
+    gv = compose(spec, arith, NetOutput(out.value, out.jac), t, Jh, with_dy=True, with_k=True)
+    f_centre = Interval(*f_enclosure(system, xc, xc))
+    jf_box = pad_y(Interval(*jacobian_f_enclosure(system, xl, xh)), p)
+    F = tm_add(tm_from_intervals(f_centre, jf_box, r), gv.k, r)
+    J = tm_add(jacobian_tm(system, "f", lo, hi, r), gv.dk_dx, r)
+    return FlowTerms(F=F, J=J, B=gv.dk_dy, r=r)
+
+
+def path_metric_tm(system: System, net: GainNetwork, metric: PolyMetric, alpha: float,
+                   mu: float, lo: torch.Tensor, hi: torch.Tensor,
+                   congruence: torch.Tensor | None = None, tube: bool = False) -> TM:
+    """N (module docstring) over boxes [B, d] of z = (x, w), or of u = (x, t) with `tube`
+    -> [B, n + p, n + p] (T N T^T with a point `congruence` T [n + p, n + p] when given)."""
+    lo, hi = lo.to(_F64), hi.to(_F64)
+    n, p = system.n, system.p
+    ft = (tube_flow_terms if tube else flow_terms)(system, net, lo, hi)
     r = ft.r
     x = coordinate_tms(lo, hi, n)
     mono = _monomial_tms(metric, x, r)
@@ -227,6 +299,19 @@ def tube_outside(system: System, lo: torch.Tensor, hi: torch.Tensor, tau: float
     ok = torch.isfinite(dlo).all(-1) & torch.isfinite(dhi).all(-1)
     low = down(torch.sqrt(down((mig * mig).sum(-1)) * (1.0 - 4 * 2.0 ** -52)))
     return ok & (low > tau)
+
+
+def tube_box_outside(system: System, lo: torch.Tensor, hi: torch.Tensor, tau: float
+                     ) -> torch.Tensor:
+    """Boxes [B] (bool) of u = (x, t) in which every point has ||t||_2 > tau (tube
+    coordinates; never for one output, whose tube is the box): interval mignitudes, the norm
+    rounded down."""
+    n = system.n
+    lo, hi = lo.to(_F64), hi.to(_F64)
+    tl, th = lo[:, n:], hi[:, n:]
+    mig = torch.where(tl > 0, tl, torch.where(th < 0, -th, torch.zeros_like(tl)))
+    low = down(torch.sqrt(down((mig * mig).sum(-1)) * (1.0 - 4 * 2.0 ** -52)))
+    return low > tau
 
 
 def point_matrix(system: System, net: GainNetwork, metric: PolyMetric, alpha: float,

@@ -343,7 +343,7 @@ def bound_curve(bounds: BoundsResult, which: str, start: float | np.ndarray,
     if which == "theorem3":
         return b.gain * s_ * decay + b.bias  # type: ignore[operator]
     if which == "metric":
-        return _metric_curve(bounds, b, s_, t)
+        return _metric_curve(bounds, b, s, t)  # the start values as given
     if which == "dissipation":  # V(t) <= e^(-alpha t) V0 + (1 - e^(-alpha t)) V_inf
         w_inf = b.bias / b.gain  # type: ignore[operator]
         return b.gain * np.sqrt(s_ * s_ * decay + (1.0 - decay) * w_inf * w_inf)  # type: ignore

@@ -68,7 +68,8 @@ from certify.enclose.metric import (
     tm_matmul,
     tm_scale,
     tm_transpose,
-    tube_outside,
+    tube_box_outside,
+    tube_point,
 )
 from certify.enclose.system_taylor import jacobian_tm
 from certify.model.kernels import lam_max
@@ -84,12 +85,13 @@ _F64 = torch.float64
 #: the box budget of the stages (`metric_boxes`), and of each constant of the metric
 DEFAULT_BOXES = DEFAULTS.metric_boxes
 SIDE_BOXES = 20_000
-#: the growth of the sampled noise gain the prover is asked to prove, in turn
-GROWTH = (1.03, 1.1, 1.3)
+#: the growth of the sampled noise gain the prover is asked to prove, in turn (the samples
+#: cover the tube's edges and the faces of X, where (*) is tightest, so the first is small)
+GROWTH = (1.005, 1.02, 1.1)
 #: the rate proved is the slowest whose sampled bound is within ROOM of the best: near the
 #: optimum the bound is flat in alpha, and a slower rate leaves (*) a margin where the
 #: samples did not look
-ROOM = 1.02
+ROOM = 1.005
 #: the entry level of the second stage: the first stage's ultimate V times this squared
 ENTRY = 1.1
 #: rates scanned (geometric, up to the fastest sampled rate), golden-section steps after
@@ -100,15 +102,44 @@ ALPHA_REFINE = 12
 @dataclass(frozen=True)
 class MetricDomain:
     """Where (*) is proved: states in the box `X` [n, 2] (Omega), outputs in the box `W`
-    [p, 2], and (when `tau` is a number) only the tube ||w - h(x)||_2 <= tau."""
+    [p, 2], and (when `tau` is a number) only the tube ||w - h(x)||_2 <= tau, which the
+    prover covers in tube coordinates u = (x, t), w = h(x) + t (`certify.enclose.metric`):
+    the box X x [-tau, tau]^p, its points with ||t|| > tau closed without a bound."""
 
     X: np.ndarray
     W: np.ndarray
     tau: float | None = None
 
+    @property
+    def tube(self) -> bool:
+        return self.tau is not None
+
     def root(self) -> tuple[torch.Tensor, torch.Tensor]:
-        box = torch.as_tensor(np.concatenate([self.X, self.W], 0), dtype=_F64)
+        """The prover's root box: of z = (x, w), or of u = (x, t) on a tube."""
+        if self.tube:
+            p = len(self.W)
+            T = np.tile([[-self.tau, self.tau]], (p, 1))
+            box = torch.as_tensor(np.concatenate([self.X, T], 0), dtype=_F64)
+        else:
+            box = torch.as_tensor(np.concatenate([self.X, self.W], 0), dtype=_F64)
         return box[:, 0].clone(), box[:, 1].clone()
+
+    def point(self, system: System, v: torch.Tensor) -> torch.Tensor:
+        """Points z [B, n + p] of the prover's coordinates v (u on a tube, else z)."""
+        return tube_point(system, v) if self.tube else v
+
+    def coordinates(self, system: System, z: torch.Tensor) -> torch.Tensor:
+        """The prover's coordinates of points z (u = (x, w - h(x)) on a tube, else z)."""
+        if not self.tube:
+            return z
+        n = system.n
+        return torch.cat([z[:, :n], z[:, n:] - system.h(z[:, :n])], 1)
+
+    def holds(self, system: System, v: torch.Tensor) -> torch.Tensor:
+        """Which points v (prover's coordinates) are in the domain [B] (bool)."""
+        if not self.tube:
+            return torch.ones(len(v), dtype=torch.bool)
+        return v[:, system.n:].norm(dim=1) <= self.tau
 
 
 def domain_for(system: System, tau: float | None, X: np.ndarray | None = None) -> MetricDomain:
@@ -128,24 +159,38 @@ def domain_for(system: System, tau: float | None, X: np.ndarray | None = None) -
 
 def sample_domain(system: System, domain: MetricDomain, count: int, seed: int
                   ) -> torch.Tensor:
-    """Points z = (x, w) [S, n + p] of the domain: x uniform in X (and its corners), w
-    uniform in the tube around h(x) (or in W without a tube)."""
+    """Points z = (x, w) [S, n + p] of the domain. Without a tube: x uniform in X (and its
+    corners), w uniform in W. On a tube, where (*) is tightest at its edges and at the
+    faces of X: a third with t = w - h(x) uniform in the tube, a third on its edge
+    ||t|| = tau, a third on the edge with one state on a face of X, and the corners of X
+    with t on the edge."""
     n, p = system.n, system.p
     gen = torch.Generator().manual_seed(seed)
     X = torch.as_tensor(domain.X, dtype=_F64)
     x = X[:, 0] + torch.rand(count, n, generator=gen, dtype=_F64) * (X[:, 1] - X[:, 0])
     corners = torch.as_tensor(np.array(np.meshgrid(*domain.X, indexing="ij")).reshape(n, -1).T,
                               dtype=_F64)
-    x = torch.cat([x, corners.repeat(3, 1)])
-    W = torch.as_tensor(domain.W, dtype=_F64)
-    if domain.tau is None:
+    if not domain.tube:
+        x = torch.cat([x, corners.repeat(3, 1)])
+        W = torch.as_tensor(domain.W, dtype=_F64)
         w = W[:, 0] + torch.rand(len(x), p, generator=gen, dtype=_F64) * (W[:, 1] - W[:, 0])
-    else:
-        u = torch.rand(len(x), p, generator=gen, dtype=_F64) * 2 - 1
-        u[-2 * len(corners):-len(corners)] = 1.0  # the corners on the tube's two edges
-        u[-len(corners):] = -1.0
-        w = system.h(x) + domain.tau * u / max(1.0, math.sqrt(p))
-    return torch.cat([x, w], 1)
+        return torch.cat([x, w], 1)
+    third = count // 3
+    face = torch.randint(0, n, (third,), generator=gen)
+    side = torch.randint(0, 2, (third,), generator=gen)
+    x[-third:][torch.arange(third), face] = X[face, side]
+    x = torch.cat([x, corners.repeat(2, 1)])
+    d = torch.randn(len(x), p, generator=gen, dtype=_F64)
+    d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-300)
+    if p == 1:
+        d = torch.sign(d)
+    radius = torch.ones(len(x), 1, dtype=_F64)
+    radius[:count - 2 * third] = torch.rand(count - 2 * third, 1, generator=gen,
+                                            dtype=_F64) ** (1.0 / p)
+    d[-2 * len(corners):-len(corners)] = 1.0 / math.sqrt(p)
+    d[-len(corners):] = -1.0 / math.sqrt(p)
+    u = torch.cat([x, domain.tau * radius * d], 1)
+    return tube_point(system, u)
 
 
 @dataclass
@@ -243,56 +288,59 @@ def _needed(system: System, net: GainNetwork, metric: PolyMetric, alpha: float, 
 
 
 def sharpen(system: System, net: GainNetwork, metric: PolyMetric, terms: PointTerms,
-            domain: MetricDomain, alpha: float, starts: int = 8, steps: int = 30) -> PointTerms:
+            domain: MetricDomain, alpha: float, starts: int = 12, steps: int = 40
+            ) -> PointTerms:
     """`terms` with the points projected ascent reaches, inside the domain, from the worst
     samples for rate alpha (where (*) needs the most mu, and where X is least negative): a
-    plan that misses them is refuted by the prover at the price of a proof."""
+    plan that misses them is refuted by the prover at the price of a proof. The ascent runs
+    in the prover's coordinates, so on a tube it slides along the tube's edge."""
     from certify.search.falsify import projected_ascent
 
     lo, hi = domain.root()
-    n = system.n
-
-    def inside(z: torch.Tensor) -> torch.Tensor:
-        if domain.tau is None:
-            return torch.ones(len(z), dtype=torch.bool)
-        return (z[:, n:] - system.h(z[:, :n])).norm(dim=1) <= domain.tau
-
+    feasible = (None if not domain.tube or system.p == 1
+                else (lambda v: domain.holds(system, v)))
     found = []
     for fn in ("mu", "margin"):
         f = _needed(system, net, metric, alpha, fn)
         with torch.no_grad():
             v = torch.nan_to_num(f(terms.z), nan=math.inf)
-        best, _ = projected_ascent(f, terms.z[torch.argsort(v, descending=True)[:starts]],
-                                   lo, hi, steps, feasible=inside)
+        top = domain.coordinates(system, terms.z[torch.argsort(v, descending=True)[:starts]])
+        best, _ = projected_ascent(lambda u, f=f: f(domain.point(system, u)),
+                                   top.clamp(lo, hi), lo, hi, steps, feasible=feasible)
         found.append(best)
-    return terms.add(PointTerms.at(system, net, metric, torch.cat(found)))
+    return terms.add(PointTerms.at(system, net, metric,
+                                   domain.point(system, torch.cat(found))))
 
 
 def _evaluator(system: System, net: GainNetwork, metric: PolyMetric, alpha: float, mu: float,
                domain: MetricDomain):
-    """The branch and bound's box evaluation of (*) on `domain` (module docstring)."""
+    """The branch and bound's box evaluation of (*) on `domain` (module docstring), over
+    boxes of the prover's coordinates (`MetricDomain.root`)."""
     lo0, hi0 = domain.root()
-    T = metric_congruence(metric, (0.5 * (lo0 + hi0)).numpy(), mu, system.p)
-    n = system.n
+    centre0 = domain.point(system, (0.5 * (lo0 + hi0))[None])[0]
+    T = metric_congruence(metric, centre0.numpy(), mu, system.p)
+    p = system.p
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
-        outside = (tube_outside(system, lo, hi, domain.tau) if domain.tau is not None
-                   else torch.zeros(len(lo), dtype=torch.bool))
+        if domain.tube:
+            outside = (tube_box_outside(system, lo, hi, domain.tau) if p > 1
+                       else torch.zeros(len(lo), dtype=torch.bool))
+        else:
+            outside = torch.zeros(len(lo), dtype=torch.bool)
         upper = torch.full((len(lo),), -math.inf, dtype=_F64)
         score = torch.zeros(len(lo), lo.shape[1], dtype=_F64)
         inside = ~outside
         if bool(inside.any()):
             A = path_metric_tm(system, net, metric, alpha, mu, lo[inside], hi[inside],
-                               congruence=T)
+                               congruence=T, tube=domain.tube)
             ub, sc = lam_max_upper(A, lo[inside], hi[inside])
             upper[inside] = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, math.nan))
             score[inside] = torch.nan_to_num(sc, nan=0.0, posinf=0.0)
         c = 0.5 * (lo + hi)
         with torch.no_grad():
-            val = lam_max(T @ point_matrix(system, net, metric, alpha, mu, c) @ T.T)
-        if domain.tau is not None:
-            gap = (c[:, n:] - system.h(c[:, :n])).norm(dim=1)
-            val = torch.where(gap <= domain.tau, val, torch.full_like(val, -math.inf))
+            val = lam_max(T @ point_matrix(system, net, metric, alpha, mu,
+                                           domain.point(system, c)) @ T.T)
+        val = torch.where(domain.holds(system, c), val, torch.full_like(val, -math.inf))
         return BoxEval(upper=upper, centre_value=val, score=score)
 
     return evaluate
@@ -312,7 +360,8 @@ class InequalityOutcome:
 def prove_inequality(system: System, net: GainNetwork, metric: PolyMetric, alpha: float,
                      mu: float, domain: MetricDomain, *, max_boxes: int = DEFAULT_BOXES,
                      deadline: float | None = None) -> InequalityOutcome:
-    """Decide (*) on `domain` for (alpha, mu) by branch and bound (module docstring)."""
+    """Decide (*) on `domain` for (alpha, mu) by branch and bound (module docstring). A
+    refuting `point` is a point z = (x, w) of the domain."""
     lo, hi = domain.root()
     out = branch_and_bound(lo, hi, _evaluator(system, net, metric, alpha, mu, domain),
                            ClosingRule(threshold=0.0), Budget(max_boxes, deadline),
@@ -321,7 +370,7 @@ def prove_inequality(system: System, net: GainNetwork, metric: PolyMetric, alpha
         return InequalityOutcome(Status.PROVED, out.stats.boxes_processed, upper=out.upper)
     if out.violated and out.best_point is not None:
         return InequalityOutcome(Status.VIOLATED, out.stats.boxes_processed,
-                                 point=out.best_point[None].clone())
+                                 point=domain.point(system, out.best_point[None].clone()))
     return InequalityOutcome(Status.UNKNOWN, out.stats.boxes_processed,
                              upper=out.upper if math.isfinite(out.upper) else math.inf)
 
@@ -522,6 +571,14 @@ MAX_STAGES = 3
 SHRINK = 0.97
 
 
+def _pick(cands: list[dict]) -> dict | None:
+    """The slowest candidate within ROOM of the best (None: none)."""
+    if not cands:
+        return None
+    return min((c for c in cands if c["bound"] <= ROOM * cands[0]["bound"]),
+               key=lambda c: c["alpha"])
+
+
 def _prove_on_tube(system: System, net: GainNetwork, metric: PolyMetric, vbar: float,
                    tau: float, boxes: int, samples: int, seed: int, tried: list[dict]
                    ) -> tuple[float, float, int] | tuple[None, None, int]:
@@ -531,14 +588,12 @@ def _prove_on_tube(system: System, net: GainNetwork, metric: PolyMetric, vbar: f
     used = 0
     for grow in GROWTH:
         for _ in range(3):
-            cands = plan(terms, vbar)
-            if cands:
-                terms = sharpen(system, net, metric, terms, domain, cands[0]["alpha"])
-                cands = plan(terms, vbar)
-            if not cands or used >= boxes:
+            cand = _pick(plan(terms, vbar))
+            if cand is not None:
+                terms = sharpen(system, net, metric, terms, domain, cand["alpha"])
+                cand = _pick(plan(terms, vbar))
+            if cand is None or used >= boxes:
                 return None, None, used
-            cand = min((c for c in cands if c["bound"] <= ROOM * cands[0]["bound"]),
-                       key=lambda c: c["alpha"])
             mu = cand["mu"] * grow
             out = prove_inequality(system, net, metric, cand["alpha"], mu, domain,
                                    max_boxes=boxes - used)

@@ -112,7 +112,8 @@ SPEC_KEYS: dict[str, frozenset[str]] = {
     "": frozenset({"name", "description", "states", "outputs", "f", "h", "box", "design",
                    "training", "simulation", "invariance"}),
     "box": frozenset({"X", "Y"}),
-    "design": frozenset({"lam", "P"}),
+    "design": frozenset({"lam", "P", "state_metric"}),
+    "design.state_metric": frozenset({"kind", "format", "exponents", "coefficients"}),
     "training": frozenset({"paper"}),
     "training.paper": frozenset({"mu1", "mu2", "rho"}),
     "simulation": frozenset({"x0", "xhat0", "t_final"}),
@@ -139,6 +140,19 @@ def check_keys(data: dict[str, Any], where: str) -> None:
                             f"{', '.join(sorted(known))})")
 
 
+def _state_metric(table: Any, where: str) -> dict[str, Any] | None:
+    """The [design.state_metric] table as given (kind 'polynomial' by default); its
+    exponents and coefficients are checked where the metric is built
+    (`certify.model.metric.PolyMetric.from_dict`)."""
+    if table is None:
+        return None
+    if "exponents" not in table or "coefficients" not in table:
+        raise SpecError(f"{where}: [design.state_metric] needs exponents (one list of "
+                        "powers per monomial) and coefficients (one n x n matrix per "
+                        "monomial)")
+    return {"kind": "polynomial", **table}
+
+
 @dataclass(eq=False)
 class System:
     """A validated system spec. Build with `System.from_text` or `load_system`."""
@@ -159,6 +173,10 @@ class System:
     #: the plant region of the spec's [invariance] table (`certify.spec.region`), to be
     #: proved forward invariant; None: certify looks for one
     invariance: Region | None = None
+    #: the spec's [design.state_metric] table (a metric that follows the state, the plain
+    #: data of `certify.model.metric.PolyMetric`), read into a metric where a model is
+    #: imported against this spec; None: no such metric
+    state_metric: dict[str, Any] | None = None
 
     # ----- construction -------------------------------------------------------------
     @classmethod
@@ -210,7 +228,7 @@ class System:
             outputs=list(outputs), f_text=[str(e) for e in f_text],
             h_text=[str(e) for e in h_text], X=X, Y=Y, lam=float(lam), P=P,
             training=dict(data.get("training", {})), simulation=dict(data.get("simulation", {})),
-            source=text,
+            source=text, state_metric=_state_metric(design.get("state_metric"), where),
         )
         system._parse(where)
         system.invariance = parse_region(data.get("invariance"), X=X, states=list(states),

@@ -15,6 +15,7 @@ import torch
 from certify.certificate import Certificate
 from certify.checks.bounds import check_bounds
 from certify.checks.dissipation import check_dissipation
+from certify.checks.invariance import check_invariance
 from certify.checks.lipschitz import check_lipschitz
 from certify.checks.metric_bound import check_metric_bound
 from certify.checks.mpdi import check_mpdi
@@ -66,11 +67,13 @@ def _run_all(problem):
     out["rate"] = check_rate(problem, s, mpdi=out["mpdi"])
     lam_cert = out["rate"].proved_lower
     out["dissipation"] = check_dissipation(problem, s, residual=out["residual"])
+    out["invariance"] = check_invariance(problem.system, budget=20_000, seed=s.seed)
     out["metric_bound"] = check_metric_bound(problem, s, dissipation=out["dissipation"],
                                              residual=out["residual"])
     out["bounds"] = check_bounds(problem, lam_cert=lam_cert, eps_bar=out["residual"].upper,
                                  L=out["lipschitz"].value, vbar=s.noise,
-                                 dissipation=out["dissipation"], metric=out["metric_bound"])
+                                 dissipation=out["dissipation"], metric=out["metric_bound"],
+                                 invariance=out["invariance"])
     out["simulation"] = check_simulation(problem, out["bounds"], s, certified=False)
     return out
 
@@ -124,7 +127,7 @@ def test_sampled_side_never_exceeds_proved_side(results):
 def test_nan_weights_are_never_proved(system3):
     problem = _problem(system3, nan=True)
     for name, result in _run_all(problem).items():
-        if name == "necessary":  # independent of the network
+        if name in ("necessary", "invariance"):  # independent of the network
             continue
         assert result.status != Status.PROVED, (name, result.message)
 

@@ -233,6 +233,35 @@ def test_lam_and_metric_flags_override_the_spec(tmp_path, capsys):
 
 
 
+STATE_METRIC = """
+[design.state_metric]
+exponents = [[0, 0], [2, 0], [1, 1]]
+coefficients = [[[2, 0.5], [0.5, 1]], [[0.1, 0], [0, 0.05]], [[0, 0.2], [0.2, 0]]]
+"""
+
+
+def test_a_spec_metric_that_follows_the_state_travels_with_the_import(tmp_path, capsys):
+    """[design.state_metric] in the spec: the imported checkpoint holds that polynomial,
+    number for number; a malformed one is refused with one line naming the table (exit 2)
+    and nothing is written."""
+    (tmp_path / "spec.toml").write_text(LINEAR_SPEC + STATE_METRIC)
+    path = export(mlp("tanh", n=2, p=1), tmp_path / "m.onnx", "onnx17",
+                  (torch.zeros(1, 3, dtype=torch.float64),), structure="direct")
+    out = str(tmp_path / "m.ckpt")
+    code, _, err = run_cli(capsys, "import", path, "--system", str(tmp_path / "spec.toml"),
+                           "-o", out)
+    assert code == 0, err
+    metric = checkpoint.load(out).problem.metric
+    assert metric is not None and metric.exponents.tolist() == [[0, 0], [2, 0], [1, 1]]
+    assert metric.coefficients[2, 0, 1] == 0.2 and metric.coefficients[0, 0, 0] == 2.0
+    bad = STATE_METRIC.replace("[[0, 0.2], [0.2, 0]]", "[[0, 0.2], [0.3, 0]]")
+    (tmp_path / "bad.toml").write_text(LINEAR_SPEC + bad)
+    code, _, err = run_cli(capsys, "import", path, "--system", str(tmp_path / "bad.toml"),
+                           "-o", str(tmp_path / "bad.ckpt"))
+    assert code == 2 and "[design.state_metric]" in err and "symmetric" in err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "bad.ckpt").exists()
+
+
 class Normalised(nn.Module):
     """A gain trained on normalised inputs: seq((z - mean) / std), per input or joined."""
 

@@ -18,15 +18,18 @@ from certify.enclose.metric import (
     metric_tm,
     path_metric_tm,
     point_matrix,
+    tube_box_outside,
     tube_outside,
+    tube_point,
 )
 from certify.model.kernels import lam_max
 from certify.model.metric import PolyMetric, even_monomials
 from certify.model.network import GainNetwork
 from certify.prove import metric as pm
 from certify.results import Status
+from certify.spec.system import System
 
-from ..conftest import random_network
+from ..conftest import SPEC_3X2, random_network
 from ..planted import linear_system
 
 A2 = np.array([[0.0, 1.0], [-2.0, -1.0]])
@@ -84,6 +87,68 @@ def test_the_path_metric_enclosure_contains_every_sampled_value(seed, structural
     mub, _ = lam_max_upper(metric_tm(M, lo, hi), lo, hi)
     mv = lam_max(M.value(z[:, :2])).reshape(5, 200).max(1).values
     assert torch.all(mv <= mub)
+
+
+CURVED = System.from_text("""
+name = "curved"
+states = ["x1", "x2"]
+outputs = ["y"]
+f = ["x2", "-x1 - x2 + 0.3*x1**2*x2"]
+h = ["x1 + 0.3*sin(x2)"]
+[box]
+X = [[-1, 1], [-1.5, 1.5]]
+Y = [[-1.5, 1.5]]
+[design]
+lam = 0.5
+""", origin="test spec curved")
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 10_000), which=st.sampled_from(["curved", "three"]),
+       structural=st.booleans(), width=st.floats(0.01, 0.6), tau=st.floats(0.05, 1.0),
+       alpha=st.floats(0.1, 3.0), mu=st.floats(0.5, 200.0))
+def test_the_enclosure_in_tube_coordinates_contains_every_sampled_value(
+        seed, which, structural, width, tau, alpha, mu):
+    """Over random boxes of u = (x, t), lam_max of N at z = (x, h(x) + t) for sampled u never
+    exceeds the box bound (a nonlinear h; two outputs)."""
+    s = CURVED if which == "curved" else System.from_text(SPEC_3X2, origin="three")
+    n, p = s.n, s.p
+    net = random_network(n, p, hidden=(5,), structure="structural" if structural else "direct",
+                         seed=seed, scale=1.5)
+    rng = np.random.default_rng(seed)
+    E = even_monomials(n, 2)
+    C = rng.normal(size=(len(E), n, n)) * 0.1
+    C = C + C.transpose(0, 2, 1)
+    C[0] = np.eye(n) * 2.0
+    M = PolyMetric(E, C)
+    box = np.concatenate([s.X, np.tile([[-tau, tau]], (p, 1))])
+    span = box[:, 1] - box[:, 0]
+    lo = box[:, 0] + rng.random((5, len(box))) * span * (1 - width)
+    lo, hi = torch.as_tensor(lo), torch.as_tensor(lo + width * span)
+    ub, _ = lam_max_upper(path_metric_tm(s, net, M, alpha, mu, lo, hi, tube=True), lo, hi)
+    u = lo[:, None] + torch.as_tensor(rng.random((5, 200, n + p))) * (hi - lo)[:, None]
+    N = point_matrix(s, net, M, alpha, mu, tube_point(s, u.reshape(-1, n + p)))
+    vals = lam_max(N).reshape(5, 200).max(1).values
+    assert torch.all(torch.isnan(ub) | (vals <= ub))
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 10_000), tau=st.floats(0.01, 1.0), width=st.floats(0.01, 0.5))
+def test_a_tube_coordinate_box_with_a_point_of_the_tube_is_never_excluded(seed, tau, width):
+    """Two outputs: the tube ||t|| <= tau is a ball inside the box [-tau, tau]^2; a box with
+    a point of the ball is kept."""
+    s = System.from_text(SPEC_3X2, origin="three")
+    rng = np.random.default_rng(seed)
+    box = np.concatenate([s.X, np.tile([[-1.5 * tau, 1.5 * tau]], (2, 1))])
+    span = box[:, 1] - box[:, 0]
+    lo = box[:, 0] + rng.random((40, 5)) * span * (1 - width)
+    lo, hi = torch.as_tensor(lo), torch.as_tensor(lo + width * span)
+    out = tube_box_outside(s, lo, hi, tau)
+    u = lo[:, None] + torch.as_tensor(rng.random((40, 300, 5))) * (hi - lo)[:, None]
+    inside = (u[..., 3:].norm(dim=-1) <= tau).any(1)
+    assert not bool((out & inside).any())
+    corner = torch.tensor([[0.0, 0.0, 0.0, 0.8 * tau, 0.8 * tau]])
+    assert bool(tube_box_outside(s, corner, corner + 0.01 * tau, tau)[0])
 
 
 @settings(max_examples=20, deadline=None)

@@ -59,6 +59,12 @@ Y = [[-1.5, 1.5]]
 lam = 0.5
 P = [[3, -1], [-1, 1]]
 
+[design.state_metric]
+kind = "polynomial"
+format = 1
+exponents = [[0, 0], [1, 1]]
+coefficients = [[[3, -1], [-1, 1]], [[0.1, 0], [0, 0.1]]]
+
 [training.paper]
 mu1 = 1e-3
 mu2 = 1.0
@@ -122,6 +128,7 @@ def test_a_key_that_is_not_documented_is_refused_by_name(table, key):
 
 
 def test_a_table_that_is_not_a_table_is_refused():
-    text = _full_spec().replace("[design]\nlam = 0.5\nP = [[3, -1], [-1, 1]]\n", "")
+    full = _full_spec()
+    text = full[:full.index("[design]")] + full[full.index("[training.paper]"):]
     with pytest.raises(SpecError, match=r"\[design\] must be a table"):
         System.from_text("design = 3\n" + text, origin="spec bad.toml")
