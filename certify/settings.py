@@ -233,8 +233,8 @@ class VerifySettings:
         1_000_000, Count(1), flag="--grid-points", metavar="N", label="grid points \u2265",
         help="points of the dense grid over X x Y, at least")
     float32_screen: bool = setting(
-        True, Switch(), label="float32 screen of the grid",
-        help="sweep the grid in float32, re-check the candidates in float64")
+        True, Switch(), label="float32 screen of the grids",
+        help="sweep the MPDI and rate grids in float32, re-check the candidates in float64")
     adversarial_starts: int = setting(
         64, Count(0), flag="--adversarial-starts", metavar="N", label="ascent starts",
         help="starts of the gradient ascent on lam_max(D)")

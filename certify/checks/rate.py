@@ -23,6 +23,7 @@ from certify.presentation import Presentation, Quantity
 from certify.progress import NullProgress, Progress
 from certify.results import MpdiResult, ProofStats, RateResult, Status
 from certify.search.falsify import maximize_over_box
+from certify.search.grid import float32_rate_screen
 from certify.search.witness import is_witness, rate_sign_lower
 from certify.settings import VerifySettings
 
@@ -57,7 +58,9 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
     closing, MPDI decisions at rates above the proved one use the rest of the budget
     (`certify.prove.rate.raise_rate`). No proof is attempted when sampling already shows a rate
     <= 0 (then no bound exists whatever the proof says). `deadline`: the run's wall-clock
-    cap (None: none).
+    cap (None: none). The grid is swept with a float32 screen where `float32_screen` is on
+    and the problem's numbers fit float32 (`certify.search.grid.float32_rate_screen`): it
+    only selects the points evaluated again in float64, whose values are the check's.
     """
     progress = progress or NullProgress()
     t0 = time.perf_counter()
@@ -68,7 +71,8 @@ def check_rate(problem: Problem, settings: VerifySettings, *,
 
     lo, hi = joint_box(problem)
     grid = max(1000, settings.grid_points // 4)
-    search = maximize_over_box(neg_rate, lo, hi, grid_points=grid,
+    screen = float32_rate_screen(problem) if settings.float32_screen else None
+    search = maximize_over_box(neg_rate, lo, hi, grid_points=grid, screen=screen,
                                starts=settings.adversarial_starts,
                                steps=settings.adversarial_steps, top_k=1, seed=settings.seed,
                                progress=progress, task="rate grid")
@@ -159,7 +163,8 @@ class RateCheck(Check):
     name = "rate"
     title = "Contraction rate \u03bb_cert"
     result_type = RateResult
-    reads = ("grid_points", "adversarial_starts", "adversarial_steps", "seed", "rate_boxes")
+    reads = ("grid_points", "float32_screen", "adversarial_starts", "adversarial_steps", "seed",
+             "rate_boxes")
     uses = ("mpdi",)
 
     def run(self, context: Context) -> RateResult:

@@ -76,7 +76,7 @@ from certify.model.kernels import lam_max
 from certify.model.metric import PolyMetric
 from certify.model.network import GainNetwork
 from certify.results import Status
-from certify.search.bnb import branch_and_bound
+from certify.search.bnb import Budget, ClosingRule, Output, branch_and_bound
 from certify.search.evaluation import BoxEval
 from certify.settings import DEFAULTS
 from certify.spec.system import System
@@ -364,8 +364,8 @@ def prove_inequality(system: System, net: GainNetwork, metric: PolyMetric, alpha
     refuting `point` is a point z = (x, w) of the domain."""
     lo, hi = domain.root()
     out = branch_and_bound(lo, hi, _evaluator(system, net, metric, alpha, mu, domain),
-                           threshold=0.0, deadline=deadline, max_boxes=max_boxes,
-                           task="metric proof", keep_leaves=0)
+                           ClosingRule(threshold=0.0), Budget(max_boxes, deadline),
+                           output=Output(task="metric proof", keep_leaves=0))
     if out.complete and out.upper <= 0 and math.isfinite(out.upper):
         return InequalityOutcome(Status.PROVED, out.stats.boxes_processed, upper=out.upper)
     if out.violated and out.best_point is not None:
@@ -377,9 +377,8 @@ def prove_inequality(system: System, net: GainNetwork, metric: PolyMetric, alpha
 
 def _maximum(evaluate, lo: torch.Tensor, hi: torch.Tensor, boxes: int) -> float | None:
     """A sound upper bound of max over [lo, hi] of the evaluated quantity (None: none)."""
-    out = branch_and_bound(lo, hi, evaluate, threshold=None, rel_tol=1e-3, tol=1e-9,
-                           max_boxes=boxes, task="metric constant",
-                           keep_leaves=0)
+    out = branch_and_bound(lo, hi, evaluate, ClosingRule(rel_tol=1e-3, tol=1e-9),
+                           Budget(boxes), output=Output(task="metric constant", keep_leaves=0))
     return float(out.upper) if math.isfinite(out.upper) else None
 
 
@@ -468,9 +467,9 @@ def prove_direction_gain(system: System, metric: PolyMetric, X: np.ndarray, gamm
              else row.expand(len(x), 1, system.n))
         return H.transpose(1, 2) @ H - g2 * metric.value(x)
 
-    out = branch_and_bound(lo, hi, _matrix_evaluator(system, model, centre), threshold=0.0,
-                           max_boxes=boxes, task="metric constant",
-                           keep_leaves=0)
+    out = branch_and_bound(lo, hi, _matrix_evaluator(system, model, centre),
+                           ClosingRule(threshold=0.0), Budget(boxes),
+                           output=Output(task="metric constant", keep_leaves=0))
     return bool(out.complete and out.upper <= 0)
 
 

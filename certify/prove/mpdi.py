@@ -38,7 +38,14 @@ from certify.model.kernels import pointwise_rate, problem_lam_max
 from certify.model.problem import Problem
 from certify.progress import NullProgress, Progress
 from certify.results import Counterexample, ProofStats, Status
-from certify.search.bnb import SETUP_SECONDS_ANYWAY, branch_and_bound
+from certify.search.bnb import (
+    SETUP_SECONDS_ANYWAY,
+    Budget,
+    ClosingRule,
+    Output,
+    Schedule,
+    branch_and_bound,
+)
 from certify.search.evaluation import BoxEval
 from certify.search.tree_estimate import completion_text, estimate_tree, forecast_text
 from certify.search.witness import is_witness, mpdi_lower
@@ -277,13 +284,12 @@ def prove_mpdi(problem: Problem, *, lam: float | None = None,
         _forecast(setup, max_boxes, deadline, forecast)
     executor = current_executor() if executor is None else executor
     out = branch_and_bound(
-        lo, hi, setup.evaluate, threshold=0.0,
-        max_boxes=max_boxes, deadline=deadline, batch=batch, first_round=setup.first_round,
-        progress=progress, task=task,
-        seeds=seed_box(seeds, lo.shape[0], problem.device), keep_leaves=keep_leaves,
-        executor=executor,
-        remote=_mpdi_remote(problem, lam, technique, crown, executor), started=started,
-        box_seconds=box_seconds)
+        lo, hi, setup.evaluate, ClosingRule(threshold=0.0),
+        Budget(max_boxes, deadline, box_seconds),
+        Schedule(batch=batch, first_round=setup.first_round),
+        Output(progress=progress, task=task, keep_leaves=keep_leaves),
+        seeds=seed_box(seeds, lo.shape[0], problem.device), executor=executor,
+        remote=_mpdi_remote(problem, lam, technique, crown, executor))
     cex = None
     if out.best_point is not None:
         pt = out.best_point[None]
@@ -416,12 +422,11 @@ def prove_rate(problem: Problem, *, max_boxes: int = DEFAULTS.rate_boxes,
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         return BoxEval(upper=ub, centre_value=val, score=bb.score, counts=bb.counts)
 
-    out = branch_and_bound(lo, hi, evaluate, threshold=None, tol=tol, rel_tol=rel_tol,
-                           max_boxes=max_boxes, deadline=deadline, batch=batch,
-                           progress=progress, task="rate proof", coarse_after=coarse_after,
-                           give_up=None if give_up is None else (give_up[0], -2.0 * give_up[1]),
-                           seeds=seed_box(seeds, lo.shape[0], problem.device),
-                           started=started)
+    rule = ClosingRule(tol=tol, rel_tol=rel_tol, coarse_after=coarse_after,
+                       give_up=None if give_up is None else (give_up[0], -2.0 * give_up[1]))
+    out = branch_and_bound(lo, hi, evaluate, rule, Budget(max_boxes, deadline),
+                           Schedule(batch=batch), Output(progress=progress, task="rate proof"),
+                           seeds=seed_box(seeds, lo.shape[0], problem.device))
     lower = -out.upper / 2.0 if math.isfinite(out.upper) else None
     worst = None
     upper_sampled = -out.lower / 2.0 if math.isfinite(out.lower) else float("inf")

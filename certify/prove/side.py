@@ -29,7 +29,7 @@ from certify.model.problem import Problem
 from certify.progress import Progress
 from certify.prove.mpdi import Level, root_box, seed_box
 from certify.results import ProofStats
-from certify.search.bnb import branch_and_bound
+from certify.search.bnb import Budget, ClosingRule, Output, Schedule, branch_and_bound
 from certify.search.evaluation import BoxEval
 from certify.settings import DEFAULTS
 from certify.spec.enclosures import h_enclosure
@@ -68,10 +68,11 @@ def bound_residual(problem: Problem, *, max_boxes: int = DEFAULTS.residual_boxes
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         return BoxEval(upper=ub, centre_value=cen, score=None)
 
-    out = branch_and_bound(X[:, 0].clone(), X[:, 1].clone(), evaluate, threshold=None,
-                           rel_tol=rel_tol, tol=1e-12, seconds=seconds, deadline=deadline,
-                           max_boxes=max_boxes, batch=batch, progress=progress,
-                           task="residual bound", project=None,
+    out = branch_and_bound(X[:, 0].clone(), X[:, 1].clone(), evaluate,
+                           ClosingRule(rel_tol=rel_tol, tol=1e-12),
+                           Budget.capped(max_boxes, seconds=seconds, deadline=deadline),
+                           Schedule(batch=batch),
+                           Output(progress=progress, task="residual bound", project=None),
                            seeds=seed_box(seeds, X.shape[0], problem.device))
     upper = out.upper if math.isfinite(out.upper) else None
     worst = out.best_point.tolist() if out.best_point is not None else None
@@ -99,9 +100,10 @@ def bound_dk_dy(problem: Problem, *, max_boxes: int = DEFAULTS.lipschitz_boxes,
         ub = torch.where(torch.isfinite(ub), ub, torch.full_like(ub, float("nan")))
         return BoxEval(upper=ub, centre_value=cen, score=None)
 
-    out = branch_and_bound(lo, hi, evaluate, threshold=None, rel_tol=rel_tol, tol=1e-12,
-                           seconds=seconds, deadline=deadline, max_boxes=max_boxes,
-                           batch=batch, progress=progress, task="dk/dy bound", project=None)
+    out = branch_and_bound(lo, hi, evaluate, ClosingRule(rel_tol=rel_tol, tol=1e-12),
+                           Budget.capped(max_boxes, seconds=seconds, deadline=deadline),
+                           Schedule(batch=batch),
+                           Output(progress=progress, task="dk/dy bound", project=None))
     return (out.upper if math.isfinite(out.upper) else None), out.stats
 
 
@@ -169,9 +171,10 @@ def bound_manifold_quantity(system: System, P: np.ndarray | torch.Tensor, lam: f
         q = torch.where(inside, q, torch.full_like(q, -math.inf))
         return BoxEval(upper=ub, centre_value=q, score=None)
 
-    out = branch_and_bound(X[:, 0].clone(), X[:, 1].clone(), evaluate, threshold=None,
-                           rel_tol=rel_tol, tol=1e-12, seconds=seconds, deadline=deadline,
-                           max_boxes=max_boxes, batch=256, task="manifold bound", project=None)
+    out = branch_and_bound(X[:, 0].clone(), X[:, 1].clone(), evaluate,
+                           ClosingRule(rel_tol=rel_tol, tol=1e-12),
+                           Budget.capped(max_boxes, seconds=seconds, deadline=deadline),
+                           Schedule(batch=256), Output(task="manifold bound", project=None))
     upper = out.upper if not math.isnan(out.upper) else None
     if upper is not None and upper == math.inf:
         upper = None

@@ -30,13 +30,18 @@ concatenated in order, so the boxes, bounds and verdict are those of the serial 
 same box budget and lag (up to the last bits of BLAS products whose blocking depends on the
 chunk size; bounds stay sound either way).
 
+A run is described by a few objects: its `ClosingRule` (when a box closes, when to stop),
+its `Budget` (boxes, optional cap), its `Schedule` (batch, first round, lag, depth limit) and
+its `Output` (progress, leaves kept for the report).
+
 Budgets: `max_boxes` counts the boxes evaluated, and a run honours it exactly (its first
 round and its last are clipped to what is left), so where it binds a run evaluates the
-same boxes on any machine. An optional wall-clock cap (`deadline`, or `seconds` counted from
-`started`; None: no cap, and the clock is never read to decide anything) holds within a few
-seconds whatever a box costs (`RoundClock`): a round evaluated in this process is evaluated
-in one call where its predicted time fits (the cost per box is measured on every
-evaluation, and before the first round by two small timing probes of it, thrown away), so a
+same boxes on any machine. An optional wall-clock cap (`Budget.deadline`, e.g. from
+`Budget.capped(seconds=...)`; None: no cap, and the clock is never read to decide anything)
+holds within a few seconds whatever a box costs (`RoundClock`): a round evaluated in this
+process is evaluated in one call where its predicted time fits (the cost per box is measured
+on every evaluation, and before the first round by two small timing probes of it, thrown
+away), so a
 run that finishes within its cap evaluates the same boxes in the same calls as with no
 clock (and a first round of at most SETUP_SECONDS_ANYWAY is evaluated even when a caller's
 set-up used the cap up); a round that may not fit is evaluated in chunks sized to the time
@@ -51,6 +56,7 @@ already below the closing level).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections import deque
@@ -250,6 +256,52 @@ class ClosingRule:
         return lvl
 
 
+@dataclass(frozen=True)
+class Budget:
+    """What a run may spend: `max_boxes` boxes evaluated (honoured exactly) and an optional
+    wall-clock cap, `deadline` (a `time.perf_counter()` value; None: no cap, and the clock is
+    never read to decide anything), held inside long rounds (`RoundClock`). `box_seconds`:
+    a caller's estimate of the seconds a box costs (e.g. from an earlier run on the same
+    problem), which spares the timing probes of the first round under a cap."""
+
+    max_boxes: int
+    deadline: float | None = None
+    box_seconds: float | None = None
+
+    @classmethod
+    def capped(cls, max_boxes: int, *, seconds: float | None = None,
+               deadline: float | None = None, started: float | None = None,
+               box_seconds: float | None = None) -> Budget:
+        """The budget whose cap is the earlier of `deadline` and `seconds` counted from
+        `started` (default now: a caller's set-up before the run then counts)."""
+        start = time.perf_counter() if started is None else started
+        return cls(max_boxes, cap_deadline(deadline, seconds, start), box_seconds)
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """How a run refines (module docstring): `batch` boxes taken per round, the root first
+    split into about `first_round` equal boxes (default and at most `batch`), `lag` rounds in
+    flight before the oldest is merged, boxes split past `max_depth` set aside as UNKNOWN."""
+
+    batch: int = 1024
+    first_round: int | None = None
+    lag: int = PIPELINE_LAG
+    max_depth: int = 80
+
+
+@dataclass(frozen=True)
+class Output:
+    """What a run reports beside its bound: progress on `progress` under the name `task`,
+    and up to `keep_leaves` leaves projected on the coordinates `project` for the report's
+    figure (`Leaves`; None: none)."""
+
+    progress: Progress | None = None
+    task: str = "proof"
+    keep_leaves: int = 5000
+    project: tuple[int, int] | None = (0, 1)
+
+
 class Leaves:
     """The leaves of a run projected onto two coordinates `project` (for the report's
     figure): lo, hi [k, 2], status (0 proved or closed, 1 violated, 2 unknown) and area;
@@ -316,29 +368,32 @@ class BranchAndBound:
 
     def __init__(self, root_lo: torch.Tensor, root_hi: torch.Tensor,
                  evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], rule: ClosingRule,
-                 *, deadline: float | None, max_boxes: int, batch: int,
-                 first_round: int | None,
-                 max_depth: int, lag: int, progress: Progress, task: str, leaves: Leaves,
-                 executor: Any = None, remote: tuple[Callable[..., BoxEval], Any] | None = None,
-                 box_seconds: float | None = None, t0: float | None = None) -> None:
+                 budget: Budget, schedule: Schedule = Schedule(), output: Output = Output(),
+                 *, executor: Any = None,
+                 remote: tuple[Callable[..., BoxEval], Any] | None = None,
+                 t0: float | None = None) -> None:
         self.t0 = time.perf_counter() if t0 is None else t0
         self.rule = rule
         self.evaluate = evaluate
-        self.deadline = deadline
-        self.max_boxes, self.max_depth, self.lag = max_boxes, max_depth, lag
-        self.progress, self.task = progress, task
+        self.deadline = budget.deadline
+        self.max_boxes, self.max_depth, self.lag = (budget.max_boxes, schedule.max_depth,
+                                                    schedule.lag)
+        self.progress = output.progress or NullProgress()
+        self.task = output.task
         self.root_lo = root_lo.to(torch.float64)
         self.root_hi = root_hi.to(torch.float64)
         self.d = self.root_lo.shape[0]
         self.scale = (self.root_hi - self.root_lo).clamp_min(1e-300)
         self.root_vol = float(self.scale.prod())
-        self.batch = batch
-        first = batch if first_round is None else max(1, min(first_round, batch))
-        self.first_round = min(first, max_boxes)  # `initial_grid` makes at most this many
+        self.batch = schedule.batch
+        first = (schedule.batch if schedule.first_round is None
+                 else max(1, min(schedule.first_round, schedule.batch)))
+        self.first_round = min(first, budget.max_boxes)  # `initial_grid` makes at most this
 
         self.frontier = Frontier(self.d, device=self.root_lo.device)
         #: the rounds against the cap; None without one (each round one call, no clock read)
-        self.clock = None if deadline is None else RoundClock(evaluate, deadline, box_seconds)
+        self.clock = (None if self.deadline is None
+                      else RoundClock(evaluate, self.deadline, budget.box_seconds))
         self.rounds = RoundPipeline(self.clock or evaluate, executor, remote)
         self.in_flight: deque[tuple[Box, torch.Tensor]] = deque()
         self.best = -math.inf
@@ -360,7 +415,7 @@ class BranchAndBound:
         self.stages: dict[str, dict[str, int]] = {}
         self.history: list[list[float]] = [[0.0, 0.0]]
         self.last_report = self.t0
-        self.leaves = leaves
+        self.leaves = Leaves(output.project, self.d, output.keep_leaves)
 
     # ---- the run
     def run(self, seeds: Box | None = None) -> BnBOutcome:
@@ -538,68 +593,46 @@ def branch_and_bound(
     root_lo: torch.Tensor,
     root_hi: torch.Tensor,
     evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval],
+    rule: ClosingRule,
+    budget: Budget,
+    schedule: Schedule = Schedule(),
+    output: Output = Output(),
     *,
-    threshold: float | None = None,
-    tol: float = 0.0,
-    rel_tol: float = 0.0,
-    coarse_after: tuple[int, float] | None = None,
-    give_up: tuple[int, float] | None = None,
-    stop_on_violation: bool = True,
-    max_boxes: int,
-    seconds: float | None = None,
-    deadline: float | None = None,
-    batch: int = 1024,
-    first_round: int | None = None,
-    max_depth: int = 80,
-    progress: Progress | None = None,
-    task: str = "proof",
-    keep_leaves: int = 5000,
-    project: tuple[int, int] | None = (0, 1),
     seeds: Box | None = None,
     executor: Any = None,
     remote: tuple[Callable[..., BoxEval], Any] | None = None,
-    lag: int = PIPELINE_LAG,
-    started: float | None = None,
-    box_seconds: float | None = None,
 ) -> BnBOutcome:
     """Sound upper bound of max f over [root_lo, root_hi] [d], refining the worst boxes first
     (one `BranchAndBound` run).
 
-    Decision mode (`threshold` given): boxes with upper <= threshold close as proved; a
-    centre value > threshold is a violation (stops when `stop_on_violation`). Maximisation
-    mode: boxes with upper <= best + max(tol, rel_tol |best|) close; the result `upper` is
-    the max over closed and open boxes. `coarse_after = (N, coarse)`: once N boxes have been
-    evaluated the closing tolerance relaxes to `coarse` (a fine precision where it is cheap,
-    never more than N boxes spent on it beyond the coarse one; boxes closed before stay
-    closed, their bounds are below either level). `give_up = (N, level)` (maximisation): once
-    N boxes have been evaluated, the run stops as if its budget were spent when the largest
-    bound of the merged boxes, open or closed, is still above `level` (the caller has a
-    better way past that level); the check only chooses when to stop, the bound is then
-    formed as for any budgeted run. Budget: `max_boxes` (boxes evaluated, honoured
-    exactly). Optional wall-clock cap (None: none): `deadline` (a `time.perf_counter()`
-    value) or `seconds` from `started` (default the call: a caller's own set-up counts),
-    the earlier of the two; held inside long rounds (module docstring, `RoundClock`;
-    `box_seconds`: a caller's estimate of the seconds a box costs, e.g. from an earlier run
-    on the same problem, which spares the timing probes).
-    `first_round`: the root is first split into about that many equal boxes
-    (default and at most `batch`). `executor` / `remote`: where each round's children are
-    evaluated; `lag`: rounds in flight before the oldest is merged (module docstring). The
-    outcome depends on `lag` and the budgets, not on the executor. `keep_leaves` and
-    `project`: the leaves kept for the report (`Leaves`). The evaluations' stage counts
+    `rule` (`ClosingRule`): decision mode (`threshold` given): boxes with upper <= threshold
+    close as proved; a centre value > threshold is a violation (stops when
+    `stop_on_violation`). Maximisation mode: boxes with upper <= best + max(tol, rel_tol
+    |best|) close; the result `upper` is the max over closed and open boxes. `coarse_after =
+    (N, coarse)`: once N boxes have been evaluated the closing tolerance relaxes to `coarse`
+    (a fine precision where it is cheap, never more than N boxes spent on it beyond the
+    coarse one; boxes closed before stay closed, their bounds are below either level).
+    `give_up = (N, level)` (maximisation): once N boxes have been evaluated, the run stops as
+    if its budget were spent when the largest bound of the merged boxes, open or closed, is
+    still above `level` (the caller has a better way past that level); the check only chooses
+    when to stop, the bound is then formed as for any budgeted run.
+    `budget` (`Budget`): the boxes (honoured exactly) and the optional wall-clock cap, held
+    inside long rounds (module docstring, `RoundClock`). `schedule` (`Schedule`): the batch,
+    the first round, the lag and the depth limit. `output` (`Output`): progress and the
+    leaves kept for the report. `seeds`: points evaluated first (degenerate boxes: their
+    centre values set the best value; not counted as processed). `executor` / `remote`:
+    where each round's children are evaluated (module docstring). The outcome depends on
+    the rule, the budget and the schedule, not on the executor. The evaluations' stage counts
     (`BoxEval.counts`) are summed over the merged rounds into `stats.stages`.
     """
     t0 = time.perf_counter()
-    deadline = cap_deadline(deadline, seconds, t0 if started is None else started)
     if remote is not None and executor is not None:
         from certify.search.distributed.executor import round_batch
 
-        batch = round_batch(executor, batch)  # rounds sized to the workers
-    rule = ClosingRule(threshold, tol, rel_tol, coarse_after, give_up, stop_on_violation)
-    run = BranchAndBound(root_lo, root_hi, evaluate, rule, deadline=deadline,
-                         max_boxes=max_boxes, batch=batch, first_round=first_round,
-                         max_depth=max_depth, lag=lag, progress=progress or NullProgress(),
-                         task=task, leaves=Leaves(project, root_lo.shape[0], keep_leaves),
-                         executor=executor, remote=remote, box_seconds=box_seconds, t0=t0)
+        # rounds sized to the workers
+        schedule = dataclasses.replace(schedule, batch=round_batch(executor, schedule.batch))
+    run = BranchAndBound(root_lo, root_hi, evaluate, rule, budget, schedule, output,
+                         executor=executor, remote=remote, t0=t0)
     return run.run(seeds)
 
 

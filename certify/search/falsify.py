@@ -126,9 +126,16 @@ def sweep_range(fn: ScoreFn, screen: ScoreFn | None, lo: torch.Tensor, hi: torch
                 bad = ~torch.isfinite(exact)
                 n_bad = int(bad.sum())
                 n_above = int((exact > threshold).sum()) + n_bad
-            _, ti = torch.topk(approx, min(keep, len(approx)))
-            tv = fn(pts[ti])
-            tv = torch.where(torch.isfinite(tv), tv, torch.full_like(tv, math.inf))
+            # every point of the float64 top `keep` has approx >= (the keep-th approx) - 2 err
+            # (err: the screen's error, tol = 8 err): those are evaluated in float64, the
+            # others stand below the keep-th float64 value and take no part in the choice
+            kth = torch.topk(approx, min(keep, len(approx))).values[-1]
+            top = approx >= kth - tol
+            vals = torch.full_like(approx, -math.inf)
+            exact = fn(pts[top])
+            vals[top] = torch.where(torch.isfinite(exact), exact,
+                                    torch.full_like(exact, math.inf))
+            tv, ti = torch.topk(vals, min(keep, len(vals)))
     return pts[ti], tv, n_above, n_bad
 
 
@@ -162,8 +169,10 @@ def maximize_over_box(fn: ScoreFn, lo: np.ndarray, hi: np.ndarray, *, grid_point
 
     `screen`, if given, is a cheaper approximation of `fn` (e.g. float32) used to sweep the
     grid: its error is measured on a calibration sample, every grid point within 8x that error
-    of `threshold` (and every top candidate) is re-evaluated with `fn` in float64, so the
-    returned values and the count above `threshold` are float64 results, as without it.
+    of `threshold`, and every point within 8x that error of a chunk's `keep`-th best screen
+    value (a superset of the chunk's float64 best), is re-evaluated with `fn` in float64, so
+    the returned values, the candidates and the count above `threshold` are float64 results,
+    as without it (where the calibration's error holds over the grid).
 
     `remote = (executor, chunk_fn, payload)`, with an executor whose work runs elsewhere, sweeps
     the grid there instead of on local threads: `chunk_fn(payload, start, stop, tol,

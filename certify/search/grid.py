@@ -5,7 +5,9 @@ grid the work is many tiny 30 x 30 products and elementwise activations; storing
 (feature-major, `certify.model.gain.ColumnArithmetic`) lets every layer be one large matrix product
 with contiguous elementwise passes, several times faster (`bench/verify.py`, "grid"). Only the n
 tangent directions of xhat are propagated (D needs dk/dxhat, not dk/dy). It covers the `direct`
-structure with or without the linear term K; other structures use the general kernel.
+structure with or without the linear term K, and the structural one (k = G (y - h(xhat))) for
+the float32 screen; a structural kernel in float64 (the values a check reports) is the general
+kernel's, bit for bit.
 
 A float32 kernel is only ever a screen (`certify.search.falsify.maximize_over_box`: it selects the
 points that are evaluated again in float64, it decides nothing). It is built only where every
@@ -18,11 +20,12 @@ inside a float32 evaluation is a candidate for the float64 re-check, never a res
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 
 from certify.model.gain import COLUMNS, compose, propagate
-from certify.model.kernels import contraction_matrix, lam_max, mpdi_lam_max
+from certify.model.kernels import contraction_matrix, lam_max, mpdi_lam_max, pointwise_rate
 from certify.model.problem import Problem
 
 #: float32's normal range: a nonzero number outside it overflows or loses its precision
@@ -50,6 +53,9 @@ def float32_misfit(problem: Problem, lam: float | None = None) -> str | None:
     checks = [(folded_constants(list(system.jf_expr), system.symbols), "a constant of df/dx"),
               (folded_constants(list(system.jh_expr), system.symbols), "a constant of dh/dx"),
               ([2.0 * lam], "2 lam")]
+    if net.structure != "direct":  # the structural kernel evaluates h itself
+        checks.append((folded_constants(list(system.h_expr), system.symbols),
+                       "a constant of h"))
     checks.append((problem.P_t.detach().reshape(-1).tolist(), "an entry of P"))
     if problem.shift is not None:
         checks.append((problem.shift_t.reshape(-1).tolist(), "an entry of the constant term Q"))
@@ -80,7 +86,8 @@ class GridKernel:
                 dtype = torch.float64
         self.dtype = dtype
         net = problem.network
-        self.fast = net.structure == "direct"
+        self.structural = net.structure != "direct"
+        self.fast = not self.structural or dtype == torch.float32
         self.spec = net.spec(dtype, detach=True)
         self.P = problem.P_t.to(dtype)
         self.shift = None if problem.shift is None else problem.shift_t.to(dtype)
@@ -95,8 +102,10 @@ class GridKernel:
         z = z.to(self.dtype)
         xhat = z[:, :n]
         net = propagate(self.spec, COLUMNS, z, n)
-        Hx = problem.system.jac_h(xhat) if self.spec.has_K else None
-        dk_dx = compose(self.spec, COLUMNS, net, None, Hx, with_dy=False, with_k=False).dk_dx
+        system = problem.system
+        Hx = system.jac_h(xhat) if self.spec.has_K or self.structural else None
+        r = z[:, n:] - system.h(xhat) if self.structural else None
+        dk_dx = compose(self.spec, COLUMNS, net, r, Hx, with_dy=False, with_k=False).dk_dx
         return lam_max(contraction_matrix(problem.system.jac_f(xhat), dk_dx, self.P, self.lam,
                                           self.shift))
 
@@ -106,3 +115,24 @@ def float32_screen(problem: Problem, lam: float | None = None) -> GridKernel | N
     float32 (`float32_misfit`: the sweep then runs in float64 alone)."""
     screen = GridKernel(problem, lam, dtype=torch.float32)
     return screen if screen.fallback is None else None
+
+
+def float32_rate_screen(problem: Problem) -> Callable[[torch.Tensor], torch.Tensor] | None:
+    """The float32 screen of the rate grid: z = (xhat, y) [B, n+p] -> -pointwise_rate [B]
+    (`certify.model.kernels.pointwise_rate`, the score the rate check maximises) in float32;
+    or None where the problem's numbers do not fit float32 (`float32_misfit`) or P has no
+    float32 Cholesky factor (the pencil's). Like the MPDI screen, it only selects the points
+    evaluated again in float64 (`certify.search.falsify.maximize_over_box`)."""
+    if float32_misfit(problem) is not None:
+        return None
+    P32 = problem.P_t.detach().to(torch.float32)
+    if bool(torch.linalg.cholesky_ex(P32).info.any()):
+        return None
+    system, net, n = problem.system, problem.network, problem.n
+
+    def screen(z: torch.Tensor) -> torch.Tensor:
+        z = z.to(torch.float32)
+        return -pointwise_rate(system, net, P32.to(z.device), z[:, :n], z[:, n:])
+
+    return screen
+

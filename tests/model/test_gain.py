@@ -93,10 +93,11 @@ def test_second_order_propagation_matches_autograd_hessian(act):
         torch.testing.assert_close(out.hess[b, 1], H[:2], rtol=1e-9, atol=1e-11)
 
 
+@pytest.mark.parametrize("structure", ["direct", "structural"])
 @pytest.mark.parametrize("act", NAMES)
-def test_grid_kernel_columns_equal_rows_in_float64_and_float32(act):
+def test_grid_kernel_columns_equal_rows_in_float64_and_float32(act, structure):
     system = load_system("vdp")
-    net = _net(system, act, seed=1, hidden=(6, 6))
+    net = _net(system, act, structure=structure, seed=1, hidden=(6, 6))
     problem = Problem(system, net, 1.0, np.array([[2.0, 0.3], [0.3, 1.0]]))
     x, y = _points(system, 50, 1)
     ref = mpdi_lam_max(system, net, problem.P_t, 1.0, x, y)

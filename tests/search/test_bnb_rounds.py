@@ -60,7 +60,7 @@ def test_chunked_rounds_still_find_a_planted_violation() -> None:
 def test_budgeted_decision_rounds_close_the_easy_region() -> None:
     """A region that never closes (bound 1 > 0) must not starve the rest: half of every
     round goes to the boxes nearest to closing, so a budgeted run proves the easy half."""
-    from certify.search.bnb import branch_and_bound
+    from certify.search.bnb import Budget, ClosingRule, Schedule, branch_and_bound
     from certify.search.evaluation import BoxEval
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
@@ -70,7 +70,8 @@ def test_budgeted_decision_rounds_close_the_easy_region() -> None:
         return BoxEval(upper=upper, centre_value=-torch.ones_like(width))
 
     out = branch_and_bound(torch.zeros(1, dtype=torch.float64), torch.ones(1, dtype=torch.float64),
-                           evaluate, threshold=0.0, max_boxes=400, batch=4, max_depth=200)
+                           evaluate, ClosingRule(threshold=0.0), Budget(400),
+                           Schedule(batch=4, max_depth=200))
     assert not out.complete and not out.violated
     assert out.upper == 1.0
     assert 0.49 <= out.stats.proved_volume_fraction <= 0.5
@@ -80,7 +81,7 @@ def test_first_round_sets_the_coarsest_boxes() -> None:
     """A bound that closes boxes of width <= 1/4 on [0, 1]^2: a first round of 16 boxes closes
     at once (16 boxes), the default first round of `batch` boxes spends them all, and a first
     round of 4 refines each box once (4 + 8 + 16)."""
-    from certify.search.bnb import branch_and_bound
+    from certify.search.bnb import Budget, ClosingRule, Schedule, branch_and_bound
     from certify.search.evaluation import BoxEval
 
     def evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
@@ -90,8 +91,8 @@ def test_first_round_sets_the_coarsest_boxes() -> None:
     root = (torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64))
     counts = {}
     for first in (None, 16, 4):
-        out = branch_and_bound(*root, evaluate, threshold=0.0, batch=64, first_round=first,
-                               max_boxes=10_000)
+        out = branch_and_bound(*root, evaluate, ClosingRule(threshold=0.0), Budget(10_000),
+                               Schedule(batch=64, first_round=first))
         assert out.complete and out.upper <= 0
         counts[first] = out.stats.boxes_processed
     assert counts == {None: 64, 16: 16, 4: 28}

@@ -13,7 +13,15 @@ import torch
 from certify.arith.boxes import Box
 from certify.progress import NullProgress
 from certify.prove.mpdi import prove_mpdi
-from certify.search.bnb import BranchAndBound, ClosingRule, Leaves, branch_and_bound
+from certify.search.bnb import (
+    BranchAndBound,
+    Budget,
+    ClosingRule,
+    Leaves,
+    Output,
+    Schedule,
+    branch_and_bound,
+)
 from certify.search.distributed.executor import SerialExecutor
 from certify.search.evaluation import BoxEval, add_counts, join
 
@@ -61,12 +69,12 @@ def test_a_run_leaves_its_state_readable() -> None:
     """The class run and the function agree; after the run the named state says what
     happened: nothing open, every box counted, the counts summed over the rounds."""
     root = (torch.zeros(2, dtype=F64), torch.ones(2, dtype=F64))
-    run = BranchAndBound(*root, _width_bound, ClosingRule(threshold=0.0), deadline=None,
-                         max_boxes=10_000, batch=64, first_round=4, max_depth=80, lag=2,
-                         progress=NullProgress(), task="t", leaves=Leaves((0, 1), 2, 100))
+    schedule = Schedule(batch=64, first_round=4, max_depth=80, lag=2)
+    run = BranchAndBound(*root, _width_bound, ClosingRule(threshold=0.0), Budget(10_000),
+                         schedule, Output(progress=NullProgress(), task="t", keep_leaves=100))
     out = run.run()
-    same = branch_and_bound(*root, _width_bound, threshold=0.0, batch=64, first_round=4,
-                            max_boxes=10_000)
+    same = branch_and_bound(*root, _width_bound, ClosingRule(threshold=0.0), Budget(10_000),
+                            Schedule(batch=64, first_round=4))
     assert out.complete and out.upper == same.upper and out.upper <= 0
     assert out.stats.boxes_processed == same.stats.boxes_processed == 28 == run.processed
     assert len(run.frontier) == 0 and not run.in_flight and not run.violated
@@ -107,7 +115,8 @@ def test_seeds_are_evaluated_first_and_not_counted_as_processed() -> None:
         return BoxEval(upper=torch.full((len(lo),), 2.0, dtype=F64), centre_value=c[:, 0] - 0.5)
 
     pt = torch.tensor([[0.9, 0.1]], dtype=F64)
-    out = branch_and_bound(*root, evaluate, threshold=0.0, batch=4, max_boxes=10_000,
+    out = branch_and_bound(*root, evaluate, ClosingRule(threshold=0.0), Budget(10_000),
+                           Schedule(batch=4),
                            seeds=Box(pt, pt.clone(), torch.zeros(1, dtype=torch.long)))
     assert out.violated and out.lower == 0.4
     assert torch.equal(out.best_point, pt[0])

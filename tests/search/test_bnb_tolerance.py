@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from certify.search.bnb import branch_and_bound
+from certify.search.bnb import Budget, ClosingRule, Output, Schedule, branch_and_bound
 from certify.search.evaluation import BoxEval
 
 F64 = torch.float64
@@ -22,10 +22,11 @@ def _evaluate(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
 
 def test_coarse_after_stops_at_the_coarse_tolerance_after_the_budget() -> None:
     lo, hi = torch.zeros(2, dtype=F64), torch.ones(2, dtype=F64)
-    kw = dict(batch=16, max_boxes=200_000, project=None)
-    fine = branch_and_bound(lo, hi, _evaluate, rel_tol=1e-9, **kw)
-    relaxed = branch_and_bound(lo, hi, _evaluate, rel_tol=1e-9, coarse_after=(128, 1e-2), **kw)
-    coarse = branch_and_bound(lo, hi, _evaluate, rel_tol=1e-2, **kw)
+    kw = dict(budget=Budget(200_000), schedule=Schedule(batch=16), output=Output(project=None))
+    fine = branch_and_bound(lo, hi, _evaluate, ClosingRule(rel_tol=1e-9), **kw)
+    relaxed = branch_and_bound(lo, hi, _evaluate,
+                               ClosingRule(rel_tol=1e-9, coarse_after=(128, 1e-2)), **kw)
+    coarse = branch_and_bound(lo, hi, _evaluate, ClosingRule(rel_tol=1e-2), **kw)
     for out in (fine, relaxed, coarse):
         assert out.complete and out.upper >= 1.0  # sound: the true max is 1, at a
     assert fine.upper <= 1.0 + 2e-9
@@ -41,10 +42,12 @@ def test_give_up_stops_only_while_the_bound_is_above_its_level() -> None:
     there as budget-spent, still with a sound bound (>= the true max 1); one whose bound is
     already below runs on to the same outcome as without it."""
     lo, hi = torch.zeros(2, dtype=F64), torch.ones(2, dtype=F64)
-    kw = dict(batch=16, max_boxes=200_000, project=None, rel_tol=1e-9)
-    plain = branch_and_bound(lo, hi, _evaluate, **kw)
-    early = branch_and_bound(lo, hi, _evaluate, give_up=(128, 1.0 + 1e-12), **kw)
-    late = branch_and_bound(lo, hi, _evaluate, give_up=(128, 2.0), **kw)
+    kw = dict(budget=Budget(200_000), schedule=Schedule(batch=16), output=Output(project=None))
+    plain = branch_and_bound(lo, hi, _evaluate, ClosingRule(rel_tol=1e-9), **kw)
+    early = branch_and_bound(lo, hi, _evaluate,
+                             ClosingRule(rel_tol=1e-9, give_up=(128, 1.0 + 1e-12)), **kw)
+    late = branch_and_bound(lo, hi, _evaluate, ClosingRule(rel_tol=1e-9, give_up=(128, 2.0)),
+                            **kw)
     assert plain.complete and not plain.stats.budget_exhausted
     assert early.stats.budget_exhausted and not early.complete
     assert 128 <= early.stats.boxes_processed <= 128 + 4 * 2 * 16

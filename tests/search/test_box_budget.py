@@ -12,7 +12,7 @@ import torch
 
 from certify.prove.mpdi import prove_mpdi
 from certify.results import Status
-from certify.search.bnb import branch_and_bound
+from certify.search.bnb import Budget, ClosingRule, Schedule, branch_and_bound
 from certify.search.evaluation import BoxEval
 
 
@@ -25,7 +25,8 @@ def _never_closes(lo: torch.Tensor, hi: torch.Tensor) -> BoxEval:
 @pytest.mark.parametrize("budget", [1, 3, 4, 5, 100, 1000, 1025, 5000])
 def test_a_run_never_evaluates_more_than_its_box_budget(budget):
     root = (torch.zeros(3, dtype=torch.float64), torch.ones(3, dtype=torch.float64))
-    out = branch_and_bound(*root, _never_closes, threshold=0.0, max_boxes=budget, batch=1024)
+    out = branch_and_bound(*root, _never_closes, ClosingRule(threshold=0.0), Budget(budget),
+                           Schedule(batch=1024))
     assert 0 < out.stats.boxes_processed <= budget
     assert out.stats.budget_exhausted and not out.stats.stopped_by_cap and not out.complete
     # it stops only when no round of two children fits
@@ -64,8 +65,8 @@ def test_without_a_cap_the_clock_decides_nothing(monkeypatch):
 
 def test_a_cap_that_passed_stops_the_run_and_says_so():
     root = (torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64))
-    out = branch_and_bound(*root, _never_closes, threshold=0.0, max_boxes=10**6, batch=64,
-                           deadline=time.perf_counter() - 1.0)
+    out = branch_and_bound(*root, _never_closes, ClosingRule(threshold=0.0),
+                           Budget(10**6, deadline=time.perf_counter() - 1.0), Schedule(batch=64))
     assert out.stats.stopped_by_cap and out.stats.budget_exhausted
     assert out.stats.boxes_processed < 10**6 and not out.complete
     assert math.isfinite(out.upper)  # the first round is evaluated anyway (cheap): a bound

@@ -23,7 +23,7 @@ from certify.model.network import GainNetwork
 from certify.model.problem import Problem
 from certify.prove.mpdi import prove_mpdi
 from certify.results import Status
-from certify.search.bnb import RoundClock, branch_and_bound
+from certify.search.bnb import Budget, ClosingRule, RoundClock, Schedule, branch_and_bound
 from certify.search.distributed.executor import SerialExecutor
 from certify.search.evaluation import BoxEval
 from tests.planted import linear_system
@@ -88,8 +88,8 @@ def test_a_slow_first_round_keeps_the_budget() -> None:
     near the deadline with the first round unfinished: no box closed, the bound unknown."""
     t = time.perf_counter()
     out = branch_and_bound(torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64),
-                           sleepy(0.02), threshold=0.0, seconds=2.0, batch=1024,
-                           max_boxes=10**6)
+                           sleepy(0.02), ClosingRule(threshold=0.0),
+                           Budget.capped(10**6, seconds=2.0), Schedule(batch=1024))
     assert time.perf_counter() - t < 2.0 + MARGIN
     assert not out.complete and out.stats.budget_exhausted
     assert out.upper == math.inf  # first-round boxes not evaluated have no bound at all
@@ -112,7 +112,7 @@ def test_boxes_a_round_did_not_evaluate_keep_their_parents_bound() -> None:
                        done=None if bool(done.all()) else done)
 
     out = branch_and_bound(torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64),
-                           partial, threshold=0.0, max_boxes=10**6, batch=16)
+                           partial, ClosingRule(threshold=0.0), Budget(10**6), Schedule(batch=16))
     assert rounds == [16, 32]  # nothing dispatched after the cut round
     assert out.stats.boxes_processed == 16 + 10
     assert not out.complete and out.stats.budget_exhausted
@@ -156,7 +156,8 @@ def test_an_executors_round_not_back_by_the_deadline_is_cancelled() -> None:
 
     t = time.perf_counter()
     out = branch_and_bound(torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64),
-                           width_eval, threshold=0.0, seconds=0.5, batch=1024, max_boxes=10**6,
+                           width_eval, ClosingRule(threshold=0.0),
+                           Budget.capped(10**6, seconds=0.5), Schedule(batch=1024),
                            executor=Threaded(), remote=(chunk, {}))
     assert time.perf_counter() - t < 0.5 + MARGIN
     assert out.stats.boxes_processed == 0 and out.upper == math.inf and not out.complete

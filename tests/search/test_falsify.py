@@ -61,3 +61,20 @@ def test_torch_threads_restores_setting():
     with torch_threads(1):
         assert torch.get_num_threads() == 1
     assert torch.get_num_threads() == before
+
+
+def test_float32_screen_keeps_the_float64_ranking_of_near_ties():
+    """A plateau whose slope float32 cannot see: the screen ranks the points by chance, yet
+    the candidates (and so the ascent's seeds and the answer) are float64's."""
+    def plateau(z: torch.Tensor) -> torch.Tensor:
+        return 1.0 - 1e-9 * ((z - PEAK.to(z.dtype)) ** 2).sum(1)
+
+    def screen(z: torch.Tensor) -> torch.Tensor:
+        return plateau(z.to(torch.float32))
+
+    kw = dict(grid_points=20_000, starts=4, steps=0, top_k=5, threshold=2.0)
+    plain = maximize_over_box(plateau, LO, HI, **kw)
+    screened = maximize_over_box(plateau, LO, HI, screen=screen, **kw)
+    assert np.array_equal(screened.top_points, plain.top_points)
+    assert np.array_equal(screened.top_values, plain.top_values)
+    assert screened.grid_best_value == plain.grid_best_value

@@ -17,12 +17,19 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from certify.arith.eigen import _lam2_upper
-from certify.checks.mpdi import falsify_mpdi
+from certify.checks.mpdi import falsify_mpdi, joint_box
+from certify.checks.rate import check_rate
 from certify.model import checkpoint
-from certify.model.kernels import lam_max
+from certify.model.kernels import lam_max, pointwise_rate
 from certify.model.network import GainNetwork
 from certify.model.problem import Problem
-from certify.search.grid import GridKernel, float32_misfit, float32_screen
+from certify.search.falsify import screen_tolerance
+from certify.search.grid import (
+    GridKernel,
+    float32_misfit,
+    float32_rate_screen,
+    float32_screen,
+)
 from certify.settings import VerifySettings
 from certify.spec.system import System
 
@@ -43,11 +50,11 @@ lam = 0.25
 
 
 def huge_problem(f: str = '"-1e39*x1", "-x2"', h: str = '"x1"',
-                 weight: float | None = None) -> Problem:
+                 weight: float | None = None, structure: str = "direct") -> Problem:
     """D = diag(-1e39 + 0.5, -0.5) for the default spec: lam_max(D) = -0.5 everywhere. A
     zero network, except one first-layer weight `weight` (with zero layers after it: k = 0)."""
     system = System.from_text(SPEC.format(f=f, h=h), origin="test spec huge")
-    net = GainNetwork(2, 1, (4, 4)).double()
+    net = GainNetwork(2, 1, (4, 4), structure=structure).double()
     with torch.no_grad():
         for layer in net.layers:
             layer.weight.zero_()
@@ -125,6 +132,45 @@ def test_the_screen_falls_back_where_a_number_does_not_fit(f, h, weight, why):
     assert float32_screen(problem) is None
     z = torch.tensor([[0.3, -0.2, 0.1], [-1.0, 1.0, 1.0]], dtype=torch.float64)
     assert torch.equal(kernel(z), GridKernel(problem)(z))
+
+
+def test_a_structural_gain_falls_back_on_a_constant_of_h_alone():
+    """The structural kernel evaluates h itself: a constant dh/dx never sees still counts."""
+    h = '"x1 + 1e39"'
+    assert float32_misfit(huge_problem('"-x1", "-x2"', h)) is None  # direct: only dh/dx
+    problem = huge_problem('"-x1", "-x2"', h, structure="structural")
+    assert "constant of h" in float32_misfit(problem)
+    assert float32_screen(problem) is None
+
+
+def test_the_rate_screen_falls_back_like_the_mpdi_screen():
+    assert float32_rate_screen(huge_problem()) is None  # a constant of df/dx
+    fits = huge_problem('"-x1", "-x2"')
+    assert float32_rate_screen(fits) is not None
+    # P positive definite in float64, not in float32 (its Cholesky factor): no screen
+    thin = Problem(fits.system, fits.network, 0.25, np.array([[1.0, 1.0], [1.0, 1.0 + 1e-9]]))
+    assert float32_misfit(thin) is None and float32_rate_screen(thin) is None
+
+
+def test_the_rate_grid_gives_the_same_numbers_with_its_screen():
+    """A contracting system (rates 0.2 to 0.8, far from 0: the screen is used, not skipped)."""
+    system = System.from_text(SPEC.format(f='"-2*x1 + x2", "-x1 - 2*x2 + x1**2*x2"',
+                                          h='"x1"'), origin="test spec contracting")
+    torch.manual_seed(3)
+    net = GainNetwork(2, 1, (6, 6), structure="structural").double().requires_grad_(False)
+    with torch.no_grad():
+        net.layers[-1].weight.mul_(0.3)
+    problem = Problem(system, net, 0.25, np.array([[2.0, 0.3], [0.3, 1.0]]))
+    lo, hi = (torch.as_tensor(b) for b in joint_box(problem))
+    _, near = screen_tolerance(lambda z: -pointwise_rate(system, net, problem.P_t, z[:, :2],
+                                                         z[:, 2:]),
+                               float32_rate_screen(problem), lo, hi, seed=0)
+    assert near < 0.25  # the sweep keeps its screen
+    kw = dict(grid_points=8000, adversarial_starts=4, adversarial_steps=10)
+    with_screen = check_rate(problem, VerifySettings(float32_screen=True, **kw), prove=False)
+    plain = check_rate(problem, VerifySettings(float32_screen=False, **kw), prove=False)
+    assert with_screen.sampled_upper == plain.sampled_upper
+    assert with_screen.worst == plain.worst
 
 
 def test_a_problem_that_fits_keeps_its_float32_screen():

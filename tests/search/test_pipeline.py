@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from certify.search import frontier as frontier_module
-from certify.search.bnb import branch_and_bound
+from certify.search.bnb import PIPELINE_LAG, Budget, ClosingRule, Schedule, branch_and_bound
 from certify.search.distributed.executor import SerialExecutor
 from certify.search.evaluation import BoxEval
 from certify.search.frontier import Frontier
@@ -79,13 +79,13 @@ DIM = 3  # f <= DIM - offset, with its max DIM - offset at x_i = pi/6
 ROOT = (-torch.ones(DIM, dtype=torch.float64), torch.ones(DIM, dtype=torch.float64))
 
 
-def _sine_bnb(offset: float, executor=None, jitter: float = 0.0, **kw):
+def _sine_bnb(offset: float, executor=None, jitter: float = 0.0, max_boxes: int = 2_000_000,
+              lag: int = PIPELINE_LAG):
     evaluate = lambda lo, hi: sine_eval(offset, lo, hi)  # noqa: E731
     remote = (sine_chunk, {"offset": offset, "jitter": jitter})
-    kw.setdefault("batch", 32)
-    kw.setdefault("max_boxes", 2_000_000)
-    return branch_and_bound(*ROOT, evaluate, threshold=0.0, executor=executor,
-                            remote=remote if executor is not None else None, **kw)
+    return branch_and_bound(*ROOT, evaluate, ClosingRule(threshold=0.0), Budget(max_boxes),
+                            Schedule(batch=32, lag=lag), executor=executor,
+                            remote=remote if executor is not None else None)
 
 
 def _same(a, b) -> None:
@@ -266,8 +266,8 @@ def test_rounds_too_large_for_the_gpu_run_in_halves_with_the_same_outcome(offset
         return sine_eval(offset, lo, hi)
 
     plain = _sine_bnb(offset, max_boxes=3000)
-    halved = branch_and_bound(*ROOT, small_gpu, threshold=0.0, batch=32,
-                              max_boxes=3000)
+    halved = branch_and_bound(*ROOT, small_gpu, ClosingRule(threshold=0.0), Budget(3000),
+                              Schedule(batch=32))
     _same(plain, halved)
     assert max(refused) == 64 and max(done) <= 12  # rounds of 2 x 32 children, halved
     assert sum(done) == halved.stats.boxes_processed
@@ -278,4 +278,5 @@ def test_one_box_the_gpu_cannot_hold_is_an_error_not_a_verdict():
         raise torch.cuda.OutOfMemoryError("CUDA out of memory (simulated)")
 
     with pytest.raises(torch.cuda.OutOfMemoryError):
-        branch_and_bound(*ROOT, no_memory, threshold=0.0, batch=32, max_boxes=3000)
+        branch_and_bound(*ROOT, no_memory, ClosingRule(threshold=0.0), Budget(3000),
+                         Schedule(batch=32))

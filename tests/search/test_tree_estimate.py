@@ -13,7 +13,7 @@ import torch
 from bench.instances import InstanceSpec, make_instance
 from certify.prove.mpdi import mpdi_decision, prove_mpdi
 from certify.results import ProofStats, Status
-from certify.search.bnb import branch_and_bound
+from certify.search.bnb import Budget, ClosingRule, Schedule, branch_and_bound
 from certify.search.tree_estimate import leaf_depths, summarize
 
 
@@ -29,8 +29,8 @@ def test_random_descents_end_in_the_proofs_own_leaves() -> None:
         closed.append((lo[shut], hi[shut]))
         return out
 
-    proof = branch_and_bound(setup.lo, setup.hi, recording, threshold=0.0, max_boxes=10**6,
-                             first_round=setup.first_round)
+    proof = branch_and_bound(setup.lo, setup.hi, recording, ClosingRule(threshold=0.0),
+                             Budget(10**6), Schedule(first_round=setup.first_round))
     assert proof.complete
     leaf_lo = torch.cat([c[0] for c in closed])
     leaf_hi = torch.cat([c[1] for c in closed])
