@@ -98,7 +98,8 @@ class MetricBoundCheck(Check):
         box = (", ".join(f"[{lower_text(lo, 3)}, {upper_text(hi, 3)}]" for lo, hi in
                          r.plant_box) if r.plant_box else None)
         return Presentation(
-            sampled=Quantity("stages", len(r.stages)),
+            sampled=Quantity("no sampled side (the stages are proved or not)", None,
+                             "\u2014"),
             proved=Quantity("\u2016e\u2016 limit", r.ultimate, "not proved", bound="upper"),
             numbers=(Quantity("ultimate bound", r.ultimate, sig=6, bound="upper"),
                      Quantity("m_min", r.m_min, sig=6, bound="lower"),
