@@ -62,3 +62,21 @@ def test_the_shipped_page_is_readable():
     tables = [ln for ln in page.splitlines() if ln.startswith("| ")]
     assert tables and max(ln.count("|") - 1 for ln in tables) <= 8
     assert not re.search(r"(?<![\w.])/(tmp|work|home|root)/", page)
+
+
+def test_the_design_table_keeps_the_newest_row_of_each_design(tmp_path):
+    """A later run that re-measures one design replaces that row only."""
+    page = _page_module()
+    first = _records()
+    later = {**first[1], "run": "2026-02-01T00:00:00+00:00", "commit": "def5678",
+             "seconds": 99.0}
+    new = {**first[0], "run": "2026-02-01T00:00:00+00:00", "commit": "def5678",
+           "design": "metric", "seconds": 7.0}
+    path = tmp_path / "compare.jsonl"
+    path.write_text("\n".join(json.dumps(r) for r in first + [later, new]) + "\n")
+    rows = page.read_runs([path])["compare"]
+    assert [(r["system"], r["design"]) for r in rows] == [
+        ("vdp", "lmi"), ("vdp", "bound"), ("lorenz", "lmi"), ("vdp", "metric")]
+    assert rows[1]["seconds"] == 99.0 and rows[0]["seconds"] == 3.25
+    text = page.render({"compare": rows})
+    assert "over 2 runs" in text and "def5678" in text and "abc1234" in text
