@@ -32,6 +32,8 @@ from certify.design.bound import pointwise_terms
 from certify.enclose.metric import point_matrix
 from certify.model import checkpoint
 from certify.prove import metric as pm
+from certify.settings import VerifySettings
+from certify.verify import verify
 from training.collocation import collocation_points
 from training.proved import REPORT_VBAR, certified_bound, copy_network
 
@@ -70,14 +72,12 @@ def main(argv: list[str] | None = None) -> int:
     ck = checkpoint.load(a.base)
     pr = ck.problem
     system, metric, P, lam = pr.system, pr.metric, pr.P, pr.lam
-    base = certified_bound(system, copy_network(pr.network), lam, P, metric=metric,
-                           vbar=REPORT_VBAR)
-    tau = base["metric_tau"]
-    # the rate of the checkpoint's last stage: the one its own verification picked
-    from certify.settings import VerifySettings
-    from certify.verify import verify
+    # the checkpoint's own certificate: its last metric stage's tube and rate
     cert = verify(ck, VerifySettings(noise=REPORT_VBAR, skip=("simulation",)), figures=False)
-    alpha = float(cert.checks["metric_bound"].stages[-1]["alpha"])
+    mb = cert.checks["metric_bound"]
+    tau, alpha = float(mb.stages[-1]["tau"]), float(mb.stages[-1]["alpha"])
+    base = {"verdict": cert.verdict, "ultimate": cert.checks["bounds"].ultimate,
+            "metric_ultimate": mb.ultimate, "metric_tau": tau}
     net = copy_network(pr.network).train()
     params = [q for layer in net.layers for q in (layer.weight, layer.bias)]
     for q in params:
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
                 + 10.0 * torch.relu(lD + a.margin).mean()
                 + a.pull * (G ** 2).mean())
         if step % 50 == 0:
-            mu, lD, G = mu.detach(), lD.detach(), G.detach()
+            mu, lD, G, top = mu.detach(), lD.detach(), G.detach(), top.detach()
             hist.append({"step": step, "max_mu": float(mu.max()), "top_mu": float(
                 torch.topk(mu, k).values.mean()), "max_lD": float(lD.max()),
                 "max_X": float(top.max()), "G_rms": float((G ** 2).mean().sqrt())})

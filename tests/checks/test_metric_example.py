@@ -1,9 +1,9 @@
 """The shipped checkpoints with a metric that follows the state (examples/vdp_metric.ckpt,
 made by `certify train vdp --preset bound`, and examples/vdp_metric_learned.ckpt, a learned
 gain trained against its certificate by bench/vdp_metric_learned.py; docs/error-bounds.md
-section 7): `certify.verify` proves the metric's stages, and the error bound they give is below what any constant-metric certificate
-of a gain with an exact boundary condition can prove on the Van der Pol box
-(docs/error-bounds.md, sections 5 and 7)."""
+section 7): `certify.verify` proves the metric's stages, and the error bound they give is
+below what any constant-metric certificate of a gain with an exact boundary condition can prove
+on the Van der Pol box (docs/error-bounds.md, sections 5 and 7)."""
 
 from __future__ import annotations
 
