@@ -6,14 +6,16 @@ trains G with Adam against:
 
 * on the tube of the checkpoint's last metric stage (widened by `--widen`): the mu the metric
   inequality needs at the stage's rate alpha (the top `--top` fraction of the sampled points,
-  the bound is sqrt(mu / alpha) vbar / sqrt(m_min));
+  the bound is sqrt(mu / alpha) vbar / sqrt(m_min)), with the state block of its matrix kept
+  negative definite;
 * over X x Y: the MPDI's lam_max(D) with P and the checkpoint's rate, kept below `-margin`
   (the first stage: the constant-metric certificates over X x Y);
 * over X x Y: `--pull` |G|^2, keeping the gain near the linear one off the tube.
 
 Then `certify.verify` proves the candidate (training.proved.certified_bound) and, with
 `--out`, the checkpoint is written (network, lam, P, M(x)); `certify run` proves it again.
-Prints one JSON line: the proved bounds of the linear and the learned gain.
+Prints JSON lines: the training's sampled figures every 50 steps, then the proved bounds of the
+linear and the learned gain.
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python bench/vdp_metric_learned.py \
         --out examples/vdp_metric_learned.ckpt
