@@ -47,8 +47,9 @@ KEY_COLUMNS = 2
 MAX_TEXT = 48
 #: an absolute path in a text: its directories and its file name
 PATH = re.compile(r"(?<![\w.)\]])(/[\w.+-]+)+/([\w.+-]+)")
-#: modules in bench/ that are not benchmarks (helpers, this script)
-NOT_BENCHES = {"record", "instances", "performance_page"}
+#: modules in bench/ that are not benchmarks (helpers, this script, the recipe of a shipped
+#: example)
+NOT_BENCHES = {"record", "instances", "performance_page", "vdp_metric_learned"}
 #: series too long for a table cell (they stay in the JSON lines)
 LONG = {"volume_history", "argmax", "runs_s", "counterexample", "figure", "png_bytes",
         "final", "statuses", "verdicts"}
