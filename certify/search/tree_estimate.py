@@ -106,7 +106,8 @@ def summarize(leaf: torch.Tensor, evaluations: int, first_round: int = 0) -> Tre
     mean = float(w.mean())
     se = float(w.std()) / math.sqrt(len(w)) if len(w) > 1 else math.inf
     q = torch.quantile(leaf[ok].to(torch.float64),
-                       torch.tensor([0.1, 0.5, 0.9, 0.99], dtype=torch.float64))
+                       torch.tensor([0.1, 0.5, 0.9, 0.99], dtype=torch.float64,
+                                    device=leaf.device))
     return TreeEstimate(mean, max(2.0 * mean - first_round, mean), se / mean, len(leaf), stuck,
                         evaluations, [int(v) for v in q])
 
@@ -133,10 +134,10 @@ def estimate_tree(evaluate: Callable[[torch.Tensor, torch.Tensor], BoxEval], lo:
         points = max(MIN_POINTS, min(points, fit))
     leaves: list[torch.Tensor] = []
     evaluations, batch = 0, 0
-    est = summarize(torch.empty(0, dtype=torch.long), 0, first_round)
+    est = summarize(torch.empty(0, dtype=torch.long, device="cpu"), 0, first_round)
     while True:
         gen = torch.Generator().manual_seed(seed + batch)
-        u = torch.rand(points, lo.shape[0], generator=gen, dtype=torch.float64)
+        u = torch.rand(points, lo.shape[0], generator=gen, dtype=torch.float64, device="cpu")
         z = lo.cpu() + (hi - lo).cpu() * u
         leaf, spent = leaf_depths(evaluate, lo, hi, first_round, z, threshold, max_depth,
                                   deadline)
