@@ -156,11 +156,13 @@ Refuter = Callable[[torch.Tensor, torch.Tensor, torch.Tensor],
                    tuple[torch.Tensor, torch.Tensor]]
 
 
-def branch_and_bound(upper: Bounder, refute: Refuter, lo: torch.Tensor, hi: torch.Tensor,
-                     owner: torch.Tensor, budget: int) -> Search:
+def prove_pieces(upper: Bounder, refute: Refuter, lo: torch.Tensor, hi: torch.Tensor,
+                 owner: torch.Tensor, budget: int) -> Search:
     """Prove upper(piece) < 0 on every piece [lo, hi] [B, d] (owner [B]: which condition the
     piece belongs to; bounders see it), splitting pieces in half along their widest side
-    relative to the starting pieces' widths (a side of width 0 stays whole).
+    relative to the starting pieces' widths (a side of width 0 stays whole): a small
+    breadth-first branch and bound over low-dimensional parameter pieces, not the MPDI
+    prover's `certify.search.bnb`.
 
     `upper(lo, hi, owner)` -> a sound upper bound [B] (-inf: the piece is closed without one;
     NaN: not closed); `refute(lo, hi, owner)` -> (lower [B], point [B, n]): lower > 0 proves
@@ -281,7 +283,7 @@ def prove_polygon(system: Any, vertices: np.ndarray, budget: int) -> Search:
     m = vertices.shape[0]
     lo = torch.zeros(m, 1, dtype=torch.float64)
     hi = torch.ones(m, 1, dtype=torch.float64)
-    return branch_and_bound(upper, refute, lo, hi, torch.arange(m), budget)
+    return prove_pieces(upper, refute, lo, hi, torch.arange(m), budget)
 
 
 # ----------------------------------------------------------------------------- box
@@ -328,7 +330,7 @@ def prove_box(system: Any, box: np.ndarray, budget: int) -> Search:
         m = 0.5 * (lo + hi)
         return signed(own, _f(system, Interval(m, m))).lo, m
 
-    return branch_and_bound(upper, refute, lo, hi, faces, budget)
+    return prove_pieces(upper, refute, lo, hi, faces, budget)
 
 
 # ----------------------------------------------------------------------------- sublevel set
@@ -399,7 +401,7 @@ def prove_sublevel(system: Any, region: Region, X: np.ndarray, budget: int) -> S
         return low, 0.5 * (a + b)
 
     Xt = torch.as_tensor(X, dtype=torch.float64)
-    return branch_and_bound(upper, refute, Xt[None, :, 0].clone(), Xt[None, :, 1].clone(),
+    return prove_pieces(upper, refute, Xt[None, :, 0].clone(), Xt[None, :, 1].clone(),
                             torch.zeros(1, dtype=torch.long), budget)
 
 
@@ -425,7 +427,7 @@ def prove_inside(region: Region, X: np.ndarray, budget: int) -> Search:
         V = _expr_enclosure([region.V], region.symbols, Interval(m, m))[0]
         return torch.where(V.hi <= c, torch.ones_like(V.hi), -torch.ones_like(V.hi)), m
 
-    out = branch_and_bound(upper, refute, torch.stack(los), torch.stack(his),
+    out = prove_pieces(upper, refute, torch.stack(los), torch.stack(his),
                            torch.arange(2 * n), budget)
     return out
 
