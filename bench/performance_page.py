@@ -3,9 +3,10 @@
 Every bench script reports through `bench/record.py`, which appends each JSON line, tagged
 with its run (`run`: the UTC start of the process, `commit`, `script`, `host`), to
 `bench/results/<script>.jsonl`. This script reads those files (or the files named on the
-command line), keeps the newest run of each script only (of `bench/compare.py`, the newest
-record of each system and design over all runs), and writes one table per kind of
-record (the record's `bench` field, else the script), one row per record: numbers as the
+command line), keeps the newest run of each script only (of `bench/compare.py` and
+`bench/prove_suite.py`, the newest record of each row over all runs: `ROW_KEYS`), and
+writes one table per kind of record (the record's `bench` field, else the script), one row
+per record: numbers as the
 bench printed them (floats to 4 significant digits), no narrative. Bench scripts without a
 recorded run are listed as not run in this generation.
 
@@ -55,7 +56,7 @@ LONG = {"volume_history", "argmax", "runs_s", "counterexample", "figure", "png_b
         "final", "statuses", "verdicts"}
 #: scripts whose rows are named by these fields: the page keeps the newest record of each
 #: row over all runs (a run that re-measures some rows replaces those only)
-ROW_KEYS = {"compare": ("system", "design")}
+ROW_KEYS = {"compare": ("system", "design"), "prove_suite": ("instance", "summary")}
 #: what each script measures, one line (the script's docstring says how)
 WHAT = {
     "run": "`certify run` end to end as a user meets it, wall and CPU seconds, and start-up",
